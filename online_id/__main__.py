@@ -1,0 +1,5 @@
+import sys
+
+from online_id.cli import main
+
+sys.exit(main())

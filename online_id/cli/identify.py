@@ -1,0 +1,112 @@
+"""``online-id identify PATH``: the seed paper's experiment on a bench file."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+
+from online_id.config import Settings, load_config
+from online_id.core.identification import IdentificationResult, identify
+from online_id.errors import ConfigError
+from online_id.report import TerminalProgress, identification_table, plot_identification
+from online_id.signals import read_bench_csv
+
+
+def add_subparser(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "identify",
+        help="identify the driveline from a bench CSV file",
+        description="Identify the driveline (resonance, damping, c_s, d_s, inertias) from a bench "
+        "CSV with columns time_s, dyno_speed_rpm, engine_speed_rpm, dyno_torque_nm "
+        "(torque positive = braking). Prints the poles per operating point with their class.",
+    )
+    p.add_argument("path", metavar="PATH", help="bench CSV file")
+    p.add_argument("--config", metavar="FILE", help="YAML config (columns, units, inertias, identification)")
+    p.add_argument("--json", action="store_true", help="print one JSON document instead of the table")
+    p.add_argument("--plot", metavar="FILE.png", help="plot pole frequency and damping against engine speed")
+    g = p.add_argument_group("input columns and units (override the config)")
+    g.add_argument("--time-col", metavar="NAME")
+    g.add_argument("--dyno-speed-col", metavar="NAME")
+    g.add_argument("--engine-speed-col", metavar="NAME")
+    g.add_argument("--torque-col", metavar="NAME")
+    g.add_argument("--time-unit", choices=["s", "ms"])
+    g.add_argument("--speed-unit", choices=["rpm", "rad/s", "deg", "rad"],
+                   help="rpm or rad/s for speeds; deg or rad when the columns hold cumulative angles")
+    g.add_argument("--torque-sign", choices=["braking", "driving"], help="what positive torque does")
+    m = p.add_argument_group("identification (override the config)")
+    m.add_argument("--J1", type=float, metavar="KGM2", help="dyno inertia from the data sheet")
+    m.add_argument("--J2", type=float, metavar="KGM2", help="engine-side inertia")
+    m.add_argument("--J-total", type=float, metavar="KGM2", help="J1+J2 from a coast-down test")
+    m.add_argument("--pulses-per-rev", type=float, metavar="F", help="compression pulses per revolution (cylinders/2)")
+    m.add_argument("--sample-rate", type=float, metavar="HZ", help="identification sample rate after decimation")
+    m.add_argument("--na", type=int, nargs="+", metavar="N", help="orders of A to try (nb = nc = na)")
+    m.add_argument("--operating-point", action="append", metavar="T0:T1",
+                   help="time window of an operating point (repeatable); default: found automatically")
+    p.set_defaults(func=run)
+
+
+def _window(text: str) -> tuple[float, float]:
+    try:
+        t0, t1 = (float(x) for x in text.split(":"))
+    except ValueError:
+        raise ConfigError(f"--operating-point: expected T0:T1 in seconds, got {text!r}") from None
+    if t1 <= t0:
+        raise ConfigError(f"--operating-point: end must be after start, got {text!r}")
+    return t0, t1
+
+
+def settings_from_args(args: argparse.Namespace) -> Settings:
+    """Config file settings with the command-line flags applied on top."""
+    s = load_config(args.config)
+    cols = {k: v for k, v in dict(time=args.time_col, dyno_speed=args.dyno_speed_col,
+                                  engine_speed=args.engine_speed_col, dyno_torque=args.torque_col).items() if v}
+    units = {k: v for k, v in dict(time=args.time_unit, speed=args.speed_unit, torque_sign=args.torque_sign).items() if v}
+    inert = {k: v for k, v in dict(J1=args.J1, J2=args.J2, J_total=args.J_total).items() if v is not None}
+    for name, v in inert.items():
+        if v <= 0:
+            raise ConfigError(f"--{name.replace('_', '-')}: expected a number > 0, got {v!r}")
+    ident = {}
+    if args.pulses_per_rev is not None:
+        ident["pulses_per_rev"] = args.pulses_per_rev
+    if args.sample_rate is not None:
+        if args.sample_rate <= 0:
+            raise ConfigError(f"--sample-rate: expected a number > 0, got {args.sample_rate!r}")
+        ident["sample_rate_hz"] = args.sample_rate
+    if args.na:
+        ident["na"] = tuple(args.na)
+    if args.operating_point:
+        ident["operating_points"] = tuple(_window(w) for w in args.operating_point)
+    return dataclasses.replace(
+        s,
+        columns=dataclasses.replace(s.columns, **cols),
+        units=dataclasses.replace(s.units, **units),
+        inertias=dataclasses.replace(s.inertias, **inert),
+        identification=dataclasses.replace(s.identification, **ident),
+    )
+
+
+def run_identification(path: str, s: Settings, label: str = "identify") -> IdentificationResult:
+    data = read_bench_csv(path, s.columns, s.units)
+    progress = TerminalProgress(label)
+    try:
+        return identify(data, s.identification, s.inertias, progress=progress)
+    finally:
+        progress.close()
+
+
+def run(args: argparse.Namespace) -> int:
+    s = settings_from_args(args)
+    result = run_identification(args.path, s)
+    if args.plot:
+        plot_identification(result, args.plot, title=f"online-id identify {args.path}")
+    if args.json:
+        json.dump(result.as_dict(), sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    else:
+        print(f"online-id identify {args.path}")
+        print(identification_table(result))
+        if args.plot:
+            print(f"plot: {args.plot}")
+    return 0

@@ -1,0 +1,243 @@
+"""Offline identification: operating points -> ARMAX per point -> sorted poles -> driveline.
+
+This is the seed paper's experiment as a function: for every steady
+operating point an over-parametrised ARMAX model from dyno torque to dyno
+speed is estimated (recursive start, then prediction-error minimisation),
+one model order is chosen for all points by the summed log-FPE, the poles are
+sorted into the invariant driveline pair and the speed-dependent ones, and
+the physical parameters follow from the pole pair, the zeros and the gain (or
+from given inertias).
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from online_id.core.settings import IdentificationSettings, InertiaSettings
+from online_id.core.model import ArmaxOrders
+from online_id.core.pem import ArmaxFit, fit_armax
+from online_id.core.physical import DrivelineParameters, ResponseFit, fit_response, frequency_response, parameters
+from online_id.core.plateaus import Plateau, find_plateaus, plateaus_from_times
+from online_id.core.poles import DRIVELINE, Pole, PoleSorting, poles_of, sort_poles
+from online_id.core.preprocess import decimate, decimation_factor
+from online_id.core.rels import RecursiveArmax
+from online_id.errors import EstimationError, InputDataError
+from online_id.records import BenchData
+
+Progress = Callable[[float, str], None]
+
+
+@dataclass
+class PointResult:
+    """Identification at one operating point."""
+
+    plateau: Plateau
+    dt: float
+    fits: dict[ArmaxOrders, ArmaxFit]
+    fit: ArmaxFit | None = None
+    poles: list[Pole] = field(default_factory=list)
+    response: ResponseFit | None = None
+
+    @property
+    def speed_rpm(self) -> float:
+        return self.plateau.speed_rpm
+
+
+@dataclass
+class IdentificationResult:
+    """Everything :func:`identify` found."""
+
+    points: list[PointResult]
+    orders: ArmaxOrders
+    sorting: PoleSorting
+    driveline: DrivelineParameters | None
+    fs_hz: float
+    warnings: list[str]
+
+    def as_dict(self) -> dict:
+        drive = self.driveline.as_dict() if self.driveline else None
+        if drive is not None and self.sorting.driveline is not None:
+            drive["f0_std_hz"] = self.sorting.driveline.f0_std_hz
+            drive["zeta_std"] = self.sorting.driveline.zeta_std
+            drive["n_points"] = self.sorting.driveline.n_points
+        fpes = [p.fit.fpe for p in self.points if p.fit is not None]
+        return {
+            "driveline": drive,
+            "operating_points": [
+                {
+                    "engine_speed_rpm": p.speed_rpm,
+                    "t_start_s": p.plateau.t_start_s,
+                    "t_end_s": p.plateau.t_end_s,
+                    "n_samples": p.fit.n if p.fit else 0,
+                    "fpe": p.fit.fpe if p.fit else None,
+                    "poles": [q.as_dict() for q in p.poles],
+                }
+                for p in self.points
+            ],
+            "model": {
+                "na": self.orders.na,
+                "nb": self.orders.nb,
+                "nc": self.orders.nc,
+                "nk": self.orders.nk,
+                "fpe": float(np.mean(fpes)) if fpes else None,
+                "sample_rate_hz": self.fs_hz,
+            },
+            "invariant_modes": [{"f_hz": m.f0_hz, "zeta": m.zeta} for m in self.sorting.invariant_modes],
+            "warnings": list(self.warnings),
+        }
+
+
+def candidate_orders(s: IdentificationSettings) -> list[ArmaxOrders]:
+    """The grid of model orders to try (empty ``nb``/``nc`` lists mean "same as na")."""
+    out = []
+    for na in s.na:
+        nbs = s.nb or (na,)
+        ncs = s.nc or (na,)
+        for nb, nc in itertools.product(nbs, ncs):
+            out.append(ArmaxOrders(na, nb, nc, s.nk))
+    return out
+
+
+def _check_excitation(u: np.ndarray, where: str) -> None:
+    spread = float(np.std(u))
+    if not np.isfinite(spread) or spread <= 1e-9 * max(1.0, float(np.max(np.abs(u)))):
+        raise InputDataError(f"{where}: no excitation: the dyno torque is constant (std {spread:.3g} Nm); "
+                             "add a test signal (PRBS) to the torque")
+
+
+def find_operating_points(data: BenchData, s: IdentificationSettings) -> list[Plateau]:
+    """Operating points from the configured windows, or found automatically."""
+    rpm = data.engine_speed_rpm
+    if s.operating_points:
+        return plateaus_from_times(data.time_s, rpm, s.operating_points)
+    return find_plateaus(data.time_s, rpm, min_duration_s=s.min_plateau_s, tol_rpm=s.plateau_tol_rpm)
+
+
+def _segment(data: BenchData, p: Plateau, factor: int) -> tuple[np.ndarray, np.ndarray]:
+    """Mean-free, anti-alias decimated (y = dyno speed, u = dyno torque) of one plateau.
+
+    The means are removed because constant terms vanish in the identification
+    (seed paper, eq. 10 and 18): friction offset and steady speed.
+    """
+    seg = slice(p.start, p.stop)
+    y = data.dyno_speed_rad_s[seg] - np.mean(data.dyno_speed_rad_s[seg])
+    u = data.dyno_torque_nm[seg] - np.mean(data.dyno_torque_nm[seg])
+    return decimate(y, factor), decimate(u, factor)
+
+
+def _fit_point(y: np.ndarray, u: np.ndarray, orders: ArmaxOrders, recursive_start: bool) -> ArmaxFit:
+    theta0 = None
+    if recursive_start:
+        est = RecursiveArmax(orders, lam=1.0, p0=1e3)
+        est.update_block(y, u)
+        if np.all(np.isfinite(est.theta)):
+            theta0 = est.theta
+    return fit_armax(y, u, orders, theta0=theta0)
+
+
+def _response_band(point: PointResult, f0_hz: float, nyquist_hz: float) -> np.ndarray:
+    hi = min(2.5 * f0_hz, 0.8 * nyquist_hz)
+    f = np.geomspace(0.35 * f0_hz, hi, 300)
+    keep = np.ones(f.shape, bool)
+    for q in point.poles:
+        if q.kind == "complex" and q.cls != DRIVELINE and q.zeta < 0.15:
+            keep &= np.abs(f - q.f_hz) > 0.05 * q.f_hz
+    return f[keep]
+
+
+def identify(
+    data: BenchData,
+    settings: IdentificationSettings | None = None,
+    inertias: InertiaSettings | None = None,
+    progress: Progress | None = None,
+) -> IdentificationResult:
+    """Identify the driveline from bench data (see module docstring)."""
+    s = settings or IdentificationSettings()
+    inertias = inertias or InertiaSettings()
+    report = progress or (lambda frac, msg: None)
+    dt_raw = float(np.median(np.diff(data.time_s)))
+    fs_raw = 1.0 / dt_raw
+    factor = decimation_factor(fs_raw, s.sample_rate_hz)
+    dt = dt_raw * factor
+    warnings: list[str] = []
+
+    _check_excitation(data.dyno_torque_nm, data.source)
+    plateaus = find_operating_points(data, s)
+    if len(plateaus) < s.min_operating_points:
+        found = ", ".join(f"{p.speed_rpm:.0f} rpm" for p in plateaus) or "none"
+        raise InputDataError(
+            f"{data.source}: found {len(plateaus)} steady operating point(s) ({found}); "
+            f"at least {s.min_operating_points} are needed to sort the driveline poles from the "
+            f"speed-dependent ones (steady = engine speed within {s.plateau_tol_rpm:g} rpm for "
+            f"{s.min_plateau_s:g} s; set identification.operating_points or min_operating_points)"
+        )
+    candidates = candidate_orders(s)
+    points = [PointResult(p, dt, {}) for p in plateaus]
+    total = len(points) * len(candidates)
+    done = 0
+    for point in points:
+        y, u = _segment(data, point.plateau, factor)
+        _check_excitation(u, f"{data.source}: operating point at {point.speed_rpm:.0f} rpm")
+        for orders in candidates:
+            report(done / total, f"{point.speed_rpm:.0f} rpm, na={orders.na} nb={orders.nb} nc={orders.nc}")
+            try:
+                point.fits[orders] = _fit_point(y, u, orders, s.recursive_start)
+            except EstimationError as err:
+                warnings.append(f"{point.speed_rpm:.0f} rpm, {orders}: {err}")
+            done += 1
+    report(1.0, "sorting poles")
+
+    # one structure for all points: the one with the least summed log-FPE (or AIC)
+    def score(o: ArmaxOrders) -> float:
+        vals = []
+        for p in points:
+            fit = p.fits.get(o)
+            if fit is None:
+                return np.inf
+            vals.append(np.log(fit.fpe) if s.criterion == "fpe" else fit.aic)
+        return float(np.sum(vals))
+
+    scored = sorted(candidates, key=score)
+    if not np.isfinite(score(scored[0])):
+        raise EstimationError(f"{data.source}: no model order could be fitted at every operating point")
+    orders = scored[0]
+    for p in points:
+        p.fit = p.fits[orders]
+        p.poles = poles_of(p.fit.A, dt)
+
+    sorting = sort_poles(
+        [p.poles for p in points],
+        [p.speed_rpm for p in points],
+        band_hz=(s.band_hz[0], min(s.band_hz[1], 0.45 / dt)),
+        pulses_per_rev=s.pulses_per_rev,
+        tol_pct=s.invariant_tol_pct,
+        max_freq_hz=0.4 / dt,
+    )
+    for p, row in zip(points, sorting.poles):
+        p.poles = row
+
+    driveline = None
+    if sorting.driveline is None:
+        warnings.append("no invariant lightly damped pole pair was found at the operating points")
+    else:
+        mode = sorting.driveline
+        fas, gains = [], []
+        for p in points:
+            f = _response_band(p, mode.f0_hz, 0.5 / dt)
+            try:
+                p.response = fit_response(f, frequency_response(p.fit.B, p.fit.A, f, dt), mode.f0_hz, mode.zeta)
+            except EstimationError as err:
+                warnings.append(f"{p.speed_rpm:.0f} rpm: {err}")
+                continue
+            fas.append(p.response.fa_hz)
+            gains.append(p.response.gain)
+        fa = float(np.median(fas)) if fas else None
+        gain = float(np.median(gains)) if gains else None
+        driveline = parameters(
+            mode.f0_hz, mode.zeta, fa, gain, J1=inertias.J1, J2=inertias.J2, J_total=inertias.J_total
+        )
+    return IdentificationResult(points, orders, sorting, driveline, 1.0 / dt, warnings)

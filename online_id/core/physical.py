@@ -1,0 +1,183 @@
+"""Physical driveline parameters from the identified model.
+
+Notes
+-----
+With the engine-side friction linearised to a slope :math:`\\beta`, the
+two-mass oscillator's dyno-speed response to dyno torque is (method.md,
+with the friction feedback added)
+
+.. math::
+
+    G_{11}(s) = -\\frac{1}{J_1}\\,
+        \\frac{s^2 + \\frac{\\beta + d_s}{J_2} s + \\frac{c_s}{J_2}}
+             {(s + p)(s^2 + 2\\zeta\\omega_0 s + \\omega_0^2)}
+
+so its high-frequency gain is :math:`1/J_1`, its complex zeros are the
+anti-resonance :math:`\\omega_a^2 = c_s/J_2` and its complex poles the
+resonance :math:`\\omega_0^2 = c_s (J_1+J_2)/(J_1 J_2)` (for small
+:math:`\\beta`; the real pole :math:`p \\approx \\beta/(J_1+J_2)` replaces
+the integrator).  :func:`fit_response` fits gain, zeros, real pole and a
+small delay (sampling) to the identified model's frequency response with the
+complex pole pair fixed to the sorted driveline pair; :func:`parameters`
+turns :math:`\\omega_0, \\zeta, \\omega_a` and a gain or known inertias into
+:math:`J_1, J_2, c_s, d_s` using
+
+.. math::
+
+    \\frac{\\omega_0^2}{\\omega_a^2} = \\frac{J_1+J_2}{J_1},\\quad
+    c_s = \\omega_a^2 J_2,\\quad
+    d_s = 2\\zeta\\omega_0 \\frac{J_1 J_2}{J_1+J_2}.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from online_id.errors import EstimationError
+
+
+@dataclass(frozen=True)
+class ResponseFit:
+    """Gain, anti-resonance and real pole fitted to a frequency response."""
+
+    gain: float  # high-frequency gain 1/J1 [1/(kg m^2)]
+    fa_hz: float
+    zeta_a: float
+    pole_hz: float
+    delay_s: float
+    rms_log_error: float
+
+
+@dataclass(frozen=True)
+class DrivelineParameters:
+    """Resonance, damping and the physical two-mass parameters."""
+
+    f0_hz: float
+    zeta: float
+    fa_hz: float | None
+    J1: float | None
+    J2: float | None
+    c_s: float | None
+    d_s: float | None
+    source: str  # which inputs gave the inertias
+
+    def as_dict(self) -> dict:
+        return {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in asdict(self).items()}
+
+
+def frequency_response(b: np.ndarray, a: np.ndarray, f_hz: np.ndarray, dt: float) -> np.ndarray:
+    """``B(q^-1)/A(q^-1)`` evaluated at ``q = exp(j 2 pi f dt)``."""
+    zinv = np.exp(-2j * np.pi * np.asarray(f_hz) * dt)
+    num = np.polyval(np.asarray(b)[::-1], zinv)
+    den = np.polyval(np.asarray(a)[::-1], zinv)
+    return num / den
+
+
+def fit_response(
+    f_hz: np.ndarray, response: np.ndarray, f0_hz: float, zeta: float, *, fa_guess_hz: float | None = None
+) -> ResponseFit:
+    """Fit the two-mass structure to a measured/identified frequency response.
+
+    The complex pole pair is fixed to ``(f0_hz, zeta)``; gain, zeros, the real
+    pole and a delay are free.  The error is the complex log ratio
+    (log-magnitude and phase), so every frequency weighs alike.
+    """
+    f_hz = np.asarray(f_hz, dtype=float)
+    response = np.asarray(response, dtype=complex)
+    ok = np.isfinite(response) & (np.abs(response) > 0)
+    f_hz, response = f_hz[ok], response[ok]
+    if f_hz.size < 8:
+        raise EstimationError("too few frequency points to fit the anti-resonance")
+    s = 2j * np.pi * f_hz
+    w0 = 2 * np.pi * f0_hz
+    den_pair = s**2 + 2 * zeta * w0 * s + w0**2
+    log_meas = np.log(response)
+
+    def model(x: np.ndarray) -> np.ndarray:
+        log_g, wa, za, p, tau = x
+        num = s**2 + 2 * za * wa * s + wa**2
+        return -np.exp(log_g) * num / ((s + p) * den_pair) * np.exp(-s * tau)
+
+    def resid(x: np.ndarray) -> np.ndarray:
+        d = np.log(model(x)) - log_meas
+        d_im = (d.imag + np.pi) % (2 * np.pi) - np.pi
+        return np.concatenate((d.real, d_im))
+
+    # start: gain from the highest frequencies, anti-resonance from the notch
+    wa0 = 2 * np.pi * (fa_guess_hz if fa_guess_hz else 0.8 * f0_hz)
+    below = f_hz < f0_hz
+    if np.any(below):
+        mag = np.abs(response[below]) * f_hz[below]
+        wa0 = 2 * np.pi * f_hz[below][int(np.argmin(mag))]
+    hi = f_hz > 1.5 * f0_hz
+    g0 = float(np.median(np.abs(response[hi]) * 2 * np.pi * f_hz[hi])) if np.any(hi) else 1.0
+    best = None
+    for za0 in (0.02, 0.08):
+        x0 = np.array([np.log(max(g0, 1e-9)), wa0, za0, 0.05 * w0, 0.0])
+        lo = [-np.inf, 0.1 * w0, 0.0, 0.0, -0.05]
+        up = [np.inf, 0.999 * w0, 0.9, 0.9 * w0, 0.05]
+        x0 = np.clip(x0, np.array(lo) + 1e-12, np.array(up) - 1e-12)
+        try:
+            sol = least_squares(resid, x0, bounds=(lo, up), x_scale="jac", max_nfev=400)
+        except (ValueError, FloatingPointError):
+            continue
+        if best is None or sol.cost < best.cost:
+            best = sol
+    if best is None:
+        raise EstimationError("the frequency-response fit of the anti-resonance failed")
+    log_g, wa, za, p, tau = best.x
+    rms = float(np.sqrt(np.mean(best.fun**2)))
+    return ResponseFit(float(np.exp(log_g)), float(wa / (2 * np.pi)), float(za), float(p / (2 * np.pi)), float(tau), rms)
+
+
+def parameters(
+    f0_hz: float,
+    zeta: float,
+    fa_hz: float | None,
+    gain: float | None,
+    *,
+    J1: float | None = None,
+    J2: float | None = None,
+    J_total: float | None = None,
+) -> DrivelineParameters:
+    """Physical parameters from resonance, damping, anti-resonance and gain.
+
+    Known inertias take precedence over the identified gain, which moves with
+    the operating point (seed paper, section 4):
+
+    * ``J1`` and ``J2`` given: only the poles are used;
+    * ``J1`` (dyno data sheet) or ``J_total`` (coast-down) given: poles and
+      anti-resonance;
+    * nothing given: poles, anti-resonance and the high-frequency gain
+      ``1/J1``.
+    """
+    w0 = 2 * np.pi * f0_hz
+    ratio = None  # (J1 + J2) / J1 = w0^2 / wa^2
+    if fa_hz is not None and 0 < fa_hz < f0_hz:
+        ratio = (f0_hz / fa_hz) ** 2
+    if J1 is not None and J2 is not None:
+        source = "J1 and J2 given"
+    elif J1 is not None and ratio is not None:
+        J2 = J1 * (ratio - 1.0)
+        source = "J1 given, anti-resonance"
+    elif J2 is not None and ratio is not None:
+        J1 = J2 / (ratio - 1.0)
+        source = "J2 given, anti-resonance"
+    elif J_total is not None and ratio is not None:
+        J1 = J_total / ratio
+        J2 = J_total - J1
+        source = "J1+J2 given, anti-resonance"
+    elif gain is not None and gain > 0 and ratio is not None:
+        J1 = 1.0 / gain
+        J2 = J1 * (ratio - 1.0)
+        source = "identified gain and anti-resonance"
+    else:
+        return DrivelineParameters(f0_hz, zeta, fa_hz, J1, J2, None, None, "poles only")
+    jt = J1 + J2
+    j_red = J1 * J2 / jt
+    c_s = w0**2 * j_red
+    d_s = 2 * zeta * w0 * j_red
+    return DrivelineParameters(f0_hz, zeta, fa_hz, J1, J2, c_s, d_s, source)

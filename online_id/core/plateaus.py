@@ -1,0 +1,106 @@
+"""Find steady operating points (engine-speed plateaus) in a record.
+
+Notes
+-----
+The engine speed is smoothed with a centred moving average over
+``smooth_s``; a sample is *steady* when the smoothed speed stays within
+``tol_rpm`` of the median of its plateau and the local slope is below
+``max_rate_rpm_s``.  Runs of steady samples longer than ``min_duration_s``
+become operating points; ``trim_s`` is cut from both ends so that the
+transient after a speed ramp does not enter the identification.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import uniform_filter1d
+
+
+@dataclass(frozen=True)
+class Plateau:
+    """One operating point: samples ``start:stop`` at about ``speed_rpm``."""
+
+    start: int
+    stop: int
+    speed_rpm: float
+    t_start_s: float
+    t_end_s: float
+
+    @property
+    def n_samples(self) -> int:
+        return self.stop - self.start
+
+
+def find_plateaus(
+    time_s: np.ndarray,
+    speed_rpm: np.ndarray,
+    *,
+    min_duration_s: float = 8.0,
+    tol_rpm: float = 25.0,
+    max_rate_rpm_s: float = 30.0,
+    smooth_s: float = 1.0,
+    trim_s: float = 1.0,
+) -> list[Plateau]:
+    """Steady engine-speed plateaus, in time order.
+
+    Parameters
+    ----------
+    time_s
+        Uniform sample times.
+    speed_rpm
+        Engine speed.
+    min_duration_s
+        Shortest plateau kept (after trimming).
+    tol_rpm
+        Largest deviation of the smoothed speed from the plateau median.
+    max_rate_rpm_s
+        Largest slope of the smoothed speed inside a plateau.
+    """
+    n = speed_rpm.shape[0]
+    if n < 3:
+        return []
+    dt = float(np.median(np.diff(time_s)))
+    win = max(1, int(round(smooth_s / dt)))
+    smooth = uniform_filter1d(speed_rpm.astype(float), size=win, mode="nearest")
+    rate = np.gradient(smooth, dt)
+    slow = np.abs(rate) < max_rate_rpm_s
+    trim = int(round(trim_s / dt))
+    min_len = int(round(min_duration_s / dt))
+    plateaus: list[Plateau] = []
+    i = 0
+    while i < n:
+        if not slow[i]:
+            i += 1
+            continue
+        # grow a run while the smoothed speed stays near the running median
+        j = i
+        level = smooth[i]
+        while j < n and slow[j] and abs(smooth[j] - level) <= tol_rpm:
+            j += 1
+            if (j - i) % max(1, win) == 0:
+                level = float(np.median(smooth[i:j]))
+        start, stop = i + trim, j - trim
+        if stop - start >= min_len:
+            seg = slice(start, stop)
+            plateaus.append(
+                Plateau(start, stop, float(np.mean(speed_rpm[seg])), float(time_s[start]), float(time_s[stop - 1]))
+            )
+        i = max(j, i + 1)
+    return plateaus
+
+
+def plateaus_from_times(
+    time_s: np.ndarray, speed_rpm: np.ndarray, windows: list[tuple[float, float]] | tuple[tuple[float, float], ...]
+) -> list[Plateau]:
+    """Operating points from given ``(t_start, t_end)`` windows (flags or config)."""
+    out = []
+    for t0, t1 in windows:
+        start = int(np.searchsorted(time_s, t0, side="left"))
+        stop = int(np.searchsorted(time_s, t1, side="right"))
+        if stop - start < 2:
+            continue
+        seg = slice(start, stop)
+        out.append(Plateau(start, stop, float(np.mean(speed_rpm[seg])), float(time_s[start]), float(time_s[stop - 1])))
+    return out

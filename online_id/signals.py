@@ -1,0 +1,60 @@
+"""Turn raw input columns into :class:`~online_id.records.BenchData` (SI units)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from online_id.config import ColumnSettings, UnitSettings
+from online_id.core.preprocess import angle_to_speed, check_uniform
+from online_id.errors import InputDataError
+from online_id.io.table_csv import LINE_KEY, read_csv_columns
+from online_id.records import BenchData
+
+MIN_SAMPLES = 200
+
+
+def bench_data_from_columns(
+    columns: dict[str, np.ndarray],
+    names: ColumnSettings,
+    units: UnitSettings,
+    source: str,
+) -> BenchData:
+    """Convert columns (keyed by the names in ``names``) into SI bench data."""
+    time_s = columns[names.time] * (1e-3 if units.time == "ms" else 1.0)
+    n = time_s.shape[0]
+    if n < MIN_SAMPLES:
+        raise InputDataError(f"{source}: only {n} samples; at least {MIN_SAMPLES} are needed to identify anything")
+    lines = columns.get(LINE_KEY)
+    steps = np.diff(time_s)
+    bad = np.flatnonzero(~(steps > 0))
+    if bad.size:
+        i = int(bad[0]) + 1
+        where = f"{source}:{int(lines[i])}" if lines is not None else f"{source}: sample {i}"
+        raise InputDataError(
+            f"{where}: column {names.time!r}: time does not increase ({time_s[i - 1]!r} then {time_s[i]!r})"
+        )
+    try:
+        check_uniform(time_s)
+    except InputDataError as err:
+        raise InputDataError(f"{source}: column {names.time!r}: {err}") from None
+    speeds = []
+    for role in ("dyno_speed", "engine_speed"):
+        raw = columns[getattr(names, role)]
+        if units.speed == "rpm":
+            speeds.append(raw * (np.pi / 30.0))
+        elif units.speed == "rad/s":
+            speeds.append(raw.astype(float))
+        else:
+            speeds.append(angle_to_speed(raw, time_s, unit=units.speed))
+    torque = columns[names.dyno_torque] * (1.0 if units.torque_sign == "braking" else -1.0)
+    return BenchData(time_s, speeds[0], speeds[1], torque, source)
+
+
+def read_bench_csv(path: str | Path, names: ColumnSettings | None = None, units: UnitSettings | None = None) -> BenchData:
+    """Read a bench CSV file into SI units, with errors naming file, line and column."""
+    names = names or ColumnSettings()
+    units = units or UnitSettings()
+    cols = read_csv_columns(path, [names.time, names.dyno_speed, names.engine_speed, names.dyno_torque])
+    return bench_data_from_columns(cols, names, units, str(path))

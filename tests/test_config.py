@@ -1,0 +1,66 @@
+"""YAML config validation: unknown keys and bad values name key, value and file."""
+
+import pytest
+
+from online_id.config import Settings, load_config
+from online_id.errors import ConfigError
+
+
+def write(tmp_path, text):
+    p = tmp_path / "cfg.yaml"
+    p.write_text(text)
+    return p
+
+
+def test_defaults_without_file():
+    assert load_config(None) == Settings()
+
+
+def test_full_config(tmp_path):
+    p = write(tmp_path, """
+columns: {time: t, dyno_speed: n_dyno, engine_speed: n_eng, dyno_torque: m}
+units: {time: ms, speed: rad/s, torque_sign: driving}
+inertias: {J1: 0.8}
+identification:
+  sample_rate_hz: 250
+  na: 8
+  pulses_per_rev: 2
+  operating_points: [[10, 40], [50, 80]]
+""")
+    s = load_config(p)
+    assert s.columns.dyno_speed == "n_dyno"
+    assert s.units.torque_sign == "driving"
+    assert s.inertias.J1 == 0.8
+    assert s.identification.na == (8,)
+    assert s.identification.operating_points == ((10.0, 40.0), (50.0, 80.0))
+
+
+@pytest.mark.parametrize("text,needle", [
+    ("identification: {sample_rte_hz: 3}", "identification.sample_rte_hz"),
+    ("colums: {}", "'colums'"),
+    ("identification: {sample_rate_hz: fast}", "identification.sample_rate_hz"),
+    ("identification: {sample_rate_hz: -1}", "identification.sample_rate_hz"),
+    ("units: {speed: furlongs}", "units.speed"),
+    ("inertias: {J1: -2}", "inertias.J1"),
+    ("identification: {operating_points: [[40, 10]]}", "operating_points[0]"),
+    ("identification: {na: [8, x]}", "identification.na[1]"),
+    ("- just a list", "top level"),
+])
+def test_bad_values_name_key_and_file(tmp_path, text, needle):
+    p = write(tmp_path, text)
+    with pytest.raises(ConfigError) as info:
+        load_config(p)
+    msg = str(info.value)
+    assert needle in msg and str(p) in msg
+    assert "\n" not in msg
+
+
+def test_invalid_yaml_names_line(tmp_path):
+    p = write(tmp_path, "identification:\n  na: [8\n")
+    with pytest.raises(ConfigError, match=r"cfg.yaml:\d+: invalid YAML"):
+        load_config(p)
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(ConfigError, match="cannot read config"):
+        load_config(tmp_path / "nope.yaml")

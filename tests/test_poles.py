@@ -1,0 +1,94 @@
+"""Pole maths: damp semantics, special cases, order lines, sorting across points."""
+
+import numpy as np
+import pytest
+
+from online_id.core.poles import (
+    DRIVELINE,
+    INVARIANT,
+    REAL,
+    SPEED_DEPENDENT,
+    Pole,
+    damp,
+    order_of,
+    poles_of,
+    sort_poles,
+)
+
+
+@pytest.mark.parametrize("f_hz,zeta,dt", [(25.0, 0.04, 0.002), (12.0, 0.2, 0.001), (80.0, 0.01, 0.004)])
+def test_damp_inverts_continuous_pole(f_hz, zeta, dt):
+    w = 2 * np.pi * f_hz
+    s = -zeta * w + 1j * w * np.sqrt(1 - zeta**2)
+    f, z = damp(np.exp(s * dt), dt)
+    assert f[0] == pytest.approx(f_hz, rel=1e-12)
+    assert z[0] == pytest.approx(zeta, rel=1e-12)
+
+
+def test_damp_special_cases():
+    dt = 0.01
+    f, z = damp(np.array([0.0, -0.5, 1.0, 0.5]), dt)
+    assert np.isinf(f[0]) and z[0] == 1.0  # pure delay
+    s = (np.log(0.5) + 1j * np.pi) / dt  # negative real: Nyquist oscillation
+    assert f[1] == pytest.approx(abs(s) / (2 * np.pi))
+    assert z[1] == pytest.approx(-s.real / abs(s))
+    assert f[2] == 0.0  # integrator
+    assert f[3] == pytest.approx(np.log(2) / dt / (2 * np.pi)) and z[3] == pytest.approx(1.0)
+
+
+def test_poles_of_matches_np_roots():
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        roots = np.concatenate([rng.uniform(0.2, 0.95, 2) * np.exp(1j * rng.uniform(0.1, 3, 2))])
+        roots = np.concatenate([roots, roots.conj(), rng.uniform(-0.9, 0.9, 3)])
+        a = np.real(np.poly(roots))
+        poles = poles_of(a, 0.002)
+        got = np.sort_complex(np.array([complex(p.z) for p in poles]))
+        want = np.sort_complex(np.array([r for r in np.roots(a) if r.imag >= -1e-9]))
+        assert np.allclose(got, want, atol=1e-8)
+        assert sum(p.kind == "complex" for p in poles) == 2 + sum(r.real < 0 for r in roots if abs(r.imag) < 1e-12)
+
+
+def test_order_lines():
+    assert order_of(50.0, 1500.0) == 2.0
+    assert order_of(12.5, 1500.0) == 0.5
+    assert order_of(51.0, 1500.0) == 2.0  # within 2.5 %
+    assert order_of(56.0, 1500.0) is None
+    assert order_of(30.0, 0.0) is None
+
+
+def _pole(f, zeta, dt=0.002):
+    w = 2 * np.pi * f
+    z = np.exp((-zeta * w + 1j * w * np.sqrt(1 - zeta**2)) * dt)
+    return poles_of(np.real(np.poly([z, np.conj(z)])), dt)[0]
+
+
+@pytest.mark.parametrize("f0,ppr,speeds", [(25.0, 2.0, [1000, 1500, 2000, 2500]), (18.0, 3.0, [900, 1300, 1800]),
+                                           (31.0, 2.0, [1200, 2200])])
+def test_sorting_finds_invariant_pair_and_order_line(f0, ppr, speeds):
+    rng = np.random.default_rng(int(f0))
+    rows = []
+    for rpm in speeds:
+        row = [_pole(f0 * (1 + 0.003 * rng.standard_normal()), 0.04),  # driveline
+               _pole(ppr * rpm / 60.0, 0.002),  # compression pair
+               _pole(rng.uniform(60, 120), 0.3)]  # a noise-fit pole
+        row.append(Pole(0.99 + 0j, 1.0, 1.0, "real", REAL))
+        rows.append(row)
+    res = sort_poles(rows, speeds, band_hz=(3, 200), pulses_per_rev=ppr)
+    assert res.driveline is not None
+    assert res.driveline.f0_hz == pytest.approx(f0, rel=0.01)
+    for row, rpm in zip(res.poles, speeds):
+        classes = {round(p.f_hz): p.cls for p in row}
+        comp = [p for p in row if abs(p.f_hz - ppr * rpm / 60) < 0.5]
+        assert comp and comp[0].cls == SPEED_DEPENDENT and comp[0].order == ppr
+        assert sum(p.cls == DRIVELINE for p in row) == 1
+        assert REAL in classes.values()
+
+
+def test_second_invariant_mode_is_reported_but_first_mode_is_driveline():
+    speeds = [1000, 1600, 2200]
+    rows = [[_pole(22.0, 0.05), _pole(63.0, 0.03), _pole(2 * r / 60, 0.001)] for r in speeds]
+    res = sort_poles(rows, speeds, band_hz=(3, 200))
+    assert res.driveline.f0_hz == pytest.approx(22.0, rel=1e-6)
+    assert [m.f0_hz for m in res.invariant_modes] == pytest.approx([63.0])
+    assert all(any(p.cls == INVARIANT for p in row) for row in res.poles)
