@@ -130,13 +130,22 @@ def _segment(data: BenchData, p: Plateau, factor: int) -> tuple[np.ndarray, np.n
 
 
 def _fit_point(y: np.ndarray, u: np.ndarray, orders: ArmaxOrders, recursive_start: bool) -> ArmaxFit:
-    theta0 = None
+    """PEM fit from two starts (Hannan-Rissanen, and the recursive estimate); the lower loss wins.
+
+    The prediction-error criterion of an over-parametrised ARMAX model has
+    local minima: one start alone can settle where the compression oscillator
+    is missing from the model.
+    """
+    fits = [fit_armax(y, u, orders)]
     if recursive_start:
         est = RecursiveArmax(orders, lam=1.0, p0=1e3)
         est.update_block(y, u)
         if np.all(np.isfinite(est.theta)):
-            theta0 = est.theta
-    return fit_armax(y, u, orders, theta0=theta0)
+            try:
+                fits.append(fit_armax(y, u, orders, theta0=est.theta))
+            except EstimationError:
+                pass
+    return min(fits, key=lambda f: f.V)
 
 
 def _response_band(point: PointResult, f0_hz: float, nyquist_hz: float) -> np.ndarray:
@@ -161,12 +170,22 @@ def identify(
     report = progress or (lambda frac, msg: None)
     dt_raw = float(np.median(np.diff(data.time_s)))
     fs_raw = 1.0 / dt_raw
-    factor = decimation_factor(fs_raw, s.sample_rate_hz)
-    dt = dt_raw * factor
     warnings: list[str] = []
 
     _check_excitation(data.dyno_torque_nm, data.source)
     plateaus = find_operating_points(data, s)
+    target_fs = min(s.sample_rate_hz, fs_raw)
+    if s.pulses_per_rev is not None and plateaus:
+        # keep the highest compression line well inside the band (below 0.3 fs),
+        # where the anti-alias filter leaves it untouched and the model can place its pole
+        top_hz = s.pulses_per_rev * max(p.speed_rpm for p in plateaus) / 60.0
+        if top_hz > 0.3 * target_fs:
+            target_fs = min(fs_raw, top_hz / 0.3)
+            if top_hz > 0.3 * target_fs:
+                warnings.append(f"the compression line reaches {top_hz:.0f} Hz, close to the Nyquist "
+                                f"frequency {fs_raw / 2:.0f} Hz of the data")
+    factor = decimation_factor(fs_raw, target_fs)
+    dt = dt_raw * factor
     if len(plateaus) < s.min_operating_points:
         found = ", ".join(f"{p.speed_rpm:.0f} rpm" for p in plateaus) or "none"
         raise InputDataError(

@@ -20,7 +20,7 @@ class IdentificationSettings:
     """How the offline identification runs."""
 
     sample_rate_hz: float = 500.0
-    na: tuple[int, ...] = (6, 8, 10)
+    na: tuple[int, ...] = (8, 10, 12)
     nb: tuple[int, ...] = ()
     nc: tuple[int, ...] = ()
     nk: int = 1
