@@ -21,7 +21,11 @@ import yaml
 from online_id.core.settings import IdentificationSettings, InertiaSettings
 from online_id.errors import ConfigError
 
-__all__ = ["ColumnSettings", "UnitSettings", "InertiaSettings", "IdentificationSettings", "Settings", "load_config"]
+__all__ = [
+    "ColumnSettings", "UnitSettings", "InertiaSettings", "IdentificationSettings", "BusSettings", "RoleSettings",
+    "MappingSettings", "InputSettings", "ModelSettings", "PublishSettings", "StateSettings", "ExcitationSettings",
+    "Settings", "load_config", "settings_from_dict",
+]
 
 
 @dataclass(frozen=True)
@@ -50,6 +54,94 @@ class UnitSettings:
 
 
 @dataclass(frozen=True)
+class BusSettings:
+    """The python-can bus: any interface; never read from ~/can.conf or CAN_* variables."""
+
+    interface: str = "socketcan"
+    channel: str = "can0"
+    bitrate: int | None = None
+    receive_own_messages: bool = False
+    reopen_max_s: float = 30.0
+
+
+@dataclass(frozen=True)
+class RoleSettings:
+    """Where one input role is in the DBC, and its unit and sign."""
+
+    message: str
+    signal: str
+    unit: Literal["rpm", "rad/s", "Nm"] = "rpm"
+    sign: Literal["braking", "driving", "positive", "negative"] = "positive"
+    counter: str | None = None
+
+
+@dataclass(frozen=True)
+class MappingSettings:
+    """Roles -> DBC message and signal, so the service runs on a bench's own DBC."""
+
+    dyno_speed: RoleSettings = field(default_factory=lambda: RoleSettings("DynoSpeed", "DynoSpeed", "rpm", "positive", "DynoSpeedCounter"))
+    engine_speed: RoleSettings = field(default_factory=lambda: RoleSettings("EngineSpeed", "EngineSpeed", "rpm", "positive", "EngineSpeedCounter"))
+    dyno_torque: RoleSettings = field(default_factory=lambda: RoleSettings("DynoTorque", "DynoTorque", "Nm", "braking", "DynoTorqueCounter"))
+    command_message: str = "OidCommand"
+    command_signal: str = "Command"
+
+
+@dataclass(frozen=True)
+class InputSettings:
+    """Sample assembly: the regular grid and the timeouts."""
+
+    sample_rate_hz: float = 1000.0
+    timeout_s: float = 0.2
+    slow_roles: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class ModelSettings:
+    """The online ARMAX model: orders, forgetting, identification rate."""
+
+    sample_rate_hz: float = 500.0
+    na: int = 10
+    nb: int = 10
+    nc: int = 10
+    nk: int = 1
+    forgetting: float = 0.9999
+    p0: float = 1000.0
+    min_excitation_nm: float = 1.0
+    learning_s: float = 10.0
+    pulses_per_rev: float | None = None
+    band_hz: tuple[float, float] = (3.0, 120.0)
+
+
+@dataclass(frozen=True)
+class PublishSettings:
+    """Output frames: rate and (optionally) IDs other than the DBC's."""
+
+    rate_hz: float = 10.0
+    frame_ids: dict[str, int] = field(default_factory=dict)
+    physical_interval_s: float = 2.0
+
+
+@dataclass(frozen=True)
+class StateSettings:
+    """Persisted estimator state (under $STATE_DIRECTORY when set)."""
+
+    directory: str | None = None
+    save_interval_s: float = 60.0
+
+
+@dataclass(frozen=True)
+class ExcitationSettings:
+    """The paper's discrete binary test signal, requested from the bench as a torque offset."""
+
+    enabled: bool = False
+    amplitude_nm: float = 20.0
+    max_amplitude_nm: float = 100.0
+    period_s: float = 1.0
+    n_bits: int = 9
+    speed_window_rpm: tuple[float, float] = (800.0, 3000.0)
+
+
+@dataclass(frozen=True)
 class Settings:
     """Everything a config file can set."""
 
@@ -57,6 +149,14 @@ class Settings:
     units: UnitSettings = field(default_factory=UnitSettings)
     inertias: InertiaSettings = field(default_factory=InertiaSettings)
     identification: IdentificationSettings = field(default_factory=IdentificationSettings)
+    bus: BusSettings = field(default_factory=BusSettings)
+    dbc: str | None = None
+    mapping: MappingSettings = field(default_factory=MappingSettings)
+    input: InputSettings = field(default_factory=InputSettings)
+    model: ModelSettings = field(default_factory=ModelSettings)
+    publish: PublishSettings = field(default_factory=PublishSettings)
+    state: StateSettings = field(default_factory=StateSettings)
+    excitation: ExcitationSettings = field(default_factory=ExcitationSettings)
 
 
 def _describe(tp: Any) -> str:
@@ -68,6 +168,8 @@ def _describe(tp: Any) -> str:
         return " or ".join(_describe(a) for a in args) + " or null"
     if origin is tuple:
         return "a list"
+    if origin is dict:
+        return "a mapping"
     return {float: "a number", int: "an integer", str: "a string", bool: "true or false"}.get(tp, str(tp))
 
 
@@ -102,6 +204,11 @@ def _convert(tp: Any, value: Any, key: str, file: str) -> Any:
         if len(value) != len(args):
             raise ConfigError(f"{file}: {key}: expected a list of {len(args)} items, got {value!r}")
         return tuple(_convert(a, v, f"{key}[{i}]", file) for i, (a, v) in enumerate(zip(args, value)))
+    if origin is dict:
+        ktp, vtp = typing.get_args(tp)
+        if not isinstance(value, dict):
+            raise bad
+        return {_convert(ktp, k, f"{key}.{k}", file): _convert(vtp, v, f"{key}.{k}", file) for k, v in value.items()}
     if tp is bool:
         if isinstance(value, bool):
             return value
@@ -169,10 +276,57 @@ def _check_identification(s: IdentificationSettings, file: str) -> None:
             fail(f"operating_points[{i}]", f"end {t1} must be after start {t0}")
 
 
+def _check_service(s: Settings, file: str) -> None:
+    def positive(section: str, obj: Any, *names: str) -> None:
+        for name in names:
+            value = getattr(obj, name)
+            if not value > 0:
+                raise ConfigError(f"{file}: {section}.{name}: expected a number > 0, got {value!r}")
+
+    positive("input", s.input, "sample_rate_hz", "timeout_s")
+    for role in s.input.slow_roles:
+        if role not in ("dyno_speed", "engine_speed", "dyno_torque"):
+            raise ConfigError(f"{file}: input.slow_roles: unknown role {role!r} "
+                              "(roles: dyno_speed, engine_speed, dyno_torque)")
+    m = s.model
+    positive("model", m, "sample_rate_hz", "p0", "learning_s")
+    if m.sample_rate_hz > s.input.sample_rate_hz:
+        raise ConfigError(f"{file}: model.sample_rate_hz: {m.sample_rate_hz:g} Hz is above the input rate "
+                          f"input.sample_rate_hz = {s.input.sample_rate_hz:g} Hz")
+    for name in ("na", "nb", "nc"):
+        v = getattr(m, name)
+        if not 0 <= v <= 40:
+            raise ConfigError(f"{file}: model.{name}: expected an integer from 0 to 40, got {v!r}")
+    if m.na < 2:
+        raise ConfigError(f"{file}: model.na: at least 2 is needed for a resonance, got {m.na!r}")
+    if not 0.9 <= m.forgetting <= 1.0:
+        raise ConfigError(f"{file}: model.forgetting: expected a number in [0.9, 1], got {m.forgetting!r}")
+    if m.min_excitation_nm < 0:
+        raise ConfigError(f"{file}: model.min_excitation_nm: expected a number >= 0, got {m.min_excitation_nm!r}")
+    positive("publish", s.publish, "rate_hz", "physical_interval_s")
+    for name, ident in s.publish.frame_ids.items():
+        if not 0 <= ident <= 0x1FFFFFFF:
+            raise ConfigError(f"{file}: publish.frame_ids.{name}: expected a CAN ID 0..0x1FFFFFFF, got {ident!r}")
+    positive("state", s.state, "save_interval_s")
+    positive("bus", s.bus, "reopen_max_s")
+    e = s.excitation
+    positive("excitation", e, "period_s", "max_amplitude_nm")
+    if not 0 <= e.amplitude_nm <= e.max_amplitude_nm:
+        raise ConfigError(f"{file}: excitation.amplitude_nm: expected 0..{e.max_amplitude_nm:g} "
+                          f"(excitation.max_amplitude_nm), got {e.amplitude_nm!r}")
+    if not 2 <= e.n_bits <= 20:
+        raise ConfigError(f"{file}: excitation.n_bits: expected 2..20, got {e.n_bits!r}")
+    lo, hi = e.speed_window_rpm
+    if not 0 <= lo < hi:
+        raise ConfigError(f"{file}: excitation.speed_window_rpm: expected [low, high] with 0 <= low < high, "
+                          f"got {list(e.speed_window_rpm)!r}")
+
+
 def settings_from_dict(data: Any, file: str = "<config>") -> Settings:
     """Validate a parsed YAML document into :class:`Settings`."""
     settings = build(Settings, data, "", file)
     _check_identification(settings.identification, file)
+    _check_service(settings, file)
     for name in ("J1", "J2", "J_total"):
         value = getattr(settings.inertias, name)
         if value is not None and value <= 0:

@@ -54,3 +54,112 @@ class BenchData:
             self.source,
             dict(self.meta),
         )
+
+
+# --- streaming records: what the CAN adapters and the pipeline exchange -------------
+
+from enum import IntEnum  # noqa: E402
+
+ROLES = ("dyno_speed", "engine_speed", "dyno_torque")
+"""The three input roles. Speeds are in rad/s, torque in Nm (positive = braking)."""
+
+
+class ServiceState(IntEnum):
+    """Health state published in the status frame."""
+
+    STARTING = 0
+    LEARNING = 1
+    TRACKING = 2
+    NO_EXCITATION = 3
+    INPUT_TIMEOUT = 4
+    FAULT = 5
+
+
+class AlertKind(IntEnum):
+    """Kinds of alert published in the alert frame."""
+
+    NONE = 0
+    FREQ_DRIFT = 1
+    DAMPING_DRIFT = 2
+    ESTIMATOR_RESET = 3
+    INPUT_FAULT = 4
+
+
+class FrameFault(IntEnum):
+    """Why an input frame was not used (each kind is counted and reported)."""
+
+    UNKNOWN_ID = 0  # not an input frame (foreign traffic is normal on a bench bus)
+    BAD_DLC = 1  # payload length does not match the DBC
+    MALFORMED = 2  # cannot be decoded
+    OUT_OF_RANGE = 3  # physical value outside the signal's range in the DBC
+    NOT_FINITE = 4  # NaN or infinite physical value
+    COUNTER_JUMP = 5  # alive counter skipped values (frames lost)
+    DUPLICATE = 6  # same alive counter twice (frame repeated)
+    TIME_BACKWARDS = 7  # timestamp older than the last sample of that role
+
+
+@dataclass(frozen=True)
+class SignalSample:
+    """One decoded input value: ``role`` (see :data:`ROLES`) in SI units at ``t_s``."""
+
+    role: str
+    value: float
+    t_s: float
+    counter: int | None = None
+
+
+@dataclass(frozen=True)
+class EstimateOut:
+    """Driveline estimate to publish."""
+
+    t_s: float
+    f0_hz: float
+    zeta: float
+    c_s: float
+    d_s: float
+    valid: bool
+
+
+@dataclass(frozen=True)
+class QualityOut:
+    """Model quality to publish."""
+
+    t_s: float
+    residual_rms: float
+    fpe: float
+    excitation: float
+    samples_used: int
+
+
+@dataclass(frozen=True)
+class StatusOut:
+    """Health and input counters to publish."""
+
+    t_s: float
+    state: ServiceState
+    bad_frames: int
+    missing_frames: int
+
+
+@dataclass(frozen=True)
+class AlertOut:
+    """An alert: what changed, by how much, where (``message`` is for logs, not CAN)."""
+
+    t_s: float
+    kind: AlertKind
+    severity: int  # 1 warning, 2 fault
+    value_pct: float
+    speed_rpm: float
+    message: str
+
+
+@dataclass(frozen=True)
+class ExcitationOut:
+    """PRBS torque-offset request to the bench (paper's discrete binary test signal)."""
+
+    t_s: float
+    torque_offset_nm: float
+    active: bool
+
+
+Publication = EstimateOut | QualityOut | StatusOut | AlertOut | ExcitationOut

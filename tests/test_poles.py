@@ -92,3 +92,25 @@ def test_second_invariant_mode_is_reported_but_first_mode_is_driveline():
     assert res.driveline.f0_hz == pytest.approx(22.0, rel=1e-6)
     assert [m.f0_hz for m in res.invariant_modes] == pytest.approx([63.0])
     assert all(any(p.cls == INVARIANT for p in row) for row in res.poles)
+
+
+def test_pole_std_matches_monte_carlo():
+    from online_id.core.poles import pole_std
+
+    dt = 0.002
+    w = 2 * np.pi * 25.0
+    z0 = np.exp((-0.05 * w + 1j * w * np.sqrt(1 - 0.05**2)) * dt)
+    a = np.real(np.poly([z0, np.conj(z0), 0.9]))
+    rng = np.random.default_rng(0)
+    M = rng.standard_normal((3, 3))
+    cov = 1e-8 * (M @ M.T + np.eye(3))
+    sf, sz = pole_std(a, z0, cov, dt)
+    fs, zs = [], []
+    for da in rng.multivariate_normal(np.zeros(3), cov, size=4000):
+        r = np.roots(a + np.concatenate(([0.0], da)))
+        p = r[np.argmin(abs(r - z0))]
+        f, zt = damp(p, dt)
+        fs.append(f[0])
+        zs.append(zt[0])
+    assert sf == pytest.approx(np.std(fs), rel=0.1)
+    assert sz == pytest.approx(np.std(zs), rel=0.1)

@@ -262,3 +262,35 @@ def sort_poles(
                     j = cand_idx[i][m]
                     marked[i][j] = replace(marked[i][j], cls=cls, order=None)
     return PoleSorting(marked, driveline, invariant)
+
+
+def pole_std(a: np.ndarray, z: complex, cov_a: np.ndarray, dt: float) -> tuple[float, float]:
+    """Standard deviations of a pole's frequency [Hz] and damping from the covariance of ``a``.
+
+    Notes
+    -----
+    For :math:`A(z) = z^{n} + a_1 z^{n-1} + \\dots + a_n` with a simple root
+    :math:`z_0`, :math:`\\partial z_0/\\partial a_k = -z_0^{n-k}/A'(z_0)`; with
+    :math:`s = \\ln z / T_s = x + jy` and :math:`r = |s|`,
+    :math:`\\partial f/\\partial(x, y) = (x, y)/(2\\pi r)` and
+    :math:`\\partial \\zeta/\\partial(x, y) = (-y^2, xy)/r^3`.  First-order
+    propagation: :math:`\\sigma_f^2 = g_f^T \\Sigma_a g_f`.
+    """
+    a = np.asarray(a, dtype=float)
+    n = a.size - 1
+    if n < 1 or z == 0:
+        return float("inf"), float("inf")
+    coeffs = a  # z^n + a1 z^(n-1) + ... : same order as np.polyval expects
+    dA = np.polyval(np.polyder(coeffs), z)
+    if dA == 0:
+        return float("inf"), float("inf")
+    powers = z ** np.arange(n - 1, -1, -1)  # z^(n-k) for k = 1..n
+    G = -powers / dA / (z * dt)  # d s / d a_k
+    s = np.log(z) / dt
+    x, y = s.real, s.imag
+    r = abs(s)
+    g_f = (x * G.real + y * G.imag) / (2 * np.pi * r)
+    g_z = (-(y**2) * G.real + x * y * G.imag) / r**3
+    var_f = float(g_f @ cov_a @ g_f)
+    var_z = float(g_z @ cov_a @ g_z)
+    return float(np.sqrt(max(var_f, 0.0))), float(np.sqrt(max(var_z, 0.0)))

@@ -1,0 +1,273 @@
+"""Streaming driveline estimator: one sample in, estimate out (no I/O).
+
+Notes
+-----
+Per input sample (dyno speed :math:`y`, dyno torque :math:`u`, engine speed
+:math:`n`), at the input rate:
+
+1. causal anti-alias FIR and decimation by ``factor`` (the same filter on
+   :math:`y` and :math:`u`, so the transfer function :math:`B/A` between them
+   is unchanged; only the noise model sees it);
+2. a DC blocker :math:`x_{hp} = x - \\bar x`, with :math:`\\bar x` an
+   exponential mean of time constant ``dc_tau_s``, on both signals: the
+   offsets (friction torque, set speed) vanish as in the seed paper, also
+   when the operating point moves;
+3. one step of recursive extended least squares ARMAX with forgetting
+   (:class:`~online_id.core.rels.RecursiveArmax`); adaptation freezes while
+   the exponentially weighted torque variance is below
+   ``min_excitation_nm**2``.
+
+:meth:`OnlineDriveline.estimate` (called at the publish rate, not per
+sample) takes the poles of :math:`A`, drops the ones on an engine order line
+at the current engine speed, and picks the driveline pair: the one closest to
+the previous pick, else the lowest-frequency lightly damped pair in the band.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.signal import firwin
+
+from online_id.core.model import ArmaxOrders
+from online_id.core.physical import DrivelineParameters, fit_response, frequency_response, parameters
+from online_id.core.poles import Pole, order_of, pole_std, poles_of
+from online_id.core.rels import RecursiveArmax
+from online_id.errors import EstimationError
+
+
+class StreamDecimator:
+    """Causal FIR low-pass and decimation of several channels, sample by sample."""
+
+    def __init__(self, factor: int, n_channels: int, taps_per_factor: int = 8) -> None:
+        self.factor = int(factor)
+        if self.factor > 1:
+            n = taps_per_factor * self.factor + 1
+            self.h = firwin(n, 0.8 / self.factor)[::-1].copy()  # reversed: dot with oldest-first buffer
+            self.buf = np.zeros((n_channels, n))
+        else:
+            self.h = np.ones(1)
+            self.buf = np.zeros((n_channels, 1))
+        self.phase = 0
+        self._empty = True
+
+    def push(self, values: np.ndarray) -> np.ndarray | None:
+        """Add one sample of every channel; every ``factor``-th call returns the filtered sample."""
+        buf = self.buf
+        if self._empty:
+            # start as if the signal had been constant before: no start-up transient
+            buf[:] = np.asarray(values)[:, None]
+            self._empty = False
+        buf[:, :-1] = buf[:, 1:]
+        buf[:, -1] = values
+        self.phase += 1
+        if self.phase < self.factor:
+            return None
+        self.phase = 0
+        return buf @ self.h
+
+    def reset(self) -> None:
+        self.buf[:] = 0.0
+        self.phase = 0
+        self._empty = True
+
+
+@dataclass(frozen=True)
+class OnlineEstimate:
+    """What the online estimator knows at one moment."""
+
+    f0_hz: float
+    zeta: float
+    valid: bool
+    f0_std_hz: float
+    zeta_std: float
+    residual_rms: float
+    fpe: float
+    excitation_nm: float
+    samples_used: int
+    frozen: bool
+    poles: tuple[Pole, ...]
+
+
+class OnlineDriveline:
+    """The streaming estimator (see module notes)."""
+
+    def __init__(
+        self,
+        orders: ArmaxOrders,
+        *,
+        input_rate_hz: float,
+        model_rate_hz: float,
+        forgetting: float,
+        p0: float = 1e3,
+        min_excitation_nm: float = 1.0,
+        learning_s: float = 10.0,
+        pulses_per_rev: float | None = None,
+        band_hz: tuple[float, float] = (3.0, 120.0),
+        dc_tau_s: float = 1.0,
+    ) -> None:
+        factor = max(1, int(np.floor(input_rate_hz / model_rate_hz + 1e-9)))
+        self.dt = factor / input_rate_hz
+        self.decimator = StreamDecimator(factor, 3)
+        self.rels = RecursiveArmax(orders, lam=forgetting, p0=p0, min_excitation=min_excitation_nm**2)
+        self.orders = orders
+        self.forgetting = forgetting
+        self.p0 = p0
+        self.learning_n = int(round(learning_s / self.dt))
+        self.pulses_per_rev = pulses_per_rev
+        self.band_hz = (band_hz[0], min(band_hz[1], 0.4 / self.dt))
+        self.alpha_dc = self.dt / dc_tau_s
+        self.alpha_stat = max(1.0 - forgetting, 1e-4)
+        self.alpha_e2 = self.dt / 2.0  # the noise level: a 2 s memory is enough and forgets the start-up
+        self._mean = np.zeros(2)
+        self._mean_ready = False
+        self._e2 = 0.0
+        self._u2 = 0.0
+        self._n_used = 0
+        self._speed = 0.0
+        self._pick: float | None = None
+        self._valid = False
+
+    # -- per sample ---------------------------------------------------------------------------
+    def update(self, dyno_speed: float, engine_speed: float, dyno_torque: float) -> None:
+        """One input sample in SI units (rad/s, rad/s, Nm braking positive)."""
+        out = self.decimator.push(np.array((dyno_speed, dyno_torque, engine_speed)))
+        if out is None:
+            return
+        y, u, n = float(out[0]), float(out[1]), float(out[2])
+        self._speed = n
+        if not self._mean_ready:
+            self._mean[:] = (y, u)
+            self._mean_ready = True
+        m = self._mean
+        m[0] += self.alpha_dc * (y - m[0])  # xbar <- xbar + dt/tau (x - xbar)
+        m[1] += self.alpha_dc * (u - m[1])
+        y_hp, u_hp = y - m[0], u - m[1]
+        e = self.rels.update(y_hp, u_hp)  # a-priori prediction error
+        if np.isfinite(e) and not self.rels.frozen:
+            self._n_used += 1
+            a = max(self.alpha_e2, 1.0 / self._n_used)  # running mean first, then exponential
+            self._e2 += a * (e * e - self._e2)
+        self._u2 += self.alpha_stat * (u_hp * u_hp - self._u2)
+
+    def restart_history(self) -> None:
+        """After a gap in the input: restart filters and regressors, keep theta and P."""
+        state = self.rels.get_state()
+        for key in ("y_hist", "u_hist", "eps_hist"):
+            state[key] = np.zeros_like(state[key])
+        self.rels = RecursiveArmax.from_state(state)
+        self.decimator.reset()
+        self._mean_ready = False
+
+    # -- at the publish rate --------------------------------------------------------------------
+    @property
+    def speed_rpm(self) -> float:
+        return self._speed * 30.0 / np.pi
+
+    def poles(self) -> list[Pole]:
+        a, _b, _c = self.rels.polynomials()
+        if not np.all(np.isfinite(a)):
+            return []
+        return poles_of(a, self.dt)
+
+    def _candidates(self, poles: list[Pole]) -> list[Pole]:
+        rpm = self.speed_rpm
+        out = []
+        for p in poles:
+            if p.kind != "complex" or not (self.band_hz[0] <= p.f_hz <= self.band_hz[1]) or not (0.0 < p.zeta < 0.4):
+                continue
+            order = order_of(p.f_hz, rpm) if p.zeta < 0.05 else None
+            if order is not None and (self.pulses_per_rev is None or abs(order - self.pulses_per_rev) < 1e-9
+                                      or p.zeta < 0.01):
+                continue  # on an engine order line: a speed-dependent pole
+            out.append(p)
+        return out
+
+    def estimate(self) -> OnlineEstimate:
+        """The current driveline estimate (poles of the recursive model)."""
+        poles = self.poles()
+        cands = self._candidates(poles)
+        pick = None
+        if cands:
+            if self._pick is not None:
+                near = min(cands, key=lambda p: abs(p.f_hz - self._pick))
+                if abs(near.f_hz - self._pick) <= 0.15 * self._pick:
+                    pick = near
+            if pick is None:
+                pick = min(cands, key=lambda p: p.f_hz)
+        n_eff = min(self._n_used, int(1.0 / max(1.0 - self.forgetting, 1e-9)))
+        d = self.orders.n_params
+        V = self._e2
+        fpe = V * (1 + d / n_eff) / (1 - d / n_eff) if n_eff > d else float("nan")
+        std_f = std_z = float("inf")
+        if pick is not None:
+            self._pick = pick.f_hz
+            na = self.orders.na
+            a, _b, _c = self.rels.polynomials()
+            std_f, std_z = pole_std(a, pick.z, V * self.rels.P[:na, :na], self.dt)
+        # valid when the model's own uncertainty is small; leaving needs twice the uncertainty (hysteresis)
+        k = 2.0 if self._valid else 1.0
+        self._valid = (
+            pick is not None
+            and self._n_used >= self.learning_n
+            and not self.rels.frozen
+            and std_f <= k * 0.005 * pick.f_hz
+            and std_z <= k * 0.15 * pick.zeta
+        )
+        return OnlineEstimate(
+            pick.f_hz if pick else float("nan"),
+            pick.zeta if pick else float("nan"),
+            self._valid,
+            std_f,
+            std_z,
+            float(np.sqrt(V)),
+            float(fpe),
+            float(np.sqrt(self._u2)),
+            self._n_used,
+            self.rels.frozen,
+            tuple(poles),
+        )
+
+    def physical(self, est: OnlineEstimate, J1: float | None, J2: float | None,
+                 J_total: float | None) -> DrivelineParameters | None:
+        """Physical parameters of the current estimate (fits the anti-resonance unless J1 and J2 are given)."""
+        if not np.isfinite(est.f0_hz):
+            return None
+        if J1 is not None and J2 is not None:
+            return parameters(est.f0_hz, est.zeta, None, None, J1=J1, J2=J2)
+        a, b, _c = self.rels.polynomials()
+        f = np.geomspace(0.35 * est.f0_hz, min(2.5 * est.f0_hz, 0.4 / self.dt), 200)
+        keep = np.ones(f.shape, bool)
+        for p in est.poles:
+            if p.kind == "complex" and abs(p.f_hz - est.f0_hz) > 1e-9 and p.zeta < 0.15:
+                keep &= np.abs(f - p.f_hz) > 0.05 * p.f_hz
+        try:
+            fit = fit_response(f[keep], frequency_response(b, a, f[keep], self.dt), est.f0_hz, est.zeta)
+        except EstimationError:
+            return None
+        return parameters(est.f0_hz, est.zeta, fit.fa_hz, fit.gain, J1=J1, J2=J2, J_total=J_total)
+
+    # -- persistence ----------------------------------------------------------------------------
+    def get_state(self) -> dict:
+        return {
+            "rels": self.rels.get_state(),
+            "pick": self._pick,
+            "valid": self._valid,
+            "e2": self._e2,
+            "u2": self._u2,
+            "n_used": self._n_used,
+        }
+
+    def load_state(self, state: dict) -> None:
+        rels = RecursiveArmax.from_state(state["rels"])
+        if rels.orders != self.orders:
+            raise EstimationError(f"saved model orders {rels.orders} differ from the configured {self.orders}")
+        self.rels = rels
+        self._pick = state.get("pick")
+        self._valid = bool(state.get("valid", False))
+        self._e2 = float(state.get("e2", 0.0))
+        self._u2 = float(state.get("u2", 0.0))
+        self._n_used = int(state.get("n_used", 0))
+        self.decimator.reset()
+        self._mean_ready = False

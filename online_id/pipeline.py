@@ -1,0 +1,347 @@
+"""Samples in -> estimates, health and alerts out.  No I/O.
+
+One :class:`Pipeline` serves the live service, the replay of logs, the demo
+and the tests: it is fed decoded signal values (:class:`SignalSample`),
+frame faults and commands, with the stream's own timestamps, and returns the
+publications due (:mod:`online_id.records`).  Time is always the stream's:
+frame timestamps in the service, log timestamps in a replay.
+
+Health states (published in the status frame):
+
+* ``STARTING``: no complete sample yet;
+* ``LEARNING``: samples flow, the estimate is not yet valid;
+* ``TRACKING``: the estimate is valid;
+* ``NO_EXCITATION``: the torque does not excite the driveline, adaptation is
+  frozen (the estimate is held);
+* ``INPUT_TIMEOUT``: an input role is silent for longer than the timeout (the
+  estimator holds and resumes cleanly when frames come back);
+* ``FAULT``: the estimator had to reset repeatedly (numerical failure).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from online_id.assembly import AssembledSample, SampleAssembler
+from online_id.bench.prbs import mls
+from online_id.config import Settings
+from online_id.core.model import ArmaxOrders
+from online_id.core.online import OnlineDriveline, OnlineEstimate
+from online_id.core.physical import DrivelineParameters
+from online_id.errors import EstimationError
+from online_id.records import (
+    AlertKind,
+    AlertOut,
+    EstimateOut,
+    ExcitationOut,
+    FrameFault,
+    Publication,
+    QualityOut,
+    ServiceState,
+    SignalSample,
+    StatusOut,
+)
+
+COMMAND_ACK = 1
+COMMAND_RELEARN = 2
+COMMAND_RESET = 3
+STATE_VERSION = 1
+
+
+@dataclass
+class Event:
+    """A status change or alert kept for reports (times in stream seconds)."""
+
+    t_s: float
+    kind: str
+    message: str = ""
+    data: dict = field(default_factory=dict)
+
+
+class Excitation:
+    """The paper's discrete binary test signal as a torque-offset request."""
+
+    def __init__(self, settings: Settings) -> None:
+        e = settings.excitation
+        self.enabled = e.enabled
+        self.amplitude = min(e.amplitude_nm, e.max_amplitude_nm)
+        self.window = e.speed_window_rpm
+        seq = mls(e.n_bits)
+        hold = max(1, int(round(e.period_s * settings.input.sample_rate_hz / seq.size)))
+        self.seq = seq
+        self.hold = hold
+        self.k = 0
+        self.active = False
+        self.level = 0.0
+
+    def step(self, t_s: float, healthy: bool, speed_rpm: float) -> ExcitationOut | None:
+        """Advance one input sample; returns a request when the output changes."""
+        if not self.enabled:
+            return None
+        ok = healthy and self.window[0] <= speed_rpm <= self.window[1]
+        if not ok:
+            if self.active:
+                self.active = False
+                self.level = 0.0
+                return ExcitationOut(t_s, 0.0, False)
+            return None
+        level = self.amplitude * float(self.seq[(self.k // self.hold) % self.seq.size])
+        self.k += 1
+        if not self.active or level != self.level:
+            self.active = True
+            self.level = level
+            return ExcitationOut(t_s, level, True)
+        return None
+
+    def stop(self, t_s: float) -> ExcitationOut | None:
+        """Stop at once (fault, timeout, shutdown)."""
+        if self.active:
+            self.active = False
+            self.level = 0.0
+            return ExcitationOut(t_s, 0.0, False)
+        return None
+
+
+class Pipeline:
+    """The streaming pipeline (see module notes)."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        s = settings
+        self.assembler = SampleAssembler(s.input.sample_rate_hz, s.input.timeout_s, s.input.slow_roles)
+        self.estimator = self._new_estimator()
+        self.excitation = Excitation(s)
+        self.state = ServiceState.STARTING
+        self.t_s = float("nan")
+        self.t_first: float | None = None
+        self._next_publish: float | None = None
+        self._next_physical: float | None = None
+        self._physical: DrivelineParameters | None = None
+        self._estimate: OnlineEstimate | None = None
+        self._resets_seen = 0
+        self._reset_times: list[float] = []
+        self.events: list[Event] = []
+        self.alerts: list[AlertOut] = []
+        self.commands = 0
+
+    def _new_estimator(self) -> OnlineDriveline:
+        m = self.settings.model
+        return OnlineDriveline(
+            ArmaxOrders(m.na, m.nb, m.nc, m.nk),
+            input_rate_hz=self.settings.input.sample_rate_hz,
+            model_rate_hz=m.sample_rate_hz,
+            forgetting=m.forgetting,
+            p0=m.p0,
+            min_excitation_nm=m.min_excitation_nm,
+            learning_s=m.learning_s,
+            pulses_per_rev=m.pulses_per_rev,
+            band_hz=m.band_hz,
+        )
+
+    # -- counters --------------------------------------------------------------------------------
+    @property
+    def counters(self):
+        return self.assembler.counters
+
+    def on_fault(self, fault: FrameFault) -> None:
+        """A frame that could not be used (counted, reported in the status frame)."""
+        self.assembler.counters.count(fault)
+
+    # -- input -----------------------------------------------------------------------------------
+    def on_signal(self, sample: SignalSample) -> list[Publication]:
+        """One decoded value from a frame."""
+        if self.t_first is None:
+            self.t_first = sample.t_s
+        return self._consume(self.assembler.push(sample), sample.t_s)
+
+    def tick(self, now_s: float) -> list[Publication]:
+        """The stream clock moved without a frame (silence on the bus)."""
+        return self._consume(self.assembler.poll(now_s), now_s)
+
+    def on_command(self, command: int, t_s: float) -> list[Publication]:
+        """A command frame: acknowledge alerts, re-learn, reset the estimator."""
+        self.commands += 1
+        out: list[Publication] = []
+        if command == COMMAND_RESET:
+            self.estimator = self._new_estimator()
+            self._estimate = None
+            self._physical = None
+            self.events.append(Event(t_s, "command", "estimator reset on command"))
+        elif command in (COMMAND_ACK, COMMAND_RELEARN):
+            self.events.append(Event(t_s, "command", {COMMAND_ACK: "alerts acknowledged",
+                                                       COMMAND_RELEARN: "re-learn requested"}[command]))
+        return out
+
+    def process(self, a: AssembledSample) -> None:
+        """Feed one assembled sample to the estimator (also used by offline runs)."""
+        if a.discontinuity and self.counters.samples > 1:
+            self.estimator.restart_history()
+        self.estimator.update(a.dyno_speed, a.engine_speed, a.dyno_torque)
+
+    def _consume(self, samples: list[AssembledSample], now_s: float) -> list[Publication]:
+        out: list[Publication] = []
+        self.t_s = now_s
+        if self.assembler.timed_out:
+            stop = self.excitation.stop(now_s)
+            if stop:
+                out.append(stop)
+            self._set_state(ServiceState.INPUT_TIMEOUT, now_s, out,
+                            f"input timeout: {', '.join(self.assembler.timed_out_roles)} silent")
+        for a in samples:
+            self.process(a)
+            self.t_s = a.t_s
+            rels = self.estimator.rels
+            if rels.n_resets != self._resets_seen:
+                self._resets_seen = rels.n_resets
+                self._reset_times.append(a.t_s)
+                self._alert(out, a.t_s, AlertKind.ESTIMATOR_RESET, 2, 0.0,
+                            f"estimator reset after a numerical failure (resets: {rels.n_resets})")
+            healthy = self.state in (ServiceState.LEARNING, ServiceState.TRACKING)
+            exc = self.excitation.step(a.t_s, healthy, self.estimator.speed_rpm)
+            if exc:
+                out.append(exc)
+            if self._next_publish is None:
+                self._next_publish = a.t_s
+                self._next_physical = a.t_s
+                self._set_state(ServiceState.LEARNING, a.t_s, out)
+            if a.t_s >= self._next_publish:
+                self._next_publish += 1.0 / self.settings.publish.rate_hz
+                if self._next_publish <= a.t_s:  # after a gap: no burst of publications
+                    self._next_publish = a.t_s + 1.0 / self.settings.publish.rate_hz
+                out.extend(self._publish(a.t_s))
+        return out
+
+    # -- outputs ---------------------------------------------------------------------------------
+    def _alert(self, out: list[Publication], t_s: float, kind: AlertKind, severity: int, value_pct: float,
+               message: str) -> None:
+        alert = AlertOut(t_s, kind, severity, value_pct, self.estimator.speed_rpm, message)
+        self.alerts.append(alert)
+        self.events.append(Event(t_s, "alert", message, {"kind": kind.name}))
+        out.append(alert)
+
+    def _set_state(self, state: ServiceState, t_s: float, out: list[Publication], why: str = "") -> None:
+        if state == self.state:
+            return
+        self.state = state
+        self.events.append(Event(t_s, "state", why or state.name, {"state": state.name}))
+        if state in (ServiceState.INPUT_TIMEOUT, ServiceState.FAULT):
+            stop = self.excitation.stop(t_s)
+            if stop:
+                out.append(stop)
+            if state == ServiceState.INPUT_TIMEOUT:
+                self._alert(out, t_s, AlertKind.INPUT_FAULT, 1, 0.0, why or "input timeout")
+        out.append(self.status(t_s))
+
+    def _judge(self, est: OnlineEstimate, t_s: float) -> ServiceState:
+        recent = [t for t in self._reset_times if t_s - t < 10.0]
+        if len(recent) >= 3:
+            return ServiceState.FAULT
+        if est.frozen:
+            return ServiceState.NO_EXCITATION
+        return ServiceState.TRACKING if est.valid else ServiceState.LEARNING
+
+    def _publish(self, t_s: float) -> list[Publication]:
+        out: list[Publication] = []
+        est = self.estimator.estimate()
+        self._estimate = est
+        self._set_state(self._judge(est, t_s), t_s, out)
+        inert = self.settings.inertias
+        if est.valid and (self._physical is None or t_s >= self._next_physical):
+            self._next_physical = t_s + self.settings.publish.physical_interval_s
+            try:
+                self._physical = self.estimator.physical(est, inert.J1, inert.J2, inert.J_total)
+            except (EstimationError, FloatingPointError, ValueError):
+                self._physical = None
+        phys = self._physical
+        nan = float("nan")
+        out.append(EstimateOut(t_s, est.f0_hz, est.zeta, phys.c_s if phys and phys.c_s else nan,
+                               phys.d_s if phys and phys.d_s else nan, est.valid))
+        out.append(QualityOut(t_s, est.residual_rms, est.fpe, est.excitation_nm, est.samples_used))
+        out.append(self.status(t_s))
+        return out
+
+    def status(self, t_s: float) -> StatusOut:
+        c = self.counters
+        return StatusOut(t_s, self.state, c.bad_frames, c.missing_frames)
+
+    # -- results ---------------------------------------------------------------------------------
+    def result(self) -> dict:
+        """The final estimate and the history of states and alerts (times from the stream start)."""
+        est = self._estimate or self.estimator.estimate()
+        inert = self.settings.inertias
+        phys = None
+        if np.isfinite(est.f0_hz):
+            try:
+                phys = self.estimator.physical(est, inert.J1, inert.J2, inert.J_total)
+            except (EstimationError, FloatingPointError, ValueError):
+                phys = None
+        t0 = self.t_first or 0.0
+
+        def fin(x):
+            return float(x) if x is not None and math.isfinite(x) else None
+
+        c = self.counters
+        return {
+            "driveline": {
+                "f0_hz": fin(est.f0_hz),
+                "zeta": fin(est.zeta),
+                "c_s": fin(phys.c_s) if phys else None,
+                "d_s": fin(phys.d_s) if phys else None,
+                "J1": fin(phys.J1) if phys else None,
+                "J2": fin(phys.J2) if phys else None,
+                "valid": bool(est.valid),
+            },
+            "quality": {"residual_rms": fin(est.residual_rms), "fpe": fin(est.fpe),
+                        "excitation_nm": fin(est.excitation_nm), "samples_used": est.samples_used},
+            "state": self.state.name,
+            "status_changes": [{"t_s": e.t_s - t0, "state": e.data["state"], "why": e.message}
+                               for e in self.events if e.kind == "state"],
+            "alerts": [{"t_s": a.t_s - t0, "kind": a.kind.name, "severity": a.severity, "message": a.message}
+                       for a in self.alerts],
+            "counters": {
+                "samples": c.samples, "gaps": c.gaps, "timeouts": c.timeouts,
+                "bad_frames": c.bad_frames, "missing_frames": c.missing_frames,
+                **{f"frames_{k.name.lower()}": v for k, v in c.faults.items()},
+            },
+        }
+
+    # -- persistence -----------------------------------------------------------------------------
+    def get_state(self) -> dict:
+        return {"version": STATE_VERSION, "estimator": self.estimator.get_state(),
+                "alerts": [a.__dict__ | {"kind": int(a.kind)} for a in self.alerts[-50:]]}
+
+    def load_state(self, state: dict) -> None:
+        if state.get("version") != STATE_VERSION:
+            raise EstimationError(f"state version {state.get('version')!r} is not {STATE_VERSION}")
+        self.estimator.load_state(state["estimator"])
+        self.alerts = [AlertOut(**(a | {"kind": AlertKind(a["kind"])})) for a in state.get("alerts", [])]
+
+
+def run_bench_data(data, settings: Settings, progress=None) -> Pipeline:
+    """Feed bench data (a :class:`~online_id.records.BenchData`) through the pipeline, sample by sample.
+
+    The values go through the same assembler and estimator as decoded frames
+    do, in the order a bench sends them (dyno speed, engine speed, torque),
+    so a replay of the same data as CAN frames gives the same result.
+    """
+    import dataclasses
+
+    fs = 1.0 / float(np.median(np.diff(data.time_s)))
+    if abs(fs - settings.input.sample_rate_hz) > 1e-6 * fs:
+        settings = dataclasses.replace(settings, input=dataclasses.replace(settings.input, sample_rate_hz=fs))
+    pipe = Pipeline(settings)
+    t = data.time_s
+    cols = (("dyno_speed", data.dyno_speed_rad_s), ("engine_speed", data.engine_speed_rad_s),
+            ("dyno_torque", data.dyno_torque_nm))
+    n = len(data)
+    step = max(1, n // 200)
+    for k in range(n):
+        tk = float(t[k])
+        for role, arr in cols:
+            pipe.on_signal(SignalSample(role, float(arr[k]), tk))
+        if progress is not None and k % step == 0:
+            progress(k / n, f"t = {tk:.1f} s")
+    return pipe
