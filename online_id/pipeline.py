@@ -146,6 +146,11 @@ class Pipeline:
     def counters(self):
         return self.assembler.counters
 
+    @property
+    def estimate(self) -> OnlineEstimate | None:
+        """The estimate of the last publication (None before the first)."""
+        return self._estimate
+
     def on_fault(self, fault: FrameFault) -> None:
         """A frame that could not be used (counted, reported in the status frame)."""
         self.assembler.counters.count(fault)

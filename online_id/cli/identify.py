@@ -26,6 +26,10 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--config", metavar="FILE", help="YAML config (columns, units, inertias, identification)")
     p.add_argument("--json", action="store_true", help="print one JSON document instead of the table")
     p.add_argument("--plot", metavar="FILE.png", help="plot pole frequency and damping against engine speed")
+    p.add_argument("--recursive", action="store_true",
+                   help="run the service's streaming estimator (RELS with forgetting) over the file instead "
+                        "of the per-operating-point batch identification; gives what `replay` gives on the "
+                        "same data as CAN frames")
     g = p.add_argument_group("input columns and units (override the config)")
     g.add_argument("--time-col", metavar="NAME")
     g.add_argument("--dyno-speed-col", metavar="NAME")
@@ -96,8 +100,33 @@ def run_identification(path: str, s: Settings, label: str = "identify") -> Ident
         progress.close()
 
 
+def run_recursive(args: argparse.Namespace, s: Settings) -> int:
+    from online_id.pipeline import run_bench_data
+
+    data = read_bench_csv(args.path, s.columns, s.units)
+    progress = TerminalProgress("identify --recursive")
+    try:
+        pipe = run_bench_data(data, s, progress)
+    finally:
+        progress.close()
+    result = pipe.result()
+    if args.json:
+        json.dump(result, sys.stdout, indent=2)
+        sys.stdout.write("\n")
+        return 0
+    d = result["driveline"]
+    fmt = lambda x, f: "-" if x is None else format(x, f)  # noqa: E731
+    print(f"online-id identify --recursive {args.path}: {result['counters']['samples']} samples, "
+          f"final state {result['state']}")
+    print(f"  resonance  f0 {fmt(d['f0_hz'], '.3f')} Hz, damping ratio {fmt(d['zeta'], '.4f')}, valid {d['valid']}")
+    print(f"  shaft      c_s {fmt(d['c_s'], '.1f')} Nm/rad, d_s {fmt(d['d_s'], '.3f')} Nms/rad")
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
     s = settings_from_args(args)
+    if args.recursive:
+        return run_recursive(args, s)
     result = run_identification(args.path, s)
     if args.plot:
         plot_identification(result, args.plot, title=f"online-id identify {args.path}")

@@ -32,6 +32,9 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                         help="CSV file to write (default: bench.csv)")
     parser.add_argument("--truth", type=Path,
                         help="truth JSON file (default: <out stem>.truth.json next to --out)")
+    parser.add_argument("--can-log", type=Path, metavar="FILE.{log,asc,blf}",
+                        help="also write the measured signals as CAN input frames (online_id.dbc) "
+                             "to this log; the format follows the suffix")
     parser.set_defaults(func=run)
 
 
@@ -41,6 +44,16 @@ def write_csv(record: BenchRecord, path: Path) -> None:
     data = np.column_stack(list(columns.values()))
     np.savetxt(path, data, fmt=list(CSV_FORMATS), delimiter=",",
                header=",".join(columns), comments="")
+
+
+def write_can_log(record: BenchRecord, path: Path) -> int:
+    """Write the record as input frames of the default DBC to a CAN log; returns the frame count."""
+    from online_id.io.canlog import write_log  # cantools/python-can only when asked for
+    from online_id.io.dbc import encode_inputs
+
+    frames = encode_inputs(record.time_s, record.dyno_speed_rpm, record.engine_speed_rpm,
+                           record.dyno_torque_nm, source="simulated bench")
+    return write_log(path, frames)
 
 
 def _progress(fraction: float) -> None:
@@ -56,6 +69,12 @@ def run(args: argparse.Namespace) -> int:
         scenario = dataclasses.replace(scenario, seed=args.seed)
     out = Path(args.out)
     truth_path = Path(args.truth) if args.truth else out.with_name(f"{out.stem}.truth.json")
+    if args.can_log is not None:
+        from online_id.io.canlog import SUFFIXES
+
+        if Path(args.can_log).suffix.lower() not in SUFFIXES:  # fail before simulating
+            raise ConfigError(f"--can-log: expected a file ending in {', '.join(SUFFIXES)}, "
+                              f"but got {str(args.can_log)!r}")
     show = sys.stderr.isatty()
     record = simulate_bench(scenario, progress=_progress if show else None)
     if show:
@@ -65,12 +84,16 @@ def run(args: argparse.Namespace) -> int:
         truth_path.write_text(json.dumps(record.truth, indent=2) + "\n", encoding="utf-8")
     except OSError as err:
         raise OnlineIdError(f"Cannot write simulation output: {err}") from err
+    can_note = ""
+    if args.can_log is not None:
+        count = write_can_log(record, Path(args.can_log))
+        can_note = f" Wrote {count} CAN frames to {args.can_log}."
     t = record.truth
     print(
         f"Simulated {scenario.duration_s:.1f} s ({record.time_s.size} samples at "
         f"{scenario.fs_hz:g} Hz, seed {scenario.seed}) of a bench with J1 = {t['J1']:g}, "
         f"J2 = {t['J2']:g} kg m^2, c_s = {t['c_s']:g} Nm/rad, d_s = {t['d_s']:g} Nm s/rad: "
         f"first torsional mode f0 = {t['f0_hz']:.3f} Hz, zeta = {t['zeta']:.4f}. "
-        f"Wrote {out} and {truth_path}."
+        f"Wrote {out} and {truth_path}.{can_note}"
     )
     return 0

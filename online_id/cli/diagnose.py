@@ -1,0 +1,261 @@
+"""``online-id diagnose PATH``: residual diagnosis, effect tracing, error before and after.
+
+Inputs: a bench CSV (default: input = dyno torque, output = dyno speed, both
+shaft speeds for order spectra, torsion proxy = integral of dyno minus engine
+speed), a generic CSV (``--input-col U --output-col Y [--time-col T | --fs HZ]``)
+or a MATLAB ``.mat`` file (``--input-var U --output-var Y [--time-var T | --fs HZ]``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from online_id.config import load_config
+from online_id.core.preprocess import check_uniform, decimate, decimation_factor
+from online_id.diagnose import DiagnoseData, Diagnosis, diagnose
+from online_id.diagnose.effects import shaft_angle
+from online_id.errors import ConfigError, InputDataError
+from online_id.io.table_csv import read_csv_columns
+from online_id.report import TerminalProgress
+from online_id.signals import read_bench_csv
+
+BENCH_ORDERS = (8, 8, 8, 0)
+GENERIC_ORDERS = (2, 2, 2, 1)
+
+
+def add_subparser(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "diagnose", help="find what the model lacks in the residual, add it, report the error",
+        description="Fit a baseline ARMAX model on the first part of the data, test the held-out "
+        "residual (whiteness, input correlation, spectrum, order spectra, speed, torsion, "
+        "velocity sign, lag), add the most explanatory effect, refit and repeat while the "
+        "held-out error improves significantly.")
+    p.add_argument("path", metavar="PATH", help="bench CSV, generic CSV, or .mat file")
+    p.add_argument("--config", metavar="FILE", help="YAML config (bench columns and units)")
+    p.add_argument("--json", action="store_true", help="print one JSON document")
+    p.add_argument("--report", metavar="DIR", help="write summary.md, diagnosis.json and PNG plots here")
+    g = p.add_argument_group("generic input (other machines)")
+    g.add_argument("--input-col", metavar="NAME", help="CSV column of the input")
+    g.add_argument("--output-col", metavar="NAME", help="CSV column of the output")
+    g.add_argument("--time-col", metavar="NAME", help="CSV column of the time [s]")
+    g.add_argument("--input-var", metavar="NAME", help=".mat variable of the input")
+    g.add_argument("--output-var", metavar="NAME", help=".mat variable of the output")
+    g.add_argument("--time-var", metavar="NAME", help=".mat variable of the time [s]")
+    g.add_argument("--fs", type=float, metavar="HZ", help="sample rate when there is no time column")
+    g.add_argument("--differentiate-output", action="store_true",
+                   help="model the derivative of the output (a position becomes a velocity)")
+    m = p.add_argument_group("model and test settings")
+    m.add_argument("--sample-rate", type=float, metavar="HZ",
+                   help="decimate to about this rate (bench default 250 Hz)")
+    m.add_argument("--na", type=int, help="baseline order of A (bench 8, generic 2)")
+    m.add_argument("--nb", type=int, help="baseline number of B coefficients")
+    m.add_argument("--nc", type=int, help="baseline order of C")
+    m.add_argument("--nk", type=int, help="baseline input delay in samples")
+    m.add_argument("--estimation-fraction", type=float, default=0.6, metavar="F",
+                   help="share of the data used for estimation (default 0.6)")
+    m.add_argument("--min-explained", type=float, default=0.1, metavar="F",
+                   help="smallest share of held-out residual variance an effect must remove (default 0.1)")
+    m.add_argument("--max-effects", type=int, default=3)
+    m.add_argument("--sim-horizon", type=float, metavar="S",
+                   help="restart the simulation every S seconds (bench default 0.5; else whole part)")
+    p.set_defaults(func=run)
+
+
+def _mat(path: Path, args: argparse.Namespace) -> tuple[np.ndarray, np.ndarray, float]:
+    from scipy.io import loadmat
+
+    if not (args.input_var and args.output_var):
+        raise ConfigError(f"{path}: a .mat file needs --input-var and --output-var")
+    try:
+        doc = loadmat(str(path))
+    except (OSError, ValueError, NotImplementedError) as err:
+        raise InputDataError(f"{path}: cannot read as a MATLAB file: {err}") from err
+    names = [k for k in doc if not k.startswith("__")]
+
+    def var(name: str) -> np.ndarray:
+        if name not in doc:
+            raise InputDataError(f"{path}: no variable {name!r} (variables: {', '.join(names)})")
+        x = np.asarray(doc[name], dtype=float).ravel()
+        return x
+
+    u, y = var(args.input_var), var(args.output_var)
+    return u, y, _rate(path, var(args.time_var) if args.time_var else None, args.fs, args.time_var)
+
+
+def _rate(path: Path, t: np.ndarray | None, fs: float | None, name: str | None) -> float:
+    if t is None:
+        if fs is None or fs <= 0:
+            raise ConfigError(f"{path}: give --time-col/--time-var or --fs HZ (> 0)")
+        return float(fs)
+    try:
+        return 1.0 / check_uniform(t)
+    except InputDataError as err:
+        raise InputDataError(f"{path}: {name}: {err}") from None
+
+
+def load_data(args: argparse.Namespace) -> tuple[DiagnoseData, bool]:
+    """Read PATH as the flags say; return the data and whether it is a bench file."""
+    path = Path(args.path)
+    if not path.exists():
+        raise InputDataError(f"{path}: no such file")
+    bench = False
+    if path.suffix.lower() == ".mat":
+        u, y, fs = _mat(path, args)
+        names = (args.input_var, args.output_var)
+        extra: dict = {}
+    elif args.input_col or args.output_col:
+        if not (args.input_col and args.output_col):
+            raise ConfigError("--input-col and --output-col go together")
+        cols = [args.input_col, args.output_col] + ([args.time_col] if args.time_col else [])
+        table = read_csv_columns(path, cols)
+        u, y = table[args.input_col], table[args.output_col]
+        fs = _rate(path, table.get(args.time_col) if args.time_col else None, args.fs, args.time_col)
+        names = (args.input_col, args.output_col)
+        extra = {}
+    else:
+        bench = True
+        s = load_config(args.config)
+        d = read_bench_csv(path, s.columns, s.units)
+        fs = 1.0 / float(np.mean(np.diff(d.time_s)))
+        u, y = d.dyno_torque_nm, d.dyno_speed_rad_s
+        names = ("dyno_torque", "dyno_speed")
+        extra = {"speeds": {"dyno": d.dyno_speed_rad_s, "engine": d.engine_speed_rad_s},
+                 "torsion": shaft_angle(d.dyno_speed_rad_s - d.engine_speed_rad_s, fs)}
+    if args.differentiate_output:
+        y = np.gradient(y) * fs
+        names = (names[0], f"d{names[1]}/dt")
+    target = args.sample_rate or (250.0 if bench else None)
+    q = decimation_factor(fs, min(target, fs)) if target else 1
+    dec = (lambda x: decimate(x, q)) if q > 1 else (lambda x: np.asarray(x, dtype=float))
+    speeds = {k: dec(v) for k, v in extra.get("speeds", {}).items()}
+    torsion = dec(extra["torsion"]) if "torsion" in extra else None
+    data = DiagnoseData(dec(u), dec(y), fs / q, names[0], names[1], speeds, torsion,
+                        source=str(path))
+    return data, bench
+
+
+def run_diagnosis(args: argparse.Namespace) -> Diagnosis:
+    data, bench = load_data(args)
+    na, nb, nc, nk = BENCH_ORDERS if bench else GENERIC_ORDERS
+    na = args.na if args.na is not None else na
+    nb = args.nb if args.nb is not None else nb
+    nc = args.nc if args.nc is not None else nc
+    nk = args.nk if args.nk is not None else nk
+    horizon = args.sim_horizon if args.sim_horizon is not None else (0.5 if bench else None)
+    progress = TerminalProgress("diagnose")
+    try:
+        return diagnose(data, na=na, nb=nb, nc=nc, nk=nk, input_lead=1 if bench else 0,
+                        estimation_fraction=args.estimation_fraction,
+                        min_explained=args.min_explained, max_effects=args.max_effects,
+                        sim_horizon_s=horizon, progress=progress)
+    finally:
+        progress.close()
+
+
+def _fmt_params(params: dict) -> str:
+    return ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in params.items())
+
+
+def summary_table(d: Diagnosis) -> str:
+    """The before/after table (Markdown) printed by the command."""
+    rows = ["| step | effect | parameters | explained variance | RMS one-step | sim fit % |",
+            "|---|---|---|---|---|---|",
+            f"| 0 | baseline ARMAX({d.baseline.na},{d.baseline.nb},{d.baseline.nc}) | | | "
+            f"{d.error_before.rms:.4g} | {d.error_before.fit_pct:.1f} |"]
+    for i, e in enumerate(d.effects, 1):
+        rows.append(f"| {i} | {e.kind} | {_fmt_params(e.params)} | {100 * e.explained_variance:.1f} % ({e.basis.replace('_', '-')}) | "
+                    f"{e.error_after.rms:.4g} | {e.error_after.fit_pct:.1f} |")
+    return "\n".join(rows)
+
+
+def _pct(x: float) -> str:
+    return "   -  " if not np.isfinite(x) else f"{100 * x:5.1f} %"
+
+
+def text_report(d: Diagnosis) -> str:
+    lines = [f"online-id diagnose {d.data.source}",
+             f"{d.data.input_name} -> {d.data.output_name} at {d.data.fs_hz:g} Hz, "
+             f"{len(d.data)} samples, estimation {d.n_est}, held out {len(d.data) - d.n_est}", "",
+             summary_table(d), "",
+             f"error before: RMS {d.error_before.rms:.4g}, fit {d.error_before.fit_pct:.1f} %",
+             f"error after:  RMS {d.error_after.rms:.4g}, fit {d.error_after.fit_pct:.1f} %",
+             f"stopped: {d.stop_reason}", "", "Residual tests (held-out part), before -> after:"]
+    after = {t.name: t for t in d.tests_after}
+    for t in d.tests_before:
+        a = after.get(t.name)
+        state = lambda x: "pass" if x.passed else "FAIL"  # noqa: E731
+        lines.append(f"  {t.name:26s} {state(t)} ({_pct(t.score)})"
+                     + (f" -> {state(a)} ({_pct(a.score)})" if a else "") + f"  {t.detail}")
+    return "\n".join(lines)
+
+
+def write_report(d: Diagnosis, out: Path) -> list[Path]:
+    """summary.md, diagnosis.json, residual_spectrum.png, residual_correlation.png."""
+    out.mkdir(parents=True, exist_ok=True)
+    files = [out / "summary.md", out / "diagnosis.json"]
+    files[0].write_text("# Diagnosis\n\n```\n" + text_report(d) + "\n```\n\n" + summary_table(d) + "\n",
+                        encoding="utf-8")
+    files[1].write_text(json.dumps(d.as_dict(), indent=2, default=float) + "\n", encoding="utf-8")
+    files += plot_residuals(d, out)
+    return files
+
+
+def plot_residuals(d: Diagnosis, out: Path) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from online_id.diagnose.residual_tests import input_independence, spectrum, whiteness
+
+    n0, fs = d.n_est, d.data.fs_hz
+    pairs = [("before", d.residual_before), ("after", d.residual_after)]
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    for label, e in pairs:
+        s = spectrum(e[n0:], fs).curve
+        ax.semilogy(s["freq_hz"], s["psd"], label=f"{label} (RMS {np.sqrt(np.mean(e[n0:] ** 2)):.3g})")
+    ax.set_xlabel("frequency [Hz]")
+    ax.set_ylabel("residual PSD")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    ax.set_title(f"held-out residual spectrum, {Path(d.data.source).name}")
+    fig.tight_layout()
+    spec = out / "residual_spectrum.png"
+    fig.savefig(spec, dpi=100)
+    plt.close(fig)
+    fig, (a1, a2) = plt.subplots(2, 1, figsize=(8, 6))
+    for label, e in pairs:
+        w = whiteness(e[n0:]).curve
+        x = input_independence(e[n0:], d.data.u[n0:], fs).curve
+        a1.plot(w["lags"], w["r"], "o-", ms=3, label=label)
+        a2.plot(x["lags"], x["r"], "o-", ms=3, label=label)
+    for a, c, title in ((a1, w, "autocorrelation of the residual"),
+                        (a2, x, f"cross-correlation residual / {d.data.input_name}")):
+        a.axhspan(-c["bound"], c["bound"], color="0.85", label="99 % band")
+        a.set_title(title)
+        a.grid(alpha=0.3)
+        a.legend(fontsize=8)
+    a2.set_xlabel("lag [samples]")
+    fig.tight_layout()
+    corr = out / "residual_correlation.png"
+    fig.savefig(corr, dpi=100)
+    plt.close(fig)
+    return [spec, corr]
+
+
+def run(args: argparse.Namespace) -> int:
+    d = run_diagnosis(args)
+    files = write_report(d, Path(args.report)) if args.report else []
+    if args.json:
+        json.dump(d.as_dict(), sys.stdout, indent=2, default=float)
+        sys.stdout.write("\n")
+    else:
+        print(text_report(d))
+        for f in files:
+            print(f"wrote {f}")
+    return 0

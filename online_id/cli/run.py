@@ -1,0 +1,32 @@
+"""``online-id run --config FILE``: the streaming service (what systemd starts)."""
+
+from __future__ import annotations
+
+import argparse
+
+from online_id.config import load_config
+from online_id.service import run_service
+
+
+def add_subparser(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "run",
+        help="run the streaming service on a CAN bus",
+        description="Read engine speed, dyno speed and dyno torque frames, identify the driveline online "
+        "and publish estimate, quality, status and alert frames. Stops cleanly on SIGTERM/SIGINT.",
+    )
+    p.add_argument("--config", metavar="FILE", help="YAML configuration (see deploy/config.yaml)")
+    p.add_argument("--interface", help="override bus.interface (e.g. socketcan, virtual)")
+    p.add_argument("--channel", help="override bus.channel (e.g. can0, vcan0)")
+    p.add_argument("--max-seconds", type=float, metavar="S", help="stop after S seconds (tests)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    s = load_config(args.config)
+    bus = {k: v for k, v in dict(interface=args.interface, channel=args.channel).items() if v}
+    if bus:
+        s = dataclasses.replace(s, bus=dataclasses.replace(s.bus, **bus))
+    return run_service(s, max_s=args.max_seconds)

@@ -1,0 +1,114 @@
+"""The signals a diagnosis works on, validated where they are built.
+
+A diagnosis needs one input ``u`` and one output ``y`` on a uniform grid.
+Optional auxiliary signals let the residual tests look for more effects:
+
+- ``shaft_speeds_rad_s``: speed of each rotating shaft; its integral is the
+  shaft angle used for order spectra and rotation-order regressors;
+- ``torsion``: relative motion across a compliant coupling (for the bench,
+  the integral of dyno minus engine speed), for backlash;
+- ``velocity``: the speed whose sign Coulomb friction follows (by default the
+  output itself, which must then be a speed).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from online_id.errors import InputDataError
+
+MIN_SAMPLES = 100
+
+
+@dataclass(frozen=True)
+class DiagnoseData:
+    """Input, output and auxiliary signals of one record, uniformly sampled.
+
+    Attributes
+    ----------
+    u, y
+        Input and output, equal length.
+    fs_hz
+        Sample rate.
+    input_name, output_name
+        Signal names used in reports (e.g. ``dyno_torque``, ``dyno_speed``).
+    shaft_speeds_rad_s
+        Shaft name -> speed [rad/s], for order analysis (may be empty).
+    torsion
+        Relative motion proxy (same length), or ``None``.
+    velocity
+        Speed whose sign Coulomb friction follows; ``None`` means the output.
+    output_is_velocity
+        Whether the output itself is the velocity (then Coulomb friction is
+        simulated from the simulated output).
+    source
+        Where the data came from, for error messages.
+    """
+
+    u: np.ndarray
+    y: np.ndarray
+    fs_hz: float
+    input_name: str = "input"
+    output_name: str = "output"
+    shaft_speeds_rad_s: Mapping[str, np.ndarray] = field(default_factory=dict)
+    torsion: np.ndarray | None = None
+    velocity: np.ndarray | None = None
+    output_is_velocity: bool = True
+    source: str = "<memory>"
+
+    def __post_init__(self) -> None:
+        u = np.asarray(self.u, dtype=float).ravel()
+        y = np.asarray(self.y, dtype=float).ravel()
+        if u.size != y.size:
+            raise InputDataError(f"{self.source}: input {self.input_name!r} has {u.size} samples "
+                                 f"but output {self.output_name!r} has {y.size}")
+        if u.size < MIN_SAMPLES:
+            raise InputDataError(f"{self.source}: only {u.size} samples; a diagnosis needs at "
+                                 f"least {MIN_SAMPLES}")
+        if not (np.isfinite(self.fs_hz) and self.fs_hz > 0):
+            raise InputDataError(f"{self.source}: sample rate must be > 0, got {self.fs_hz!r}")
+        _finite(u, self.input_name, self.source)
+        _finite(y, self.output_name, self.source)
+        if np.ptp(u) == 0:
+            raise InputDataError(f"{self.source}: input {self.input_name!r} is constant "
+                                 f"({u[0]:g}): nothing excites the model")
+        object.__setattr__(self, "u", u)
+        object.__setattr__(self, "y", y)
+        speeds = {}
+        for name, x in dict(self.shaft_speeds_rad_s).items():
+            speeds[name] = self._aux(x, f"{name} speed")
+        object.__setattr__(self, "shaft_speeds_rad_s", speeds)
+        if self.torsion is not None:
+            object.__setattr__(self, "torsion", self._aux(self.torsion, "torsion"))
+        if self.velocity is not None:
+            object.__setattr__(self, "velocity", self._aux(self.velocity, "velocity"))
+
+    def _aux(self, x: np.ndarray, name: str) -> np.ndarray:
+        x = np.asarray(x, dtype=float).ravel()
+        if x.size != self.y.size:
+            raise InputDataError(f"{self.source}: {name} has {x.size} samples, expected {self.y.size}")
+        _finite(x, name, self.source)
+        return x
+
+    def __len__(self) -> int:
+        return int(self.y.size)
+
+    @property
+    def time_s(self) -> np.ndarray:
+        """Sample times from 0 [s]."""
+        return np.arange(self.y.size) / self.fs_hz
+
+    @property
+    def speed_for_sign(self) -> np.ndarray:
+        """The velocity Coulomb friction follows (the output if none was given)."""
+        return self.y if self.velocity is None else self.velocity
+
+
+def _finite(x: np.ndarray, name: str, source: str) -> None:
+    bad = np.flatnonzero(~np.isfinite(x))
+    if bad.size:
+        raise InputDataError(f"{source}: {name} has {bad.size} non-finite values "
+                             f"(first at sample {bad[0]})")

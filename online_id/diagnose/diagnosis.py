@@ -1,0 +1,323 @@
+"""Closing the loop: residual -> effect -> augmented model -> error before and after.
+
+Notes
+-----
+The record is split into an estimation part (the first
+``estimation_fraction``) and a held-out validation part.  Each step:
+
+1. run the residual tests on the held-out one-step errors of the current
+   model; they point to candidate effects with parameter hints;
+2. fit every candidate extension on the estimation part (parameter searches
+   with ``C`` held, then prediction-error minimisation);
+3. score each by its *explained variance*, the fraction of held-out residual
+   variance it removes, :math:`1 - V_{new}/V_{cur}`, for the one-step
+   prediction error, or for the simulation error when that is larger and
+   significant (a Wiener sensor model mainly improves the simulation);
+4. accept the best if it removes at least ``min_explained`` and the
+   improvement is significant: with :math:`d_t = e_{cur}^2 - e_{new}^2` on
+   the held-out samples, the mean of 20 batch means of :math:`d` must exceed
+   ``T_CRIT`` (one-sided 0.5 % of Student's t with 19 degrees of freedom)
+   times its standard error (batches make the test robust to correlation).
+
+It stops when no candidate is significant, when the residual passes every
+test, or after ``max_effects`` steps.  Error figures are the RMS of the
+held-out one-step prediction error and the NRMSE fit (MATLAB ``compare``) of
+the simulation over the held-out part, started from the measured output.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from online_id.core.pem import fit_percent
+from online_id.diagnose import effects as fx
+from online_id.diagnose.data import DiagnoseData
+from online_id.diagnose.model import AugmentedFit, Structure, fit_structure
+from online_id.diagnose.residual_tests import ResidualTest, run_tests
+from online_id.diagnose.wiener import WienerAbsFit, fit_wiener_abs
+from online_id.errors import EstimationError
+
+T_CRIT = 2.86
+N_BATCH = 20
+
+
+@dataclass(frozen=True)
+class ErrorFigures:
+    """Held-out error of one model."""
+
+    rms: float
+    fit_pct: float
+
+    def as_dict(self) -> dict:
+        return {"rms": self.rms, "fit_pct": self.fit_pct}
+
+
+@dataclass(frozen=True)
+class EffectStep:
+    """An accepted effect with its fitted parameters and what it explained."""
+
+    kind: str
+    params: dict
+    explained_variance: float
+    t_stat: float
+    error_before: ErrorFigures
+    error_after: ErrorFigures
+    basis: str = "one_step"
+
+    def as_dict(self) -> dict:
+        return {"kind": self.kind, "params": self.params,
+                "explained_variance": self.explained_variance, "basis": self.basis,
+                "t_stat": self.t_stat,
+                "error_before": self.error_before.as_dict(), "error_after": self.error_after.as_dict()}
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A candidate effect as evaluated in one step."""
+
+    step: int
+    kind: str
+    params: dict
+    explained_variance: float
+    t_stat: float
+    significant: bool
+
+
+@dataclass
+class Diagnosis:
+    """Result of :func:`diagnose`; residuals kept for the report's plots."""
+
+    data: DiagnoseData
+    n_est: int
+    baseline: Structure
+    effects: list[EffectStep]
+    error_before: ErrorFigures
+    error_after: ErrorFigures
+    tests_before: list[ResidualTest]
+    tests_after: list[ResidualTest]
+    residual_before: np.ndarray
+    residual_after: np.ndarray
+    candidates: list[Candidate] = field(default_factory=list)
+    stop_reason: str = ""
+
+    def as_dict(self) -> dict:
+        s = self.baseline
+        return {
+            "source": self.data.source,
+            "input": self.data.input_name, "output": self.data.output_name,
+            "fs_hz": self.data.fs_hz, "n_samples": len(self.data), "n_estimation": self.n_est,
+            "baseline": {"na": s.na, "nb": s.nb, "nc": s.nc, "nk": s.nk, "input_lead": -s.delay},
+            "effects": [e.as_dict() for e in self.effects],
+            "error_before": self.error_before.as_dict(),
+            "error_after": self.error_after.as_dict(),
+            "tests_before": [_test_dict(t) for t in self.tests_before],
+            "tests_after": [_test_dict(t) for t in self.tests_after],
+            "candidates": [c.__dict__ for c in self.candidates],
+            "stop_reason": self.stop_reason,
+        }
+
+
+def _test_dict(t: ResidualTest) -> dict:
+    return {"name": t.name, "passed": t.passed, "score": t.score, "detail": t.detail}
+
+
+Model = AugmentedFit | WienerAbsFit
+
+
+def _figures(model: Model, data: DiagnoseData, n_est: int,
+             horizon: int | None) -> tuple[ErrorFigures, np.ndarray]:
+    e = model.errors(data)
+    ysim = _sim(model, data, n_est, horizon)
+    return ErrorFigures(float(np.sqrt(np.mean(e[n_est:] ** 2))),
+                        fit_percent(data.y[n_est:], ysim[n_est:])), e
+
+
+def _sim(model: Model, data: DiagnoseData, n_est: int, horizon: int | None) -> np.ndarray:
+    if horizon is None:
+        ysim = model.simulate(data, n_est)
+    else:  # restart from the measured output every `horizon` samples
+        ysim = data.y.astype(float).copy()
+        for w in range(n_est, len(data), horizon):
+            ysim[w:w + horizon] = model.simulate(data, w)[w:w + horizon]
+    return ysim
+
+
+def _t_stat(e_cur: np.ndarray, e_new: np.ndarray) -> float:
+    d = e_cur**2 - e_new**2
+    means = np.array([b.mean() for b in np.array_split(d, N_BATCH)])
+    se = means.std(ddof=1) / np.sqrt(N_BATCH)
+    return float(means.mean() / se) if se > 0 else float("inf") * np.sign(means.mean())
+
+
+def _dedupe(cands: list[tuple[str, dict]]) -> list[tuple[str, dict]]:
+    seen, out = set(), []
+    for kind, hint in cands:
+        key = (kind, tuple(sorted((k, round(v, 3) if isinstance(v, float) else v)
+                                  for k, v in hint.items())))
+        if key not in seen:
+            seen.add(key)
+            out.append((kind, hint))
+    return out
+
+
+def _build(kind: str, hint: dict, data: DiagnoseData, cur: AugmentedFit, n_est: int,
+           max_delay: int) -> tuple[Model, dict, np.ndarray | None] | None:
+    """Fit one candidate extension of ``cur``; ``None`` if it does not apply.
+
+    The third item is the residual of a reference model the candidate is judged
+    against instead of ``cur`` (backlash: ``cur`` plus the linear torsion).
+    """
+    s, C = cur.structure, cur.C
+    if kind == "rotation_order_disturbance":
+        term = fx.RotationOrder(hint["shaft"], hint["order"])
+        if any(t == term for t in s.terms):
+            return None
+        new = s.with_term(term)
+    elif kind == "fixed_frequency_disturbance":
+        new = fx.search_frequency(data, s, n_est, C, hint["freq_hz"], hint["half_width_hz"])
+    elif kind == "additional_mode":
+        new = fx.mode_structure(s)
+    elif kind == "sensor_delay":
+        new = fx.search_delay(data, s, n_est, C, int(hint.get("lag_samples", 0)), max_delay)
+        if new.delay == s.delay:
+            return None
+    elif kind == "backlash":
+        if data.torsion is None or any(t.kind == kind for t in s.terms):
+            return None
+        ref = fit_structure(data, s.with_term(fx.LinearTorsion()), n_est)
+        new = fx.search_backlash(data, ref.structure, n_est, ref.C)
+        model = fit_structure(data, new, n_est)
+        return model, _params(kind, model, cur, data), ref.errors(data)
+    elif kind == "coulomb_friction":
+        if any(t.kind == kind for t in s.terms):
+            return None
+        new = fx.coulomb_structure(data, s)
+    elif kind == "absolute_value_sensor":
+        model = fit_wiener_abs(data, max(s.na, 1), s.nb, max(s.nk, 1), n_est)
+        return model, {"signal": data.output_name}, None
+    else:
+        return None
+    model = fit_structure(data, new, n_est)
+    return model, _params(kind, model, cur, data), None
+
+
+def _params(kind: str, model: AugmentedFit, cur: AugmentedFit, data: DiagnoseData) -> dict:
+    s = model.structure
+    if kind == "additional_mode":
+        return {"freq_hz": fx.new_mode_freq_hz(cur.A, model.A, data.fs_hz)}
+    if kind == "sensor_delay":
+        d = s.delay - cur.structure.delay
+        signal = data.output_name if d > 0 else data.input_name
+        return {"signal": signal, "delay_s": abs(d) / data.fs_hz, "delay_samples": abs(d)}
+    return s.terms[-1].params()
+
+
+def diagnose(data: DiagnoseData, *, na: int, nb: int, nc: int, nk: int = 1, input_lead: int = 0,
+             estimation_fraction: float = 0.6, min_explained: float = 0.1,
+             max_effects: int = 3, max_delay_samples: int = 25,
+             sim_horizon_s: float | None = None,
+             progress: Callable[[float, str], None] | None = None) -> Diagnosis:
+    """Find, in order, the effects the baseline model lacks (see module notes).
+
+    Parameters
+    ----------
+    data
+        The record.
+    na, nb, nc, nk
+        Orders of the baseline ARMAX model (with a constant term).
+    input_lead
+        Samples by which the baseline lets the output anticipate the input.
+        A zero-phase anti-alias filter applied before decimation spreads the
+        response symmetrically, so decimated data need 1.
+    estimation_fraction
+        Share of the samples used for estimation; the rest is held out.
+    min_explained
+        Smallest fraction of held-out residual variance an effect must remove.
+    max_effects
+        Most effects added.
+    max_delay_samples
+        Widest sensor-delay search.
+    sim_horizon_s
+        ``None``: the simulation runs over the whole held-out part.  A number:
+        it restarts from the measured output every ``sim_horizon_s`` seconds
+        (for integrating plants such as a speed-controlled bench, whose
+        open-loop simulation from the measured torque drifts).
+    progress
+        Called as ``progress(fraction, message)``.
+
+    Returns
+    -------
+    Diagnosis
+        Effects in order, the error before and after, the tests and residuals.
+    """
+    if not 0.2 <= estimation_fraction <= 0.9:
+        raise EstimationError(f"estimation_fraction must be in [0.2, 0.9], got {estimation_fraction}")
+    n_est = int(round(estimation_fraction * len(data)))
+    report = progress or (lambda f, m: None)
+    horizon = None if sim_horizon_s is None else max(1, int(round(sim_horizon_s * data.fs_hz)))
+    report(0.0, "baseline")
+    cur: Model = fit_structure(data, Structure(na, nb, nc, nk, delay=-int(input_lead)), n_est)
+    baseline = cur.structure
+    fig0, e_cur = _figures(cur, data, n_est, horizon)
+    e0 = e_cur
+    lags = baseline.input_lags
+    tests0 = run_tests(data, e_cur, n_est, lags)
+    tests, fig, steps, evaluated = tests0, fig0, [], []
+    stop = f"max_effects={max_effects} reached"
+    for step in range(max_effects):
+        if step > 0 and all(t.passed for t in tests):
+            stop = "the residual passes every test"
+            break
+        if isinstance(cur, WienerAbsFit):
+            stop = "absolute-value sensor model: no further extensions"
+            break
+        cands = [c for t in tests for c in t.candidates]
+        cands.append(("sensor_delay", {"lag_samples": 0}))
+        cands = _dedupe([c if c[0] != "additional_mode" else ("additional_mode", {}) for c in cands])
+        r_cur = (data.y - _sim(cur, data, n_est, horizon))[n_est:]
+        best = None
+        for i, (kind, hint) in enumerate(cands):
+            report((step + i / len(cands)) / max_effects, f"step {step + 1}: {kind}")
+            try:
+                built = _build(kind, hint, data, cur, n_est, max_delay_samples)
+            except EstimationError:
+                continue
+            if built is None:
+                continue
+            model, params, e_ref = built
+            e_new = model.errors(data)
+            if not np.all(np.isfinite(e_new[n_est:])):
+                continue
+            e_base = e_cur if e_ref is None else e_ref
+            explained = 1.0 - float(np.mean(e_new[n_est:] ** 2)) / float(np.mean(e_base[n_est:] ** 2))
+            t = _t_stat(e_base[n_est:], e_new[n_est:])
+            basis = "one_step"
+            if e_ref is None:  # the simulation error may improve where the one-step error cannot
+                r_new = (data.y - _sim(model, data, n_est, horizon))[n_est:]
+                if np.all(np.isfinite(r_new)):
+                    x_sim = 1.0 - float(np.mean(r_new**2)) / float(np.mean(r_cur**2))
+                    t_sim = _t_stat(r_cur, r_new)
+                    if x_sim > explained and t_sim >= T_CRIT:
+                        explained, t, basis = x_sim, t_sim, "simulation"
+            ok = explained >= min_explained and t >= T_CRIT
+            evaluated.append(Candidate(step + 1, kind, params, explained, t, ok))
+            if ok and (best is None or explained > best[0]):
+                best = (explained, t, kind, params, model, basis)
+        if best is None:
+            stop = ("no candidate effect improves the held-out error significantly"
+                    + (" (the residual passes every test)" if all(t.passed for t in tests) else ""))
+            break
+        explained, t, kind, params, model, basis = best
+        fig_new, e_new = _figures(model, data, n_est, horizon)
+        steps.append(EffectStep(kind, params, explained, t, fig, fig_new, basis))
+        cur, e_cur, fig = model, e_new, fig_new
+        tests = run_tests(data, e_cur, n_est, lags, isinstance(cur, WienerAbsFit))
+    else:
+        if all(t.passed for t in tests):
+            stop = "the residual passes every test"
+    report(1.0, "done")
+    return Diagnosis(data, n_est, baseline, steps, fig0, fig, tests0, tests,
+                     e0, e_cur, evaluated, stop)

@@ -1,0 +1,227 @@
+"""The effect library: model extensions the diagnosis can fit.
+
+Each effect is a real change of the model that the identification fits:
+
+==============================  =============================================
+kind                            extension
+==============================  =============================================
+rotation_order_disturbance      :math:`\\sin, \\cos(o\\,\\theta_s(t - l))`
+                                regressors, :math:`\\theta_s = \\int \\omega_s dt`
+fixed_frequency_disturbance     :math:`\\sin, \\cos(2\\pi f t)`, ``f`` refined
+additional_mode                 ``na`` and ``nb`` raised by 2 (one pole pair)
+backlash                        dead-zone feature :math:`\\mathrm{clip}(\\varphi
+                                - \\varphi_0, \\pm g/2)` of the torsion, width
+                                ``g`` and centre by grid search
+sensor_delay                    input and output shifted by ``d`` samples
+coulomb_friction                :math:`\\mathrm{sign}(v(t - l))` regressors
+absolute_value_sensor           Wiener model :math:`y = |x|` (see
+                                :mod:`online_id.diagnose.wiener`)
+==============================  =============================================
+
+The lags ``l`` of the input-like regressors are those of ``B``
+(``nk .. nk+nb-1``): a torque that adds to the input passes through the same
+dynamics.  Parameter searches hold ``C`` at the current model's polynomial so
+that each trial is one linear least-squares problem.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+from online_id.diagnose.data import DiagnoseData
+from online_id.diagnose.model import Structure, fit_structure, lag_matrix
+
+ORDER_STEP = 0.5
+
+
+def shaft_angle(speed_rad_s: np.ndarray, fs_hz: float) -> np.ndarray:
+    """Shaft angle [rad] integrated from its speed (trapezoidal rule, 0 at the start)."""
+    s = np.asarray(speed_rad_s, dtype=float)
+    return np.concatenate(([0.0], np.cumsum(0.5 * (s[1:] + s[:-1])))) / fs_hz
+
+
+@dataclass(frozen=True)
+class RotationOrder:
+    """Disturbance at ``order`` times the rotation of ``shaft``."""
+
+    shaft: str
+    order: float
+    kind: str = "rotation_order_disturbance"
+
+    def columns(self, data: DiagnoseData, lags: np.ndarray) -> np.ndarray:
+        theta = self.order * shaft_angle(data.shaft_speeds_rad_s[self.shaft], data.fs_hz)
+        return np.hstack((lag_matrix(np.sin(theta), lags), lag_matrix(np.cos(theta), lags)))
+
+    def output_static(self) -> None:
+        return None
+
+    def params(self) -> dict:
+        return {"shaft": self.shaft, "order": float(self.order)}
+
+
+@dataclass(frozen=True)
+class FixedFrequency:
+    """Sinusoidal disturbance at ``freq_hz``."""
+
+    freq_hz: float
+    kind: str = "fixed_frequency_disturbance"
+
+    def columns(self, data: DiagnoseData, lags: np.ndarray) -> np.ndarray:
+        w = 2.0 * np.pi * self.freq_hz * data.time_s
+        return np.column_stack((np.sin(w), np.cos(w)))
+
+    def output_static(self) -> None:
+        return None
+
+    def params(self) -> dict:
+        return {"freq_hz": float(self.freq_hz)}
+
+
+@dataclass(frozen=True)
+class BacklashTerm:
+    """Dead zone of width ``gap`` centred at ``center`` on the torsion proxy.
+
+    The feature :math:`\\mathrm{clip}(\\varphi - \\varphi_0, -g/2, g/2)` is
+    :math:`\\varphi - \\mathrm{dz}(\\varphi)`, the part of the torsion that
+    transmits no torque; its coefficient corrects the linear spring.
+    """
+
+    gap: float
+    center: float
+    kind: str = "backlash"
+
+    def columns(self, data: DiagnoseData, lags: np.ndarray) -> np.ndarray:
+        h = np.clip(data.torsion - self.center, -0.5 * self.gap, 0.5 * self.gap)
+        return lag_matrix(h, lags)
+
+    def output_static(self) -> None:
+        return None
+
+    def params(self) -> dict:
+        return {"gap_rad": float(self.gap)}
+
+
+@dataclass(frozen=True)
+class LinearTorsion:
+    """The torsion proxy itself as a regressor: the reference a backlash term is judged against.
+
+    The proxy carries information from a second sensor (the engine speed), so
+    a dead-zone feature of it is credited only with what it adds beyond the
+    linear proxy.
+    """
+
+    kind: str = "linear_torsion"
+
+    def columns(self, data: DiagnoseData, lags: np.ndarray) -> np.ndarray:
+        return lag_matrix(data.torsion, lags)
+
+    def output_static(self) -> None:
+        return None
+
+    def params(self) -> dict:
+        return {}
+
+
+@dataclass(frozen=True)
+class CoulombTerm:
+    """Friction force :math:`F_c\\,\\mathrm{sign}(v)` entering like the input."""
+
+    on_output: bool
+    lags: tuple[int, ...]
+    kind: str = "coulomb_friction"
+
+    def columns(self, data: DiagnoseData, lags: np.ndarray) -> np.ndarray:
+        return lag_matrix(np.sign(data.speed_for_sign), np.asarray(self.lags))
+
+    def output_static(self) -> tuple[object, np.ndarray] | None:
+        return (np.sign, np.asarray(self.lags)) if self.on_output else None
+
+    def params(self) -> dict:
+        return {}
+
+
+# -- parameter searches --------------------------------------------------------
+
+def _loss(data: DiagnoseData, s: Structure, n_est: int, C: np.ndarray) -> float:
+    return fit_structure(data, s, n_est, C_fixed=C).V_est
+
+
+def coulomb_structure(data: DiagnoseData, s: Structure) -> Structure:
+    """Structure with a Coulomb friction term (lags of ``B``, at least 1)."""
+    lags = tuple(int(l) for l in np.maximum(s.input_lags, 1))
+    on_output = data.velocity is None and data.output_is_velocity
+    return s.with_term(CoulombTerm(on_output, lags))
+
+
+def search_delay(data: DiagnoseData, s: Structure, n_est: int, C: np.ndarray,
+                 hint: int, max_delay: int) -> Structure:
+    """Best sensor delay (samples, negative = input delayed) by least squares."""
+    lo = min(-2, hint - 2)
+    hi = max(2, hint + 2)
+    lo, hi = max(lo, -max_delay), min(hi, max_delay)
+    base = s.delay
+    best, best_v = s, np.inf
+    for d in range(lo, hi + 1):
+        trial = replace(s, delay=base + d)
+        v = _loss(data, trial, n_est, C)
+        if v < best_v:
+            best, best_v = trial, v
+    return best
+
+
+def search_frequency(data: DiagnoseData, s: Structure, n_est: int, C: np.ndarray,
+                     f0_hz: float, half_width_hz: float) -> Structure:
+    """Refine a fixed-frequency disturbance around ``f0_hz`` (grid, then bounded 1-D search)."""
+    nyq = 0.5 * data.fs_hz
+    lo, hi = max(f0_hz - half_width_hz, 1e-3), min(f0_hz + half_width_hz, 0.999 * nyq)
+    grid = np.linspace(lo, hi, 31)
+    losses = [_loss(data, s.with_term(FixedFrequency(f)), n_est, C) for f in grid]
+    i = int(np.argmin(losses))
+    step = grid[1] - grid[0]
+    res = minimize_scalar(lambda f: _loss(data, s.with_term(FixedFrequency(f)), n_est, C),
+                          bounds=(max(grid[i] - step, lo), min(grid[i] + step, hi)),
+                          method="bounded", options={"xatol": 1e-4 * max(f0_hz, 1.0)})
+    f = float(res.x) if res.fun <= losses[i] else float(grid[i])
+    return s.with_term(FixedFrequency(f))
+
+
+def search_backlash(data: DiagnoseData, s: Structure, n_est: int, C: np.ndarray) -> Structure:
+    """Dead-zone width and centre on the torsion proxy by grid search (``s`` holds the linear proxy)."""
+    phi = data.torsion[:n_est]
+    lo, hi = np.percentile(phi, [2.0, 98.0])
+    span = max(hi - lo, 1e-12)
+    best, best_v = s, np.inf
+    for center in lo + span * np.linspace(0.2, 0.8, 7):
+        for gap in span * np.geomspace(0.03, 0.6, 12):
+            trial = s.with_term(BacklashTerm(float(gap), float(center)))
+            v = _loss(data, trial, n_est, C)
+            if v < best_v:
+                best, best_v = trial, v
+    return best
+
+
+def mode_structure(s: Structure) -> Structure:
+    """One more pole pair (and two more numerator coefficients)."""
+    return replace(s, na=s.na + 2, nb=s.nb + 2)
+
+
+def new_mode_freq_hz(A_old: np.ndarray, A_new: np.ndarray, fs_hz: float) -> float:
+    """Frequency of the complex pole pair of ``A_new`` farthest from every pole of ``A_old``."""
+    def s_poles(A: np.ndarray) -> np.ndarray:
+        z = np.roots(A) if A.size > 1 else np.zeros(0, dtype=complex)
+        z = z[np.abs(z) > 1e-9]
+        return np.log(z.astype(complex)) * fs_hz
+
+    old, new = s_poles(A_old), s_poles(A_new)
+    cand = new[new.imag > 1e-6]
+    if cand.size == 0:
+        return float("nan")
+    if old.size == 0:
+        pick = cand[np.argmin(np.abs(cand.real) / np.abs(cand))]
+    else:
+        dist = np.min(np.abs(cand[:, None] - old[None, :]), axis=1)
+        pick = cand[int(np.argmax(dist))]
+    return float(np.abs(pick) / (2.0 * np.pi))

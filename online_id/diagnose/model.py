@@ -1,0 +1,291 @@
+"""ARMAX model with extra regressors: the baseline and every augmented model.
+
+Notes
+-----
+With the input aligned for a sensor delay of ``delay`` samples
+(:math:`u_d(t) = u(t - d)`, :math:`d < 0` shifts the input forward), the
+model is
+
+.. math::
+
+    A(q) y(t) = B(q) u_d(t) + \\sum_j g_j x_j(t) + k + C(q) e(t)
+
+where the :math:`x_j` are the columns that the effects add (sin/cos of a
+shaft angle, a dead-zone feature of the torsion, the sign of the velocity,
+...), each already lagged.  Written with the equation error
+:math:`v(t) = y(t) - \\varphi(t)^T \\eta`, :math:`\\eta = [a, b, g, k]`, the
+one-step prediction error is :math:`\\varepsilon = v / C` and its gradient is
+
+.. math::
+
+    \\partial \\varepsilon / \\partial \\eta = -\\varphi / C, \\qquad
+    \\partial \\varepsilon / \\partial c_k = -\\varepsilon(t - k) / C,
+
+so prediction-error minimisation runs as in :mod:`online_id.core.pem`
+(trust-region Gauss-Newton, ``C`` kept minimum phase) starting from the
+least-squares (``C = 1``) estimate.  Columns that depend on the output
+(Coulomb friction on the output speed) use the measured output in the
+predictor and the simulated output in a simulation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Protocol
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.signal import lfilter, lfiltic
+
+from online_id.core.pem import reflect_unstable_roots
+from online_id.diagnose.data import DiagnoseData
+from online_id.errors import EstimationError
+
+
+class Term(Protocol):
+    """An effect that adds regressor columns to the model."""
+
+    kind: str
+
+    def columns(self, data: DiagnoseData, lags: np.ndarray) -> np.ndarray:
+        """Regressor columns ``(n, m)`` on the measured data."""
+
+    def output_static(self) -> tuple[object, np.ndarray] | None:
+        """``(f, lags)`` if the columns are ``f(y(t - lag))`` of the output, else ``None``."""
+
+
+@dataclass(frozen=True)
+class Structure:
+    """Orders, sensor-delay alignment and extra terms of a model."""
+
+    na: int
+    nb: int
+    nc: int
+    nk: int = 1
+    delay: int = 0
+    terms: tuple = field(default_factory=tuple)
+
+    def __post_init__(self) -> None:
+        if self.na < 0 or self.nb < 1 or self.nc < 0 or self.nk < 0:
+            raise EstimationError(f"bad model orders na={self.na} nb={self.nb} nc={self.nc} nk={self.nk}")
+
+    @property
+    def max_lag(self) -> int:
+        return max(self.na, self.nk + self.nb - 1, self.nc, 1)
+
+    @property
+    def input_lags(self) -> np.ndarray:
+        return self.nk + np.arange(self.nb)
+
+    def with_term(self, term: object) -> "Structure":
+        return replace(self, terms=self.terms + (term,))
+
+
+@dataclass(frozen=True)
+class AugmentedFit:
+    """A fitted model: ``eta = [a, b, g, k]`` and ``C``.
+
+    Attributes
+    ----------
+    structure
+        The model structure.
+    eta
+        Parameters of the equation error.
+    C
+        Noise polynomial (leading 1).
+    n_term_cols
+        Number of columns each term added, in order.
+    V_est
+        Mean squared one-step error on the estimation samples.
+    n_est
+        Samples of the estimation part (the fit used ``max_lag .. n_est``).
+    """
+
+    structure: Structure
+    eta: np.ndarray
+    C: np.ndarray
+    n_term_cols: tuple[int, ...]
+    V_est: float
+    n_est: int
+
+    @property
+    def A(self) -> np.ndarray:
+        return np.concatenate(([1.0], self.eta[: self.structure.na]))
+
+    @property
+    def n_params(self) -> int:
+        return int(self.eta.size + self.C.size - 1)
+
+    def term_params(self, i: int) -> np.ndarray:
+        """Fitted coefficients of term ``i``."""
+        s = self.structure
+        start = s.na + s.nb + sum(self.n_term_cols[:i])
+        return self.eta[start:start + self.n_term_cols[i]]
+
+    def errors(self, data: DiagnoseData) -> np.ndarray:
+        """One-step prediction errors over the whole record (filters from sample 0)."""
+        phi, _ = regressors(data, self.structure)
+        return lfilter([1.0], self.C, data.y - phi @ self.eta)
+
+    def simulate(self, data: DiagnoseData, start: int) -> np.ndarray:
+        """Simulated output from sample ``start`` on, measured output before it.
+
+        Roots of ``A`` outside the unit circle (an equation-error model may
+        place one near the Nyquist frequency) are reflected inside for the
+        simulation, which keeps the amplitude response of ``1/A``.
+        """
+        s = self.structure
+        phi, _ = regressors(data, s)
+        y = data.y
+        A = reflect_unstable_roots(self.A, 1.0)
+        a = A[1:]
+        # exogenous part of phi @ eta (everything but the output lags and output-dependent terms)
+        mask = np.ones(self.eta.size, dtype=bool)
+        mask[: s.na] = False
+        dependent = []
+        col = s.na + s.nb
+        for term, m in zip(s.terms, self.n_term_cols):
+            stat = term.output_static()
+            if stat is not None:
+                mask[col:col + m] = False
+                dependent.append((stat[0], np.asarray(stat[1], dtype=int), self.eta[col:col + m]))
+            col += m
+        w = phi[:, mask] @ self.eta[mask]
+        out = y.astype(float).copy()
+        if not dependent:
+            # y(t) = -sum a_i y(t-i) + w(t): a filter started from the measured output
+            if s.na == 0:
+                out[start:] = w[start:]
+                return out
+            past = out[max(start - s.na, 0):start][::-1]
+            zi = lfiltic([1.0], A, np.pad(past, (0, s.na - past.size)))
+            out[start:] = lfilter([1.0], A, w[start:], zi=zi)[0]
+            return out
+        for t in range(start, y.size):
+            acc = w[t]
+            for i in range(s.na):
+                if t - 1 - i >= 0:
+                    acc -= a[i] * out[t - 1 - i]
+            for f, lags, g in dependent:
+                idx = t - lags
+                vals = np.where(idx >= 0, out[np.maximum(idx, 0)], 0.0)
+                acc += float(f(vals) @ g)
+            out[t] = acc
+        return out
+
+
+def align_input(u: np.ndarray, delay: int) -> np.ndarray:
+    """Input shifted by ``delay`` samples (held at the ends)."""
+    if delay == 0:
+        return u
+    if delay > 0:
+        return np.concatenate((np.full(delay, u[0]), u[:-delay]))
+    d = -delay
+    return np.concatenate((u[d:], np.full(d, u[-1])))
+
+
+def lag_matrix(x: np.ndarray, lags: np.ndarray) -> np.ndarray:
+    """Columns ``x(t - lag)``, zero before the start."""
+    lags = np.asarray(lags, dtype=int)
+    idx = np.arange(x.size)[:, None] - lags[None, :]
+    out = x[np.maximum(idx, 0)]
+    out[idx < 0] = 0.0
+    return out
+
+
+def regressors(data: DiagnoseData, s: Structure) -> tuple[np.ndarray, tuple[int, ...]]:
+    """Full-length regressor matrix ``[-y lags, u lags, term columns, 1]``."""
+    u = align_input(data.u, s.delay)
+    cols = [-lag_matrix(data.y, np.arange(1, s.na + 1)), lag_matrix(u, s.input_lags)]
+    widths = []
+    for term in s.terms:
+        x = np.asarray(term.columns(data, s.input_lags), dtype=float)
+        x = x.reshape(data.y.size, -1)
+        cols.append(x)
+        widths.append(x.shape[1])
+    cols.append(np.ones((data.y.size, 1)))
+    return np.hstack(cols), tuple(widths)
+
+
+def fit_structure(data: DiagnoseData, s: Structure, n_est: int, *,
+                  C_fixed: np.ndarray | None = None, max_iter: int = 40) -> AugmentedFit:
+    """Fit a structure on samples ``0 .. n_est`` (criterion from ``max_lag``).
+
+    Parameters
+    ----------
+    data
+        The record.
+    s
+        Model structure.
+    n_est
+        End of the estimation part.
+    C_fixed
+        If given, ``C`` is held at this polynomial and ``eta`` follows by
+        least squares on the ``1/C``-filtered equation error (fast; used in
+        parameter searches).  Otherwise ``nc = s.nc`` and PEM is run.
+    max_iter
+        Maximum residual evaluations of the PEM optimiser.
+    """
+    phi_all, widths = regressors(data, s)
+    t0 = s.max_lag + max(abs(s.delay), 0)
+    phi = phi_all[:n_est]
+    y = data.y[:n_est]
+    if n_est - t0 <= 2 * phi.shape[1]:
+        raise EstimationError(f"{data.source}: too few estimation samples ({n_est - t0}) for "
+                              f"{phi.shape[1]} parameters")
+    scale = np.maximum(np.sqrt(np.mean(phi[t0:] ** 2, axis=0)), 1e-300)
+    if C_fixed is not None:
+        C = np.asarray(C_fixed, dtype=float)
+        eta = _ls(lfilter([1.0], C, phi, axis=0)[t0:] / scale, lfilter([1.0], C, y)[t0:]) / scale
+        eps = lfilter([1.0], C, y - phi @ eta)[t0:]
+        return AugmentedFit(s, eta, C, widths, float(np.mean(eps**2)), n_est)
+    eta0 = _ls(phi[t0:] / scale, y[t0:]) / scale
+    if s.nc == 0:
+        eps = (y - phi @ eta0)[t0:]
+        return AugmentedFit(s, eta0, np.ones(1), widths, float(np.mean(eps**2)), n_est)
+    problem = _Pem(phi, y, s.nc, t0, scale)
+    x0 = np.concatenate((eta0 * scale, np.zeros(s.nc)))
+    res = least_squares(problem.residuals, x0, jac=problem.jacobian, method="trf",
+                        x_scale="jac", ftol=1e-7, xtol=1e-7, gtol=1e-7, max_nfev=max_iter)
+    x = problem.stable(res.x)
+    eta = x[: phi.shape[1]] / scale
+    C = np.concatenate(([1.0], x[phi.shape[1]:]))
+    eps = problem.residuals(x)
+    if not np.all(np.isfinite(eps)):
+        raise EstimationError(f"{data.source}: the prediction-error fit diverged")
+    return AugmentedFit(s, eta, C, widths, float(np.mean(eps**2)), n_est)
+
+
+def _ls(phi: np.ndarray, y: np.ndarray) -> np.ndarray:
+    eta, *_ = np.linalg.lstsq(phi, y, rcond=1e-10)
+    return eta
+
+
+class _Pem:
+    """Residuals and Jacobian of the PEM criterion for scaled ``eta`` and ``c``."""
+
+    def __init__(self, phi: np.ndarray, y: np.ndarray, nc: int, t0: int, scale: np.ndarray):
+        self.phi = phi / scale
+        self.y, self.nc, self.t0 = y, nc, t0
+        self.m = phi.shape[1]
+
+    def stable(self, x: np.ndarray) -> np.ndarray:
+        x = np.array(x, dtype=float)
+        C = np.concatenate(([1.0], x[self.m:]))
+        x[self.m:] = reflect_unstable_roots(C, 0.999)[1:]
+        return x
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        C = np.concatenate(([1.0], x[self.m:]))
+        if C.size > 1 and np.max(np.abs(np.roots(C))) >= 1.0:
+            return np.full(self.y.size - self.t0, 1e150)
+        return lfilter([1.0], C, self.y - self.phi @ x[: self.m])[self.t0:]
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        C = np.concatenate(([1.0], x[self.m:]))
+        if C.size > 1 and np.max(np.abs(np.roots(C))) >= 1.0:
+            C = reflect_unstable_roots(C, 0.999)
+        eps = lfilter([1.0], C, self.y - self.phi @ x[: self.m])
+        d_eta = -lfilter([1.0], C, self.phi, axis=0)
+        d_c = -lfilter([1.0], C, lag_matrix(eps, np.arange(1, self.nc + 1)), axis=0)
+        return np.hstack((d_eta, d_c))[self.t0:]

@@ -1,0 +1,133 @@
+"""CAN log files: candump ``.log``, Vector ``.asc`` and ``.blf`` through python-can.
+
+Frames are plain tuples so that nothing outside :mod:`online_id.io` sees a
+python-can object: :func:`write_log` takes ``(t_s, arbitration_id, data)``
+(optionally a fourth item ``is_extended``), :func:`read_log` yields
+``(t_s, arbitration_id, data, is_extended, is_error_frame)``.
+
+Timestamps are written as given and read back as the file holds them:
+``.log`` keeps absolute seconds (1 us resolution); ``.asc`` stores times
+relative to its first frame (1 us), so they come back shifted by the first
+frame's time; ``.blf`` keeps nanoseconds relative to a start time that is only
+stored for Unix timestamps (times before 1990 come back as written).
+"""
+
+from __future__ import annotations
+
+import struct
+import zlib
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+
+import can
+
+from online_id.errors import InputDataError
+
+SUFFIXES = (".log", ".asc", ".blf")
+"""Log formats :func:`write_log` and :func:`read_log` support."""
+
+Frame = tuple[float, int, bytes]
+LoggedFrame = tuple[float, int, bytes, bool, bool]
+
+
+def _suffix(path: Path) -> str:
+    suffix = path.suffix.lower()
+    if suffix not in SUFFIXES:
+        raise InputDataError(
+            f"{path}: expected a CAN log with suffix {', '.join(SUFFIXES)}, but got {path.suffix or 'no suffix'!r}"
+        )
+    return suffix
+
+
+def _writer(path: Path, suffix: str, channel: str) -> can.io.generic.MessageWriter:
+    if suffix == ".log":
+        return can.CanutilsLogWriter(path, channel=channel)
+    if suffix == ".asc":
+        return can.ASCWriter(path)
+    return can.BLFWriter(path)
+
+
+def write_log(path: str | Path, frames: Iterable[tuple], channel: str = "can0") -> int:
+    """Write frames ``(t_s, arbitration_id, data[, is_extended])`` to a CAN log; returns the count.
+
+    The format follows the suffix: ``.log`` (``candump -l``), ``.asc`` or ``.blf``.
+    Without the fourth item an ID above 0x7FF is written as extended.
+
+    Raises
+    ------
+    InputDataError
+        Unknown suffix, or the file cannot be written (names the file).
+    """
+    path = Path(path)
+    suffix = _suffix(path)
+    count = 0
+    try:
+        writer = _writer(path, suffix, channel)
+    except OSError as err:
+        raise InputDataError(f"{path}: cannot write: {err.strerror or err}") from err
+    try:
+        for frame in frames:
+            t_s, arbitration_id, data = frame[0], int(frame[1]), bytes(frame[2])
+            extended = bool(frame[3]) if len(frame) > 3 else arbitration_id > 0x7FF
+            writer.on_message_received(can.Message(
+                timestamp=float(t_s), arbitration_id=arbitration_id, is_extended_id=extended,
+                data=data, dlc=len(data), is_rx=True, channel=channel,
+            ))
+            count += 1
+    except OSError as err:
+        raise InputDataError(f"{path}: cannot write: {err.strerror or err}") from err
+    finally:
+        writer.stop()
+    return count
+
+
+_READ_ERRORS = (OSError, ValueError, EOFError, IndexError, KeyError, struct.error, zlib.error,
+                can.io.blf.BLFParseError)
+
+
+def _bad_line(path: Path, frames_read: int) -> int | None:
+    """Line number of the (frames_read + 1)-th non-blank line of a candump log."""
+    try:
+        with path.open("r", encoding="utf-8", errors="replace") as handle:
+            seen = 0
+            for number, line in enumerate(handle, start=1):
+                if line.strip():
+                    if seen == frames_read:
+                        return number
+                    seen += 1
+    except OSError:
+        return None
+    return None
+
+
+def read_log(path: str | Path) -> Iterator[LoggedFrame]:
+    """Frames ``(t_s, arbitration_id, data, is_extended, is_error_frame)`` of a CAN log.
+
+    Raises
+    ------
+    InputDataError
+        Unknown suffix, missing or corrupt file; names the file (and, for
+        ``.log``, the line).
+    """
+    path = Path(path)
+    suffix = _suffix(path)
+    if not path.is_file():
+        raise InputDataError(f"{path}: cannot read the CAN log: no such file")
+    count = 0
+    try:
+        reader = can.LogReader(path)
+    except _READ_ERRORS as err:
+        raise InputDataError(f"{path}: cannot read the CAN log: {err}") from err
+    try:
+        for msg in reader:
+            data = b"" if msg.is_remote_frame or msg.data is None else bytes(msg.data)
+            yield float(msg.timestamp), int(msg.arbitration_id), data, bool(msg.is_extended_id), \
+                bool(msg.is_error_frame)
+            count += 1
+    except _READ_ERRORS as err:
+        line = _bad_line(path, count) if suffix == ".log" else None
+        where = f"{path}:{line}" if line else f"{path}: after {count} frames"
+        text = " ".join(str(err).split()) or type(err).__name__
+        raise InputDataError(f"{where}: corrupt {suffix} CAN log: {text}") from err
+    finally:
+        reader.stop()

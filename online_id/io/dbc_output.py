@@ -1,0 +1,131 @@
+"""Output frames: publications -> ``(arbitration_id, data)`` with alive counter and CRC-8.
+
+Importable as ``online_id.io.dbc.OutputEncoder`` too.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import cantools
+
+from online_id.errors import ConfigError, DbcError
+from online_id.io.crc import crc8_j1850
+from online_id.io.dbc import _message, _signal, load_dbc
+from online_id.records import AlertOut, EstimateOut, ExcitationOut, Publication, QualityOut, StatusOut
+
+OUTPUT_MESSAGES = {
+    "estimate": "OidEstimate",
+    "shaft": "OidShaft",
+    "quality": "OidQuality",
+    "status": "OidStatus",
+    "alert": "OidAlert",
+    "excitation": "OidExcitation",
+}
+"""Default message name of each output (key -> DBC message)."""
+
+
+@dataclass(frozen=True)
+class _OutSpec:
+    message: Any
+    counter: str
+    crc: str
+    wrap: int
+    bounds: dict[str, tuple[float, float]]
+
+
+class OutputEncoder:
+    """Encode publications into output frames with alive counter and CRC-8 SAE J1850.
+
+    Every output message has a ``<Msg>Counter`` (incremented per frame of that
+    message, wrapping at its width: 0..15 for 4 bits) and a ``<Msg>CRC`` in
+    byte 7 computed over bytes 0..6 (:func:`~online_id.io.crc.crc8_j1850`).
+    Values are clamped to the signal ranges; NaN/inf become 0 (and clear ``Valid``).
+    """
+
+    def __init__(self, db: Any = None, names: Mapping[str, str] | None = None, *, source: str = "the DBC") -> None:
+        db = db if db is not None else load_dbc()
+        self.names = {**OUTPUT_MESSAGES, **dict(names or {})}
+        unknown = set(self.names) - set(OUTPUT_MESSAGES)
+        if unknown:
+            raise ConfigError(f"Expected output keys among {', '.join(OUTPUT_MESSAGES)}, but got {sorted(unknown)}.")
+        self._specs: dict[str, _OutSpec] = {}
+        self._by_id: dict[int, _OutSpec] = {}
+        self._count: dict[str, int] = {}
+        for key, name in self.names.items():
+            msg = _message(db, name, source, f"{key} output")
+            counter = _signal(msg, f"{name}Counter", source, "alive counter")
+            crc = _signal(msg, f"{name}CRC", source, "CRC-8 over bytes 0..6")
+            crc_start = 56 if crc.byte_order == "little_endian" else 63
+            if msg.length != 8 or crc.length != 8 or crc.start != crc_start:
+                raise DbcError(f'{source}: expected message "{name}" of 8 bytes with signal "{crc.name}" '
+                               f"filling byte 7, but got length {msg.length}, signal start {crc.start} "
+                               f"length {crc.length}.")
+            spec = _OutSpec(msg, counter.name, crc.name, 1 << counter.length,
+                            {s.name: (float(s.minimum if s.minimum is not None else -math.inf),
+                                      float(s.maximum if s.maximum is not None else math.inf))
+                             for s in msg.signals})
+            self._specs[key] = spec
+            self._by_id[int(msg.frame_id)] = spec
+            self._count[key] = 0
+
+    def encode(self, pub: Publication) -> list[tuple[int, bytes]]:
+        """Frames ``(arbitration_id, data)`` of one publication (EstimateOut gives two)."""
+        if isinstance(pub, EstimateOut):
+            ok = bool(pub.valid) and all(math.isfinite(v) for v in (pub.f0_hz, pub.zeta))
+            ok_shaft = bool(pub.valid) and all(math.isfinite(v) for v in (pub.c_s, pub.d_s))
+            return [
+                self._encode("estimate", {"ResonanceFreq": pub.f0_hz, "DampingRatio": pub.zeta, "Valid": ok}),
+                self._encode("shaft", {"ShaftStiffness": pub.c_s, "ShaftDamping": pub.d_s, "Valid": ok_shaft}),
+            ]
+        if isinstance(pub, QualityOut):
+            fpe = float(pub.fpe)
+            return [self._encode("quality", {
+                "ResidualRms": pub.residual_rms,
+                "Fpe": math.sqrt(fpe) if fpe >= 0.0 else math.nan,
+                "Excitation": pub.excitation,
+                "SamplesUsed": pub.samples_used,
+            })]
+        if isinstance(pub, StatusOut):
+            return [self._encode("status", {"State": int(pub.state), "BadFrames": pub.bad_frames,
+                                            "MissingFrames": pub.missing_frames})]
+        if isinstance(pub, AlertOut):
+            return [self._encode("alert", {"AlertKind": int(pub.kind), "Severity": pub.severity,
+                                           "DriftPct": pub.value_pct, "SpeedRpm": pub.speed_rpm})]
+        if isinstance(pub, ExcitationOut):
+            return [self._encode("excitation", {"TorqueOffset": pub.torque_offset_nm, "Active": bool(pub.active)})]
+        raise TypeError(f"Expected EstimateOut, QualityOut, StatusOut, AlertOut or ExcitationOut, "
+                        f"but got {type(pub).__name__}.")
+
+    def _encode(self, key: str, values: Mapping[str, float]) -> tuple[int, bytes]:
+        spec = self._specs[key]
+        phys: dict[str, float] = {}
+        for name, (lo, hi) in spec.bounds.items():
+            v = float(values.get(name, 0.0))
+            if not math.isfinite(v):
+                v = 0.0
+            phys[name] = min(max(v, lo), hi)
+        phys[spec.counter] = self._count[key]
+        self._count[key] = (self._count[key] + 1) % spec.wrap
+        phys[spec.crc] = 0
+        try:
+            data = bytearray(spec.message.encode(phys, scaling=True, padding=False, strict=True))
+        except (cantools.database.Error, ValueError, KeyError) as err:
+            raise DbcError(f'Cannot encode message "{spec.message.name}" from {dict(values)}: {err}') from err
+        data[7] = crc8_j1850(data[:7])
+        return int(spec.message.frame_id), bytes(data)
+
+    def verify(self, arbitration_id: int, data: bytes | bytearray) -> bool:
+        """True when ``data`` is an 8-byte output frame of this DBC with a correct CRC."""
+        return (arbitration_id in self._by_id and data is not None and len(data) == 8
+                and crc8_j1850(bytes(data[:7])) == data[7])
+
+    def decode(self, arbitration_id: int, data: bytes | bytearray) -> dict[str, float]:
+        """Physical values of an output frame (for consumers and tests); DbcError if it does not verify."""
+        if not self.verify(arbitration_id, data):
+            raise DbcError(f"Expected an output frame with a valid CRC, but got id 0x{arbitration_id:X} "
+                           f"data {bytes(data or b'').hex()}.")
+        return dict(self._by_id[arbitration_id].message.decode(bytes(data), decode_choices=False))

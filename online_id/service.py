@@ -1,0 +1,189 @@
+"""The daemon: one receive loop, signals, systemd notify/watchdog, persisted state.
+
+``run_service(settings)`` opens the bus, restores the saved state, and loops:
+receive a frame (with a short timeout), run it through the :class:`Runtime`,
+send what it publishes, and between frames advance the stream clock so that
+silence is detected.  SIGTERM and SIGINT end the loop cleanly: the excitation
+request is withdrawn, the state is saved, the bus closed, exit status 0.
+
+A bus that fails is reopened with exponential back-off (0.1 s doubling to
+5 s); if it stays down for longer than ``bus.reopen_max_s`` the process ends
+with status 1, so that systemd restarts it (``Restart=on-failure``).
+
+The watchdog (``WatchdogSec=`` in the unit) is pinged only while the loop
+runs and input frames flow; status text goes to systemd (``STATUS=``) and
+a log line to stderr (the journal) on every state change.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import Callable, TextIO
+
+from online_id.config import Settings
+from online_id.errors import BusError, EstimationError, InputDataError
+from online_id.io.bus import CanBus
+from online_id.io.statefile import load_state, save_state
+from online_id.io.systemd import Notifier
+from online_id.runtime import Runtime
+
+STATE_FILE = "online-id-state.json"
+
+
+def state_path(settings: Settings) -> Path | None:
+    """Where the state is saved: ``state.directory``, else ``$STATE_DIRECTORY`` (systemd), else nowhere."""
+    directory = settings.state.directory or (os.environ.get("STATE_DIRECTORY", "").split(":")[0] or None)
+    return Path(directory) / STATE_FILE if directory else None
+
+
+class Service:
+    """The live service around a :class:`Runtime` (see module notes)."""
+
+    def __init__(self, settings: Settings, log: TextIO | None = None,
+                 bus_factory: Callable[[], CanBus] | None = None, clock: Callable[[], float] = time.monotonic) -> None:
+        self.settings = settings
+        self.log = log or sys.stderr
+        self.runtime = Runtime(settings)
+        self.notifier = Notifier()
+        self.clock = clock
+        b = settings.bus
+        self.bus_factory = bus_factory or (lambda: CanBus(b.interface, b.channel, b.bitrate, b.receive_own_messages))
+        self.stop_requested = False
+        self.state_file = state_path(settings)
+        self.last_frame_wall = 0.0
+        self.last_frame_ts: float | None = None
+        self._last_state = None
+        self._restore()
+        self._n_alerts = len(self.runtime.pipeline.alerts)
+
+    # -- state ---------------------------------------------------------------------------------------
+    def say(self, text: str) -> None:
+        print(f"online-id: {text}", file=self.log, flush=True)
+
+    def _restore(self) -> None:
+        if self.state_file is None:
+            return
+        try:
+            state = load_state(self.state_file)
+            if state is not None:
+                self.runtime.pipeline.load_state(state)
+                self.say(f"restored estimator state from {self.state_file}")
+        except (InputDataError, EstimationError, KeyError, TypeError, ValueError) as err:
+            self.say(f"ignoring saved state {self.state_file}: {err}")
+
+    def save(self) -> None:
+        if self.state_file is None:
+            return
+        try:
+            save_state(self.state_file, self.runtime.pipeline.get_state())
+        except OSError as err:
+            self.say(f"cannot save state to {self.state_file}: {err}")
+
+    # -- loop ----------------------------------------------------------------------------------------
+    def request_stop(self, *_args) -> None:
+        self.stop_requested = True
+
+    def _open(self) -> CanBus:
+        delay, down_since = 0.1, self.clock()
+        while True:
+            try:
+                return self.bus_factory()
+            except BusError as err:
+                if self.clock() - down_since > self.settings.bus.reopen_max_s:
+                    raise BusError(f"{err}; gave up after {self.settings.bus.reopen_max_s:g} s") from err
+                self.say(f"{err}; retrying in {delay:.1f} s")
+                self.notifier.status(f"bus down: {err}")
+                end = time.monotonic() + delay
+                while time.monotonic() < end and not self.stop_requested:
+                    time.sleep(0.05)
+                if self.stop_requested:
+                    raise
+                delay = min(2 * delay, 5.0)
+
+    def _report_state(self) -> None:
+        p = self.runtime.pipeline
+        for a in p.alerts[self._n_alerts:]:
+            self.say(f"alert {a.kind.name} (severity {a.severity}): {a.message}")
+        self._n_alerts = len(p.alerts)
+        if p.state != self._last_state:
+            self._last_state = p.state
+            est = p.estimate
+            f0 = f", f0 {est.f0_hz:.3f} Hz" if est is not None and est.valid else ""
+            c = p.counters
+            text = f"{p.state.name}{f0}, {c.samples} samples, {c.bad_frames} bad frames"
+            self.say(f"state {text}")
+            self.notifier.status(text)
+
+    def run(self, max_s: float | None = None) -> int:
+        """The receive loop; returns the exit status."""
+        s = self.settings
+        bus = self._open()
+        self.say(f"listening on {s.bus.interface}:{s.bus.channel}")
+        self.notifier.ready(f"listening on {s.bus.interface}:{s.bus.channel}")
+        t_start = time.monotonic()
+        next_save = time.monotonic() + s.state.save_interval_s
+        next_ping = 0.0
+        ping_every = (self.notifier.watchdog_s or 10.0) / 3
+        try:
+            while not self.stop_requested:
+                if max_s is not None and time.monotonic() - t_start > max_s:
+                    break
+                try:
+                    frame = bus.recv(0.05)
+                    if frame is None:
+                        # the stream's clock: the last frame's timestamp plus the wall time since it came
+                        # (frame timestamps may be kernel time, a replayed log's or a simulator's)
+                        if self.last_frame_ts is not None:
+                            out = self.runtime.tick(self.last_frame_ts + time.monotonic() - self.last_frame_wall)
+                        else:
+                            out = []
+                    else:
+                        self.last_frame_wall = time.monotonic()
+                        self.last_frame_ts = frame.t_s
+                        out = self.runtime.on_frame(frame.t_s, frame.arbitration_id, frame.data,
+                                                    frame.is_extended, frame.is_error)
+                    for ident, data in out:
+                        bus.send(ident, data)
+                except BusError as err:
+                    self.say(f"bus failed: {err}; reopening")
+                    bus.close()
+                    bus = self._open()
+                    continue
+                now = time.monotonic()
+                self._report_state()
+                flowing = now - self.last_frame_wall < max(s.input.timeout_s, 1.0)
+                if flowing and now >= next_ping:
+                    self.notifier.watchdog()
+                    next_ping = now + ping_every
+                if now >= next_save:
+                    self.save()
+                    next_save = now + s.state.save_interval_s
+        except BusError as err:
+            self.say(f"bus down: {err}")
+            self.save()
+            return 1
+        finally:
+            stop = self.runtime.pipeline.excitation.stop(self.runtime.pipeline.t_s)
+            if stop is not None:
+                try:
+                    for ident, data in self.runtime.frames([stop]):
+                        bus.send(ident, data)
+                except BusError:
+                    pass
+            self.notifier.stopping()
+            bus.close()
+        self.save()
+        self.say("stopped")
+        return 0
+
+
+def run_service(settings: Settings, max_s: float | None = None) -> int:
+    """Run the daemon until SIGTERM/SIGINT (or ``max_s``); returns the exit status."""
+    service = Service(settings)
+    signal.signal(signal.SIGTERM, service.request_stop)
+    signal.signal(signal.SIGINT, service.request_stop)
+    return service.run(max_s=max_s)

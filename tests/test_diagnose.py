@@ -1,0 +1,153 @@
+"""Residual diagnosis: undeclared effects in simulated benches and two measured data sets."""
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from online_id.bench import simulate_bench
+from online_id.bench.scenario import (Backlash, BenchScenario, Effects, OperatingPoint, SensorDelay,
+                                      SinusoidalDisturbance, TorqueRipple)
+from online_id.cli import diagnose as diagnose_cli
+from online_id.core.preprocess import decimate
+from online_id.diagnose import DiagnoseData, diagnose
+from online_id.diagnose.effects import shaft_angle
+from online_id.errors import InputDataError
+
+DATA = Path(__file__).parent / "data"
+FS = 250.0
+TWO_POINTS = (OperatingPoint(1200, 15), OperatingPoint(1800, 15))
+
+
+def bench(seed, points=TWO_POINTS, **kw):
+    """A short simulated bench (no compression pulses), decimated to 250 Hz as the CLI does."""
+    sc = BenchScenario(operating_points=points, compression_nm=0.0, seed=seed, **kw)
+    rec = simulate_bench(sc)
+    q = int(sc.fs_hz / FS)
+    y1, y2 = rec.dyno_speed_rpm * np.pi / 30, rec.engine_speed_rpm * np.pi / 30
+    tors = shaft_angle(y1 - y2, sc.fs_hz)
+    d = lambda x: decimate(x, q)  # noqa: E731
+    return DiagnoseData(d(rec.dyno_torque_nm), d(y1), FS, "dyno_torque", "dyno_speed",
+                        {"dyno": d(y1), "engine": d(y2)}, torsion=d(tors), source=f"seed {seed}")
+
+
+def run_bench(data):
+    return diagnose(data, na=8, nb=8, nc=8, nk=0, input_lead=1, sim_horizon_s=0.5)
+
+
+def first(result, kind):
+    assert result.effects, f"no effect found; candidates: {result.candidates}"
+    e = result.effects[0]
+    assert e.kind == kind, [(x.kind, x.params, x.explained_variance) for x in result.effects]
+    assert e.error_after.rms < e.error_before.rms
+    assert result.error_after.rms < 0.8 * result.error_before.rms
+    return e
+
+
+def test_fixed_frequency_disturbance():
+    r = run_bench(bench(3, effects=Effects(disturbance=SinusoidalDisturbance(37.0, 4.0))))
+    e = first(r, "fixed_frequency_disturbance")
+    assert e.params["freq_hz"] == pytest.approx(37.0, rel=0.02)
+    assert e.explained_variance > 0.5
+
+
+@pytest.mark.parametrize("seed, order, kw, points", [
+    (2, 3.0, {}, TWO_POINTS),
+    (8, 1.5, dict(J1=1.2, J2=0.25, c_s=9000.0), (OperatingPoint(1500, 12), OperatingPoint(2400, 12))),
+])
+def test_rotation_order_disturbance(seed, order, kw, points):
+    r = run_bench(bench(seed, points, effects=Effects(torque_ripple=TorqueRipple(order, 10.0)), **kw))
+    e = first(r, "rotation_order_disturbance")
+    assert e.params["order"] == order  # exact, half orders included
+    # the dyno and engine angles differ only by the shaft twist: both shafts are reported as
+    # near-equal candidates, so the shaft is not asserted (see docs/diagnose.md)
+    assert e.params["shaft"] in ("dyno", "engine")
+
+
+def test_sensor_delay():
+    r = run_bench(bench(4, effects=Effects(sensor_delay=SensorDelay("dyno_speed", 0.04))))
+    e = first(r, "sensor_delay")
+    assert e.params["signal"] == "dyno_speed"
+    assert abs(e.params["delay_s"] - 0.04) <= 1.0 / FS + 1e-9
+
+
+def test_backlash():
+    r = run_bench(bench(6, effects=Effects(backlash=Backlash(0.01))))
+    e = first(r, "backlash")
+    assert e.params["gap_rad"] == pytest.approx(0.01, rel=0.25)
+
+
+@pytest.mark.parametrize("seed, kw, points", [
+    (1, {}, TWO_POINTS),
+    (11, dict(J1=1.2, J2=0.25, c_s=9000.0), TWO_POINTS),
+    (12, dict(J1=0.5, J2=0.3, c_s=3000.0), (OperatingPoint(2000, 25),)),
+])
+def test_clean_bench_reports_nothing(seed, kw, points):
+    r = run_bench(bench(seed, points, **kw))
+    assert r.effects == []
+    assert r.error_after == r.error_before
+
+
+def cli(argv, capsys):
+    parser = argparse.ArgumentParser(prog="online-id")
+    diagnose_cli.add_subparser(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(argv)
+    status = args.func(args)
+    return status, capsys.readouterr().out
+
+
+def test_emps_coulomb_friction(capsys, tmp_path):
+    status, out = cli(["diagnose", str(DATA / "emps_vir_qm.mat"), "--input-var", "vir",
+                       "--output-var", "qm", "--time-var", "t", "--differentiate-output",
+                       "--sample-rate", "100", "--na", "1", "--nb", "1", "--nc", "1", "--json",
+                       "--report", str(tmp_path)], capsys)
+    assert status == 0
+    doc = json.loads(out)
+    assert doc["effects"][0]["kind"] == "coulomb_friction"
+    assert doc["error_after"]["rms"] < doc["error_before"]["rms"]
+    assert doc["error_after"]["fit_pct"] > doc["error_before"]["fit_pct"] + 5
+    for name in ("summary.md", "diagnosis.json", "residual_spectrum.png", "residual_correlation.png"):
+        assert (tmp_path / name).stat().st_size > 0
+
+
+def test_ced_absolute_value_sensor(capsys):
+    status, out = cli(["diagnose", str(DATA / "ced_dataprbs.mat"), "--input-var", "u1",
+                       "--output-var", "z1", "--fs", "50", "--na", "3", "--nb", "3", "--nc", "3"], capsys)
+    assert status == 0
+    assert "| 1 | absolute_value_sensor |" in out
+    status, out = cli(["diagnose", str(DATA / "ced_dataprbs.mat"), "--input-var", "u1",
+                       "--output-var", "z1", "--fs", "50", "--na", "3", "--nb", "3", "--nc", "3",
+                       "--json"], capsys)
+    doc = json.loads(out)
+    assert [e["kind"] for e in doc["effects"]] == ["absolute_value_sensor"]
+    assert doc["error_after"]["fit_pct"] > doc["error_before"]["fit_pct"] + 50
+
+
+def test_bad_variable_names_file_and_variable(capsys):
+    with pytest.raises(InputDataError, match=r"ced_dataprbs.mat: no variable 'u9'"):
+        cli(["diagnose", str(DATA / "ced_dataprbs.mat"), "--input-var", "u9",
+             "--output-var", "z1", "--fs", "50"], capsys)
+
+
+def test_generic_csv_missing_column(tmp_path, capsys):
+    f = tmp_path / "m.csv"
+    f.write_text("t,U,Y\n" + "\n".join(f"{i * 0.01},{np.sin(i)},{np.cos(i)}" for i in range(300)))
+    with pytest.raises(InputDataError, match="Z"):
+        cli(["diagnose", str(f), "--input-col", "U", "--output-col", "Z", "--time-col", "t"], capsys)
+
+
+def test_generic_csv_runs(tmp_path, capsys):
+    rng = np.random.default_rng(0)
+    u = np.sign(rng.standard_normal(2000))
+    y = np.zeros_like(u)
+    for t in range(2, u.size):
+        y[t] = 1.5 * y[t - 1] - 0.7 * y[t - 2] + 0.5 * u[t - 1] + 0.02 * rng.standard_normal()
+    f = tmp_path / "m.csv"
+    f.write_text("t,U,Y\n" + "\n".join(f"{i * 0.01:.2f},{a},{b}" for i, (a, b) in enumerate(zip(u, y))))
+    status, out = cli(["diagnose", str(f), "--input-col", "U", "--output-col", "Y",
+                       "--time-col", "t", "--json"], capsys)
+    doc = json.loads(out)
+    assert status == 0 and doc["effects"] == []
+    assert doc["error_before"]["fit_pct"] > 90
