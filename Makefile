@@ -7,7 +7,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 PYTEST_ARGS ?=
 
-.PHONY: demo test test-fast bench clean
+.PHONY: demo test test-fast bench clean system-deps
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -19,9 +19,24 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(VENV)/bin/online-id demo
 
-## Run the whole test suite.
-test: $(STAMP)
-	$(PY) -m pytest $(PYTEST_ARGS)
+## Debian packages of the vcan tier (User-Mode Linux, can-utils): installed
+## when root, else only reported (the vcan tests then skip, saying why).
+system-deps:
+	scripts/install-system-deps
+
+## Run the whole test suite: everything but the vcan tier natively, then the
+## vcan tier on a real SocketCAN vcan0 (natively, or inside User-Mode Linux
+## when this kernel has no vcan). Fails if either part fails.
+test: system-deps $(STAMP)
+	@native=0; vcan=0; \
+	echo '$(PY) -m pytest -m "not vcan" $(PYTEST_ARGS)'; \
+	$(PY) -m pytest -m "not vcan" $(PYTEST_ARGS) || native=$$?; \
+	echo 'scripts/test-vcan $(PY) $(PYTEST_ARGS)'; \
+	scripts/test-vcan $(PY) $(PYTEST_ARGS) || vcan=$$?; \
+	if [ $$native -ne 0 ] || [ $$vcan -ne 0 ]; then \
+	    echo "make test: FAILED (pytest exit: $$native without vcan, $$vcan vcan tier)" >&2; \
+	    exit 1; \
+	fi
 
 ## Only the fast tier (no slow identification runs).
 test-fast: $(STAMP)

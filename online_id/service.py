@@ -121,7 +121,11 @@ class Service:
     def run(self, max_s: float | None = None) -> int:
         """The receive loop; returns the exit status."""
         s = self.settings
-        bus = self._open()
+        try:
+            bus = self._open()
+        except BusError as err:
+            self.say(f"bus down: {err}")
+            return 1
         self.say(f"listening on {s.bus.interface}:{s.bus.channel}")
         self.notifier.ready(f"listening on {s.bus.interface}:{s.bus.channel}")
         t_start = time.monotonic()
@@ -155,7 +159,7 @@ class Service:
                     continue
                 now = time.monotonic()
                 self._report_state()
-                flowing = now - self.last_frame_wall < max(s.input.timeout_s, 1.0)
+                flowing = now - self.last_frame_wall < s.input.timeout_s
                 if flowing and now >= next_ping:
                     self.notifier.watchdog()
                     next_ping = now + ping_every
