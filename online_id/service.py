@@ -29,6 +29,7 @@ from online_id.errors import BusError, EstimationError, InputDataError
 from online_id.io.bus import CanBus
 from online_id.io.statefile import load_state, save_state
 from online_id.io.systemd import Notifier
+from online_id.records import FrameFault
 from online_id.runtime import Runtime
 
 STATE_FILE = "online-id-state.json"
@@ -181,7 +182,10 @@ class Service:
             self.notifier.stopping()
             bus.close()
         self.save()
-        self.say("stopped")
+        c = self.runtime.pipeline.counters
+        self.say(f"stopped: {self.runtime.frames_in} frames in, {self.runtime.frames_out} frames out, "
+                 f"{c.samples} samples, {c.bad_frames} bad frames, {c.missing_frames} missing frames, "
+                 f"{c.faults[FrameFault.UNKNOWN_ID]} foreign frames, state {self.runtime.pipeline.state.name}")
         return 0
 
 

@@ -1,0 +1,107 @@
+"""The service on a real vcan0, driven by clients nobody here wrote.
+
+can.player replays a bench log into vcan0, cansend injects foreign, bad and
+command frames, candump records what the service publishes, and
+``cantools decode`` reads the recording with the project's DBC.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+from online_id.bench.scenario import BenchScenario, OperatingPoint
+from online_id.bench.simulate import simulate_bench
+from online_id.io.canlog import write_log
+from online_id.io.dbc import OutputEncoder, default_dbc_path, encode_inputs, load_dbc
+
+TIMEOUT_S = 240
+CANDUMP_LINE = re.compile(r"^\((?P<t>[\d.]+)\)\s+\S+\s+(?P<id>[0-9A-Fa-f]+)#(?P<data>[0-9A-Fa-f]*)")
+
+
+def _lines_until(proc: subprocess.Popen, needle: str, lines: list[str], timeout_s: float) -> None:
+    def pump() -> None:
+        for line in proc.stderr:
+            lines.append(line.rstrip())
+
+    threading.Thread(target=pump, daemon=True).start()
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if any(needle in ln for ln in lines):
+            return
+        if proc.poll() is not None:
+            break
+        time.sleep(0.1)
+    raise AssertionError(f"service did not print {needle!r}; its output:\n" + "\n".join(lines))
+
+
+def test_service_with_can_player_cansend_candump_and_cantools(vcan0, can_utils, run_process, online_id_argv,
+                                                             tmp_path: Path) -> None:
+    # a short bench log at 250 Hz (UML is slow: keep the frame rate modest)
+    scenario = dataclasses.replace(BenchScenario(), fs_hz=250.0, seed=3,
+                                   operating_points=(OperatingPoint(1200.0, 12.0),))
+    rec = simulate_bench(scenario)
+    frames = encode_inputs(rec.time_s, rec.dyno_speed_rpm, rec.engine_speed_rpm, rec.dyno_torque_nm)
+    log = tmp_path / "bench.log"
+    write_log(log, frames, channel=vcan0)
+
+    cfg = tmp_path / "config.yaml"
+    cfg.write_text(
+        f"bus: {{interface: socketcan, channel: {vcan0}}}\n"
+        "input: {sample_rate_hz: 250, timeout_s: 0.5}\n"
+        "model: {sample_rate_hz: 250, na: 6, nb: 6, nc: 6}\n"
+        f"state: {{directory: {tmp_path / 'state'}}}\n"
+    )
+    dump_file = tmp_path / "candump.txt"
+    with open(dump_file, "w") as dump_out:
+        candump = run_process(["candump", "-L", vcan0], stdout=dump_out)
+        service = run_process([*online_id_argv, "run", "--config", str(cfg)])
+        lines: list[str] = []
+        _lines_until(service, "listening on", lines, TIMEOUT_S)
+
+        # foreign traffic, a frame with a wrong length, and an acknowledge command
+        for frame in ("7FF#DEADBEEF", "101#0102", "120#0100"):
+            subprocess.run(["cansend", vcan0, frame], check=True, timeout=30)
+        player = run_process([sys.executable, "-m", "can.player", "-i", "socketcan", "-c", vcan0, str(log)])
+        out, err = player.communicate(timeout=TIMEOUT_S)
+        assert player.returncode == 0, err
+        time.sleep(2.0)
+        service.send_signal(signal.SIGTERM)
+        service.wait(timeout=TIMEOUT_S)
+        time.sleep(0.5)
+        candump.send_signal(signal.SIGINT)
+        candump.wait(timeout=30)
+    assert service.returncode == 0, "\n".join(lines)
+    stopped = [ln for ln in lines if "stopped:" in ln]
+    assert stopped, "\n".join(lines)
+    m = re.search(r"(\d+) frames in, \d+ frames out, (\d+) samples, (\d+) bad frames, (\d+) missing frames, "
+                  r"(\d+) foreign frames", stopped[-1])
+    frames_in, samples, bad, missing, foreign = (int(g) for g in m.groups())
+    assert frames_in >= len(frames) + 3 - missing
+    assert bad >= 1 and foreign >= 1  # the short frame and the foreign ID were counted
+    assert samples >= 0.9 * len(rec.time_s)
+    assert (tmp_path / "state" / "online-id-state.json").exists()
+
+    # what the service published, as candump saw it: every frame passes its CRC
+    encoder = OutputEncoder(load_dbc(None))
+    published = []
+    for line in dump_file.read_text().splitlines():
+        mm = CANDUMP_LINE.match(line)
+        if mm and int(mm["id"], 16) in range(0x300, 0x306):
+            published.append((int(mm["id"], 16), bytes.fromhex(mm["data"])))
+    assert published, dump_file.read_text()[:2000]
+    assert all(encoder.verify(i, d) for i, d in published)
+    status = [encoder.decode(i, d) for i, d in published if i == 0x303]
+    assert status and status[-1]["BadFrames"] >= 1
+
+    # cantools decodes the recording with the project's DBC
+    dec = subprocess.run([sys.executable, "-m", "cantools", "decode", str(default_dbc_path())],
+                         input=dump_file.read_text(), capture_output=True, text=True, timeout=120)
+    assert dec.returncode == 0, dec.stderr
+    assert "OidStatus(" in dec.stdout and "State:" in dec.stdout and "OidEstimate(" in dec.stdout
