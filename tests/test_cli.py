@@ -154,8 +154,21 @@ def test_debug_shows_traceback(tmp_path):
 
 
 @pytest.mark.slow
-def test_demo_runs_and_compares_with_truth(tmp_path, capsys):
-    assert main(["demo", "--out", str(tmp_path)]) == 0
+def test_live_demo_converges_on_the_virtual_bus(tmp_path, capsys):
+    assert main(["demo", "--speed", "40", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "Against the truth" in out and "TRACKING" in out
+    assert "0 failed the CRC check" in out
+    res = json.loads((tmp_path / "service-result.json").read_text())
+    truth = json.loads((tmp_path / "bench.truth.json").read_text())
+    assert res["counters"]["samples"] == round(truth["duration_s"] * truth["fs_hz"])  # nothing lost on the bus
+    assert res["driveline"]["valid"]
+    assert res["driveline"]["f0_hz"] == pytest.approx(truth["f0_hz"], rel=0.01)
+
+
+@pytest.mark.slow
+def test_offline_demo_runs_and_compares_with_truth(tmp_path, capsys):
+    assert main(["demo", "--offline", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "Against the truth" in out and "f0 [Hz]" in out
     doc = json.loads((tmp_path / "identification.json").read_text())

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import math
 import os
 import threading
 import time
+from pathlib import Path
 
 from online_id.bench.scenario import BenchScenario
 from online_id.bench.simulate import simulate_bench
@@ -95,8 +97,9 @@ def run_live(args: argparse.Namespace) -> int:
     while True:
         if done.is_set() and finished_at is None:
             finished_at = time.monotonic()
-        if finished_at is not None and time.monotonic() > finished_at + 0.1:
-            break  # stop before the input timeout: the bench simply ended
+        if finished_at is not None and (service.runtime.frames_in >= len(frames)
+                                        or time.monotonic() > finished_at + 30.0):
+            break  # the bench ended and the service has seen every frame: stop it (as SIGTERM would)
         frame = monitor.recv(0.02)
         if frame is not None:
             if frame.arbitration_id in (0x101, 0x102, 0x103):
@@ -126,6 +129,10 @@ def run_live(args: argparse.Namespace) -> int:
     for bus in (monitor, sender):
         bus.close()
     result = service.runtime.pipeline.result()
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "service-result.json").write_text(json.dumps(result, indent=2))
+    (out_dir / "bench.truth.json").write_text(json.dumps(truth, indent=2, default=float))
     d = result["driveline"]
     print(f"\nService stopped: {result['counters']['samples']} samples, {service.runtime.frames_in} frames in, "
           f"{service.runtime.frames_out} frames out ({bad_crc} failed the CRC check at the consumer), "
@@ -136,4 +143,5 @@ def run_live(args: argparse.Namespace) -> int:
         est = d.get(key)
         err = f"{100 * (est - truth[key]) / truth[key]:+7.2f}%" if est is not None else "-"
         print(f"  {name:14} {truth[key]:10.4g} {est if est is not None else float('nan'):10.4g} {err:>8}")
+    print(f"\nFiles: {out_dir}/service-result.json, bench.truth.json")
     return 0 if d.get("valid") else 1
