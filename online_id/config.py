@@ -24,7 +24,7 @@ from online_id.errors import ConfigError
 __all__ = [
     "ColumnSettings", "UnitSettings", "InertiaSettings", "IdentificationSettings", "BusSettings", "RoleSettings",
     "MappingSettings", "InputSettings", "ModelSettings", "PublishSettings", "StateSettings", "ExcitationSettings",
-    "Settings", "load_config", "settings_from_dict",
+    "DetectionSettings", "AlertSettings", "Settings", "load_config", "settings_from_dict",
 ]
 
 
@@ -142,6 +142,28 @@ class ExcitationSettings:
 
 
 @dataclass(frozen=True)
+class DetectionSettings:
+    """Wear and fault detection: baselines per speed band and sequential change detection."""
+
+    enabled: bool = True
+    band_rpm: float = 250.0
+    min_count: int = 60
+    k: float = 0.5
+    h_warning: float = 8.0
+    h_fault: float = 16.0
+    min_excitation_nm: float = 2.0
+
+
+@dataclass(frozen=True)
+class AlertSettings:
+    """Where alerts go besides the CAN frame and the journal."""
+
+    journal: bool = True
+    command: str | None = None
+    command_timeout_s: float = 10.0
+
+
+@dataclass(frozen=True)
 class Settings:
     """Everything a config file can set."""
 
@@ -157,6 +179,8 @@ class Settings:
     publish: PublishSettings = field(default_factory=PublishSettings)
     state: StateSettings = field(default_factory=StateSettings)
     excitation: ExcitationSettings = field(default_factory=ExcitationSettings)
+    detection: DetectionSettings = field(default_factory=DetectionSettings)
+    alerts: AlertSettings = field(default_factory=AlertSettings)
 
 
 def _describe(tp: Any) -> str:
@@ -309,6 +333,12 @@ def _check_service(s: Settings, file: str) -> None:
             raise ConfigError(f"{file}: publish.frame_ids.{name}: expected a CAN ID 0..0x1FFFFFFF, got {ident!r}")
     positive("state", s.state, "save_interval_s")
     positive("bus", s.bus, "reopen_max_s")
+    d = s.detection
+    positive("detection", d, "band_rpm", "min_count", "k", "h_warning", "h_fault")
+    if d.h_fault < d.h_warning:
+        raise ConfigError(f"{file}: detection.h_fault: must be >= detection.h_warning ({d.h_warning:g}), "
+                          f"got {d.h_fault!r}")
+    positive("alerts", s.alerts, "command_timeout_s")
     e = s.excitation
     positive("excitation", e, "period_s", "max_amplitude_nm")
     if not 0 <= e.amplitude_nm <= e.max_amplitude_nm:

@@ -18,7 +18,9 @@ a log line to stderr (the journal) on every state change.
 from __future__ import annotations
 
 import os
+import shlex
 import signal
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -28,8 +30,9 @@ from online_id.config import Settings
 from online_id.errors import BusError, EstimationError, InputDataError
 from online_id.io.bus import CanBus
 from online_id.io.statefile import load_state, save_state
+from online_id.io.journal import Journal
 from online_id.io.systemd import Notifier
-from online_id.records import FrameFault
+from online_id.records import AlertKind, AlertOut, FrameFault
 from online_id.runtime import Runtime
 
 STATE_FILE = "online-id-state.json"
@@ -50,6 +53,8 @@ class Service:
         self.log = log or sys.stderr
         self.runtime = Runtime(settings)
         self.notifier = Notifier()
+        self.journal = Journal()
+        self._hooks: list = []
         self.clock = clock
         b = settings.bus
         self.bus_factory = bus_factory or (lambda: CanBus(b.interface, b.channel, b.bitrate, b.receive_own_messages))
@@ -105,11 +110,50 @@ class Service:
                     raise
                 delay = min(2 * delay, 5.0)
 
+    def _dispatch_alert(self, a: AlertOut) -> None:
+        """An alert to the log, the journal (structured) and the optional command hook."""
+        self.say(f"alert {a.kind.name} (severity {a.severity}): {a.message}")
+        fields = {
+            "FAULT_CODE": a.kind.name,
+            "SEVERITY": {1: "warning", 2: "fault"}.get(a.severity, str(a.severity)),
+            "SPEED_RPM": f"{a.speed_rpm:.0f}",
+            "STREAM_TIME_S": f"{a.t_s:.3f}",
+        }
+        if a.kind == AlertKind.FREQ_DRIFT:
+            fields["FREQ_DRIFT_PCT"] = f"{a.value_pct:.2f}"
+        elif a.kind == AlertKind.DAMPING_DRIFT:
+            fields["DAMPING_DRIFT_PCT"] = f"{a.value_pct:.2f}"
+        if self.settings.alerts.journal:
+            self.journal.send(a.message, priority=2 if a.severity >= 2 else 4, **fields)
+        cmd = self.settings.alerts.command
+        if cmd:
+            env = dict(os.environ, ONLINE_ID_ALERT_MESSAGE=a.message,
+                       **{f"ONLINE_ID_{k}": v for k, v in fields.items()})
+            try:
+                self._hooks.append((time.monotonic(), subprocess.Popen(
+                    shlex.split(cmd), env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                    stderr=subprocess.DEVNULL, start_new_session=True)))
+            except OSError as err:
+                self.say(f"alert command {cmd!r} failed to start: {err}")
+
+    def _reap_hooks(self) -> None:
+        keep = []
+        for started, proc in self._hooks:
+            if proc.poll() is None:
+                if time.monotonic() - started > self.settings.alerts.command_timeout_s:
+                    proc.kill()
+                    self.say(f"alert command killed after {self.settings.alerts.command_timeout_s:g} s")
+                else:
+                    keep.append((started, proc))
+        self._hooks = keep
+
     def _report_state(self) -> None:
         p = self.runtime.pipeline
         for a in p.alerts[self._n_alerts:]:
-            self.say(f"alert {a.kind.name} (severity {a.severity}): {a.message}")
+            self._dispatch_alert(a)
         self._n_alerts = len(p.alerts)
+        if self._hooks:
+            self._reap_hooks()
         if p.state != self._last_state:
             self._last_state = p.state
             est = p.estimate

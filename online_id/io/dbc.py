@@ -450,3 +450,19 @@ def __getattr__(name: str) -> Any:
         return getattr(dbc_output, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
+
+
+def encode_command(db: Any, message: str, signal: str, command: int, counter: int = 0) -> tuple[int, bytes]:
+    """The service command frame ``(arbitration_id, data)``: the signal set, other signals 0 (counter)."""
+    msg = _message(db, message, "the DBC", "service command")
+    _signal(msg, signal, "the DBC", "service command")
+    values = {s.name: 0 for s in msg.signals}
+    values[signal] = int(command)
+    for s in msg.signals:
+        if s.name != signal and s.name.lower().endswith("counter"):
+            values[s.name] = counter % (1 << s.length)
+    try:
+        data = msg.encode(values, scaling=True, padding=True, strict=True)
+    except (cantools.database.Error, ValueError, KeyError) as err:
+        raise DbcError(f'Cannot encode command {command} in message "{message}": {err}') from err
+    return int(msg.frame_id), bytes(data)
