@@ -21,6 +21,7 @@ Health states (published in the status frame):
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -45,6 +46,7 @@ from online_id.records import (
     StatusOut,
 )
 
+MAX_EVENTS = 10_000  # state changes kept for reports (bounded: a flapping bench must not grow memory)
 COMMAND_ACK = 1
 COMMAND_RELEARN = 2
 COMMAND_RESET = 3
@@ -120,11 +122,13 @@ class Pipeline:
         self._next_publish: float | None = None
         self._next_physical: float | None = None
         self._physical: DrivelineParameters | None = None
+        self._refit_pending = False
         self._estimate: OnlineEstimate | None = None
         self._resets_seen = 0
         self._reset_times: list[float] = []
-        self.events: list[Event] = []
+        self.events: deque[Event] = deque(maxlen=MAX_EVENTS)
         self.alerts: list[AlertOut] = []
+        self.alerts_total = 0  # alerts raised since start (the list keeps the last MAX_EVENTS)
         self.commands = 0
 
     def _new_estimator(self) -> OnlineDriveline:
@@ -217,13 +221,30 @@ class Pipeline:
                 if self._next_publish <= a.t_s:  # after a gap: no burst of publications
                     self._next_publish = a.t_s + 1.0 / self.settings.publish.rate_hz
                 out.extend(self._publish(a.t_s))
+            elif self._refit_pending:
+                self._refit()
         return out
+
+    def _refit(self) -> None:
+        """Physical parameters of the latest estimate (deferred work, see ``_publish``)."""
+        self._refit_pending = False
+        est = self._estimate
+        if est is None or not est.valid:
+            return
+        inert = self.settings.inertias
+        try:
+            self._physical = self.estimator.physical(est, inert.J1, inert.J2, inert.J_total)
+        except (EstimationError, FloatingPointError, ValueError):
+            self._physical = None
 
     # -- outputs ---------------------------------------------------------------------------------
     def _alert(self, out: list[Publication], t_s: float, kind: AlertKind, severity: int, value_pct: float,
                message: str) -> None:
         alert = AlertOut(t_s, kind, severity, value_pct, self.estimator.speed_rpm, message)
         self.alerts.append(alert)
+        self.alerts_total += 1
+        if len(self.alerts) > MAX_EVENTS:
+            del self.alerts[: len(self.alerts) - MAX_EVENTS]
         self.events.append(Event(t_s, "alert", message, {"kind": kind.name}))
         out.append(alert)
 
@@ -253,13 +274,11 @@ class Pipeline:
         est = self.estimator.estimate()
         self._estimate = est
         self._set_state(self._judge(est, t_s), t_s, out)
-        inert = self.settings.inertias
         if est.valid and (self._physical is None or t_s >= self._next_physical):
+            # the refit of the physical parameters (a least-squares fit, ~10 ms) runs on the next sample
+            # that publishes nothing, so it never delays an estimate; c_s and d_s lag by one publication
             self._next_physical = t_s + self.settings.publish.physical_interval_s
-            try:
-                self._physical = self.estimator.physical(est, inert.J1, inert.J2, inert.J_total)
-            except (EstimationError, FloatingPointError, ValueError):
-                self._physical = None
+            self._refit_pending = True
         phys = self._physical
         nan = float("nan")
         out.append(EstimateOut(t_s, est.f0_hz, est.zeta, phys.c_s if phys and phys.c_s else nan,

@@ -64,7 +64,7 @@ class Service:
         self.last_frame_ts: float | None = None
         self._last_state = None
         self._restore()
-        self._n_alerts = len(self.runtime.pipeline.alerts)
+        self._n_alerts = self.runtime.pipeline.alerts_total
 
     # -- state ---------------------------------------------------------------------------------------
     def say(self, text: str) -> None:
@@ -149,9 +149,11 @@ class Service:
 
     def _report_state(self) -> None:
         p = self.runtime.pipeline
-        for a in p.alerts[self._n_alerts:]:
-            self._dispatch_alert(a)
-        self._n_alerts = len(p.alerts)
+        new = p.alerts_total - self._n_alerts
+        if new > 0:
+            for a in p.alerts[-min(new, len(p.alerts)):]:
+                self._dispatch_alert(a)
+        self._n_alerts = p.alerts_total
         if self._hooks:
             self._reap_hooks()
         if p.state != self._last_state:
