@@ -29,9 +29,12 @@ import numpy as np
 from online_id.assembly import AssembledSample, SampleAssembler
 from online_id.bench.prbs import mls
 from online_id.config import Settings
+from online_id.core.baseline import Baseline, BandStats
+from online_id.core.detection import Alarm, ChangeDetector
 from online_id.core.model import ArmaxOrders
 from online_id.core.online import OnlineDriveline, OnlineEstimate
 from online_id.core.physical import DrivelineParameters
+from online_id.core.tracks import PoleTracker
 from online_id.errors import EstimationError
 from online_id.records import (
     AlertKind,
@@ -116,6 +119,12 @@ class Pipeline:
         self.assembler = SampleAssembler(s.input.sample_rate_hz, s.input.timeout_s, s.input.slow_roles)
         self.estimator = self._new_estimator()
         self.excitation = Excitation(s)
+        d = s.detection
+        self.tracker = PoleTracker(dt=self.estimator.dt, pulses_per_rev=s.model.pulses_per_rev)
+        self.baseline = Baseline(band_rpm=d.band_rpm, min_count=d.min_count)
+        self.detector = ChangeDetector(k=d.k, h_warning=d.h_warning, h_fault=d.h_fault)
+        self._next_learn: float | None = None
+        self._next_alarm_repeat = 0.0
         self.state = ServiceState.STARTING
         self.t_s = float("nan")
         self.t_first: float | None = None
@@ -179,9 +188,15 @@ class Pipeline:
             self._estimate = None
             self._physical = None
             self.events.append(Event(t_s, "command", "estimator reset on command"))
-        elif command in (COMMAND_ACK, COMMAND_RELEARN):
-            self.events.append(Event(t_s, "command", {COMMAND_ACK: "alerts acknowledged",
-                                                       COMMAND_RELEARN: "re-learn requested"}[command]))
+        elif command == COMMAND_ACK:
+            self.detector.acknowledge()
+            self.events.append(Event(t_s, "command", "alerts acknowledged"))
+            out.append(AlertOut(t_s, AlertKind.NONE, 0, 0.0, self.estimator.speed_rpm, "alerts acknowledged"))
+        elif command == COMMAND_RELEARN:
+            self.baseline.reset()
+            self.detector.reset()
+            self.events.append(Event(t_s, "command", "baselines forgotten: learning anew"))
+            out.append(AlertOut(t_s, AlertKind.NONE, 0, 0.0, self.estimator.speed_rpm, "baselines re-learned"))
         return out
 
     def process(self, a: AssembledSample) -> None:
@@ -279,6 +294,8 @@ class Pipeline:
             # that publishes nothing, so it never delays an estimate; c_s and d_s lag by one publication
             self._next_physical = t_s + self.settings.publish.physical_interval_s
             self._refit_pending = True
+        if self.settings.detection.enabled:
+            self._track_and_detect(est, t_s, out)
         phys = self._physical
         nan = float("nan")
         out.append(EstimateOut(t_s, est.f0_hz, est.zeta, phys.c_s if phys and phys.c_s else nan,
@@ -286,6 +303,51 @@ class Pipeline:
         out.append(QualityOut(t_s, est.residual_rms, est.fpe, est.excitation_nm, est.samples_used))
         out.append(self.status(t_s))
         return out
+
+    # -- wear and fault detection ------------------------------------------------------------------
+    def _band(self, speed_rpm: float) -> BandStats | None:
+        for b in self.baseline.bands:
+            if b.band[0] <= speed_rpm < b.band[1]:
+                return b
+        return None
+
+    def _track_and_detect(self, est: OnlineEstimate, t_s: float, out: list[Publication]) -> None:
+        """Pole tracks, baseline learning (1 Hz) and change detection, at the publish rate."""
+        d = self.settings.detection
+        speed = self.estimator.speed_rpm
+        self.tracker.update(t_s=t_s, speed_rpm=speed, poles=est.poles)
+        healthy = (est.valid and not est.frozen and self.state == ServiceState.TRACKING
+                   and est.excitation_nm >= d.min_excitation_nm)
+        if self._next_learn is None or t_s < self._next_learn - 10.0:
+            self._next_learn = t_s
+        if healthy and self.detector.active is None and t_s >= self._next_learn:
+            self._next_learn = t_s + 1.0  # about one independent-ish estimate per second
+            band = self._band(speed)
+            if band is None or band.count < d.min_count:  # a learned band stays fixed until re-learned
+                self.baseline.learn(speed_rpm=speed, f0_hz=est.f0_hz, zeta=est.zeta)
+        stats = self.baseline.lookup(speed)
+        alarm = self.detector.update(
+            t_s=t_s, speed_rpm=speed, f0_hz=est.f0_hz, zeta=est.zeta, f0_std_hz=est.f0_std_hz,
+            zeta_std=est.zeta_std, baseline=stats, suppressed=not healthy,
+        )
+        if alarm is not None:
+            self._raise(alarm, out)
+            self._next_alarm_repeat = t_s + 1.0
+        elif self.detector.active is not None and t_s >= self._next_alarm_repeat:
+            # a latched alarm is repeated on CAN once a second until acknowledged (not logged again)
+            self._next_alarm_repeat = t_s + 1.0
+            out.append(self._alert_out(self.detector.active, t_s))
+
+    def _alert_out(self, alarm: Alarm, t_s: float) -> AlertOut:
+        kind = AlertKind.FREQ_DRIFT if alarm.kind == "frequency" else AlertKind.DAMPING_DRIFT
+        return AlertOut(t_s, kind, alarm.level, alarm.change_pct, alarm.speed_rpm, alarm.message)
+
+    def _raise(self, alarm: Alarm, out: list[Publication]) -> None:
+        a = self._alert_out(alarm, alarm.detected_t_s)
+        self.alerts.append(a)
+        self.alerts_total += 1
+        self.events.append(Event(a.t_s, "alert", a.message, {"kind": a.kind.name, **alarm.as_dict()}))
+        out.append(a)
 
     def status(self, t_s: float) -> StatusOut:
         c = self.counters
@@ -321,6 +383,11 @@ class Pipeline:
             "quality": {"residual_rms": fin(est.residual_rms), "fpe": fin(est.fpe),
                         "excitation_nm": fin(est.excitation_nm), "samples_used": est.samples_used},
             "state": self.state.name,
+            "active_alarm": self.detector.active.as_dict() if self.detector.active else None,
+            "baseline": [{"band_rpm": list(b.band), "f0_hz": b.mean_f, "f0_std_hz": b.std_f, "zeta": b.mean_zeta,
+                          "zeta_std": b.std_zeta, "count": b.count} for b in self.baseline.bands],
+            "tracks": [{"id": t.id, "f_hz": t.f_hz, "zeta": t.zeta, "class": t.cls, "confidence": t.confidence,
+                        "order": t.order} for t in self.tracker.tracks],
             "status_changes": [{"t_s": e.t_s - t0, "state": e.data["state"], "why": e.message}
                                for e in self.events if e.kind == "state"],
             "alerts": [{"t_s": a.t_s - t0, "kind": a.kind.name, "severity": a.severity, "message": a.message}
@@ -334,13 +401,22 @@ class Pipeline:
 
     # -- persistence -----------------------------------------------------------------------------
     def get_state(self) -> dict:
+        """Everything a restart must keep: estimator, learned baselines, detector (latched alarm), tracks."""
         return {"version": STATE_VERSION, "estimator": self.estimator.get_state(),
+                "baseline": self.baseline.to_dict(), "detector": self.detector.to_dict(),
+                "tracker": self.tracker.to_dict(),
                 "alerts": [a.__dict__ | {"kind": int(a.kind)} for a in self.alerts[-50:]]}
 
     def load_state(self, state: dict) -> None:
         if state.get("version") != STATE_VERSION:
             raise EstimationError(f"state version {state.get('version')!r} is not {STATE_VERSION}")
         self.estimator.load_state(state["estimator"])
+        if "baseline" in state:
+            self.baseline = Baseline.from_dict(state["baseline"])
+        if "detector" in state:
+            self.detector = ChangeDetector.from_dict(state["detector"])
+        if "tracker" in state:
+            self.tracker = PoleTracker.from_dict(state["tracker"])
         self.alerts = [AlertOut(**(a | {"kind": AlertKind(a["kind"])})) for a in state.get("alerts", [])]
 
 

@@ -1,0 +1,430 @@
+"""Sequential change detection on the driveline frequency and damping.
+
+Notes
+-----
+Input: the driveline estimate at the publish rate (about 10 Hz), its model
+uncertainty and the learned baseline of the current speed band
+(:class:`~online_id.core.baseline.BandStats`).
+
+**Normalised deviation** of each sample (frequency shown; damping alike):
+
+.. math::
+
+    d_f = \\frac{f_0 - \\bar f}{\\sigma_f}, \\qquad
+    \\sigma_f = \\max(s_f, \\sigma_{f,\\text{model}}), \\qquad
+    r_f = \\frac{f_0}{\\bar f} - 1
+
+with :math:`\\bar f, s_f` the band's baseline mean and (floored) spread and
+:math:`\\sigma_{f,\\text{model}}` the estimator's own uncertainty: a
+momentarily poor estimate weighs less.
+
+**Autocorrelation.**  The estimates come from a recursive estimator with
+forgetting (memory :math:`\\tau` of about 20 s), so neighbouring samples are
+strongly correlated and a CUSUM fed at 10 Hz with white-noise thresholds
+would alarm constantly.  The deviations are therefore averaged over
+intervals of :math:`T` = ``update_interval_s`` and each interval mean is
+scaled by the long-run standard deviation of an AR(1) process with
+:math:`\\rho = e^{-T/\\tau}` (an effective-sample-size correction):
+
+.. math::
+
+    z_f = \\operatorname{clip}\\left(\\bar d_f \\sqrt{\\frac{1-\\rho}{1+\\rho}},
+    \\pm z_{\\max}\\right)
+
+so that a sum of :math:`m \\gg \\tau/T` values of :math:`z` has variance
+about :math:`m`, as for white unit noise.  The clip bounds the effect of a
+single wild estimate.
+
+**Two-sided CUSUM** per quantity (:math:`k` = ``k``):
+
+.. math::
+
+    S^+_t = \\min(\\max(0, S^+_{t-1} + z_t - k), S_{\\max}), \\qquad
+    S^-_t = \\min(\\max(0, S^-_{t-1} - z_t - k), S_{\\max})
+
+A statistic above ``h_warning`` raises a warning, above ``h_fault`` a fault.
+:math:`S_{\\max} = 2 h_\\text{fault}` only keeps the numbers bounded.
+The change onset is the end of the last interval at which the statistic that
+fired was zero; the change is reported as the mean of :math:`r` over the
+most recent ``change_window_s`` since the onset (the recent mean follows
+the lagging estimator better than the mean since the onset), and for the
+frequency also as a stiffness change
+:math:`\\Delta c/c = (1 + r_f)^2 - 1` (since :math:`\\omega_0^2 \\propto c_s`).
+
+Defaults: with :math:`k = 0.5`, :math:`h` = 8 / 16, :math:`T` = 1 s and
+:math:`\\tau` = 20 s, a mean shift of :math:`\\delta` marginal standard
+deviations gives :math:`z \\approx \\delta / 6.2`; with a typical spread of
+0.3-0.5 % of :math:`f_0`, a 2.5 % frequency drop (5 % stiffness) crosses the
+warning level in 10-30 s and a 5 % drop (10 % stiffness) in 5-10 s, plus the
+estimator's lag.  Fault-free AR(1) streams with the baseline's spread give
+no alarm in 10 h (see ``tests/test_detection.py``).
+
+**Alarm rules** (per kind, "frequency" and "damping"):
+
+* *raise*: when no alarm of that kind is latched, the kind is armed and
+  :math:`\\max(S^+, S^-) >` ``h_warning`` (level 1) or ``h_fault`` (level 2);
+* *escalate*: a latched warning becomes a fault when the statistic passes
+  ``h_fault`` (a new :class:`Alarm` with level 2 is returned); the level never
+  drops while latched;
+* *latch*: the alarm stays in :attr:`ChangeDetector.active` until
+  :meth:`ChangeDetector.acknowledge`; the statistics keep running;
+* *acknowledge*: clears the latch and restarts both statistics of every
+  acknowledged kind at zero, and its onset and change estimates;
+* *hysteresis / re-arm*: after raising, a kind is disarmed; it is re-armed
+  only once its statistic is below ``hysteresis * h_warning`` with no alarm
+  latched.  Since the acknowledgement restarts the statistic at zero, a
+  change still present after the acknowledgement is reported again only if
+  it persists long enough to carry the statistic from zero past
+  ``h_warning`` (about ``h_warning / (|z| - k)`` intervals); a deviation
+  that has gone is not;
+* *suppression*: while ``suppressed`` is true or ``baseline`` is None the
+  sample is ignored: the statistics stay frozen, the current interval is
+  discarded and nothing is raised.
+
+When both kinds raise at once, :meth:`ChangeDetector.update` returns one
+alarm and the next call returns the other.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import asdict, dataclass
+from types import MappingProxyType
+from typing import TYPE_CHECKING, Any, Mapping
+
+from online_id.errors import ConfigError
+
+if TYPE_CHECKING:  # pragma: no cover
+    from online_id.core.baseline import BandStats
+
+FREQUENCY = "frequency"
+DAMPING = "damping"
+KINDS = (FREQUENCY, DAMPING)
+
+
+@dataclass(frozen=True)
+class Alarm:
+    """A detected change of the driveline frequency or damping.
+
+    Attributes
+    ----------
+    kind
+        ``"frequency"`` or ``"damping"``.
+    level
+        1 warning, 2 fault.
+    since_t_s
+        Estimated onset of the change (last time the statistic was zero).
+    detected_t_s
+        When the statistic crossed the level.
+    speed_rpm
+        Engine speed (mean of the last interval) at detection.
+    change_pct
+        Relative change of the frequency or damping against the baseline [%].
+    stiffness_change_pct
+        For the frequency: the implied stiffness change
+        :math:`((1 + r)^2 - 1) \\cdot 100` [%]; None for the damping.
+    message
+        One line for logs and operators.
+    """
+
+    kind: str
+    level: int
+    since_t_s: float
+    detected_t_s: float
+    speed_rpm: float
+    change_pct: float
+    stiffness_change_pct: float | None
+    message: str
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def _message(kind: str, level: int, change_pct: float, stiff_pct: float | None, since: float, rpm: float) -> str:
+    word = "lower" if change_pct < 0 else "higher"
+    what = "driveline frequency" if kind == FREQUENCY else "driveline damping"
+    text = f"{what} {abs(change_pct):.1f} % {word}"
+    if stiff_pct is not None:
+        sword = "lower" if stiff_pct < 0 else "higher"
+        text += f" (stiffness about {abs(stiff_pct):.0f} % {sword})"
+    text += f" since t = {since:.1f} s at {rpm:.0f} rpm"
+    return ("fault: " if level >= 2 else "warning: ") + text
+
+
+def _check(name: str, value: float, *, low: float = 0.0, strict: bool = True) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"ChangeDetector: expected a number for {name}, but got {value!r}") from err
+    if not math.isfinite(v) or (v <= low if strict else v < low):
+        rel = ">" if strict else ">="
+        raise ConfigError(f"ChangeDetector: expected {name} {rel} {low}, but got {value!r}")
+    return v
+
+
+class ChangeDetector:
+    """Two-sided CUSUM on the normalised deviations of :math:`f_0` and :math:`\\zeta`.
+
+    See the module notes for the statistic, the defaults and the alarm rules.
+
+    Parameters
+    ----------
+    k
+        Reference value (allowance) of the CUSUM, in long-run standard
+        deviations of the interval mean.
+    h_warning, h_fault
+        Decision levels of warning and fault (``0 < h_warning < h_fault``).
+    update_interval_s
+        Interval :math:`T` over which the deviations are averaged before one
+        CUSUM step.
+    hysteresis
+        A disarmed kind is re-armed once its statistic is below
+        ``hysteresis * h_warning`` (``0 <= hysteresis < 1``).
+    correlation_s
+        Correlation time :math:`\\tau` of the estimation error (about the
+        estimator's memory :math:`T_s / (1 - \\lambda)`).
+    z_clip
+        Largest magnitude of one normalised interval mean.
+    change_window_s
+        The reported change is the mean relative deviation over at most this
+        long before detection (and not before the onset).
+    """
+
+    def __init__(
+        self,
+        *,
+        k: float = 0.5,
+        h_warning: float = 8.0,
+        h_fault: float = 16.0,
+        update_interval_s: float = 1.0,
+        hysteresis: float = 0.5,
+        correlation_s: float = 20.0,
+        z_clip: float = 5.0,
+        change_window_s: float = 5.0,
+    ) -> None:
+        self.k = _check("k", k, strict=False)
+        self.h_warning = _check("h_warning", h_warning)
+        self.h_fault = _check("h_fault", h_fault)
+        if self.h_fault <= self.h_warning:
+            raise ConfigError(f"ChangeDetector: expected h_fault > h_warning = {h_warning}, but got {h_fault}")
+        self.update_interval_s = _check("update_interval_s", update_interval_s)
+        self.hysteresis = _check("hysteresis", hysteresis, strict=False)
+        if self.hysteresis >= 1.0:
+            raise ConfigError(f"ChangeDetector: expected 0 <= hysteresis < 1, but got {hysteresis}")
+        self.correlation_s = _check("correlation_s", correlation_s)
+        self.z_clip = _check("z_clip", z_clip)
+        self.change_window_s = _check("change_window_s", change_window_s)
+        rho = math.exp(-self.update_interval_s / self.correlation_s)
+        self._scale = math.sqrt((1.0 - rho) / (1.0 + rho))  # 1 / long-run std of the interval mean
+        self._s_max = 2.0 * self.h_fault
+        self._n_recent = max(1, int(round(self.change_window_s / self.update_interval_s)))
+        self._reset_all()
+
+    # -- state -------------------------------------------------------------------------------
+    def _reset_all(self) -> None:
+        # statistics per kind: [S+, S-]; onset per kind and side; intervals since onset
+        self._S = {kind: [0.0, 0.0] for kind in KINDS}
+        self._onset: dict[str, list[float | None]] = {kind: [None, None] for kind in KINDS}
+        self._n_since = {kind: [0, 0] for kind in KINDS}
+        self._recent: dict[str, deque[float]] = {kind: deque(maxlen=self._n_recent) for kind in KINDS}
+        self._latched: dict[str, Alarm | None] = {kind: None for kind in KINDS}
+        self._armed = {kind: True for kind in KINDS}
+        self._pending: list[Alarm] = []
+        self._t_last: float | None = None
+        self._clear_interval()
+
+    def _clear_interval(self) -> None:
+        self._t_open: float | None = None
+        self._acc = [0, 0.0, 0.0, 0.0, 0.0, 0.0]  # n, sum d_f, sum d_z, sum r_f, sum r_z, sum rpm
+
+    # -- per sample --------------------------------------------------------------------------
+    def update(
+        self,
+        *,
+        t_s: float,
+        speed_rpm: float,
+        f0_hz: float,
+        zeta: float,
+        f0_std_hz: float,
+        zeta_std: float,
+        baseline: BandStats | None,
+        suppressed: bool,
+    ) -> Alarm | None:
+        """One estimate in; a new or escalated alarm out (None otherwise).
+
+        Samples with ``suppressed`` true, ``baseline`` None or a non-finite
+        frequency or damping are ignored (statistics frozen).  Non-finite
+        model uncertainties count as zero (the baseline spread is used).
+        """
+        alarm = None
+        usable = (
+            not suppressed
+            and baseline is not None
+            and math.isfinite(f0_hz)
+            and math.isfinite(zeta)
+            and math.isfinite(speed_rpm)
+        )
+        if not usable:
+            self._clear_interval()
+        else:
+            if self._t_open is not None and t_s >= self._t_open + self.update_interval_s * (1.0 - 1e-6):
+                self._close_interval(self._t_last if self._t_last is not None else t_s)
+                self._clear_interval()
+            if self._t_open is None:
+                self._t_open = t_s
+            sf = max(baseline.std_f, f0_std_hz if math.isfinite(f0_std_hz) else 0.0)
+            sz = max(baseline.std_zeta, zeta_std if math.isfinite(zeta_std) else 0.0)
+            acc = self._acc
+            acc[0] += 1
+            acc[1] += (f0_hz - baseline.mean_f) / sf  # d_f
+            acc[2] += (zeta - baseline.mean_zeta) / sz  # d_zeta
+            acc[3] += f0_hz / baseline.mean_f - 1.0  # r_f
+            acc[4] += zeta / baseline.mean_zeta - 1.0  # r_zeta
+            acc[5] += speed_rpm
+            self._t_last = t_s
+        if self._pending:
+            alarm = self._pending.pop(0)
+        return alarm
+
+    def _close_interval(self, t_end: float) -> None:
+        n, sdf, sdz, srf, srz, srpm = self._acc
+        if n == 0:
+            return
+        rpm = srpm / n
+        for kind, d_mean, r_mean in ((FREQUENCY, sdf / n, srf / n), (DAMPING, sdz / n, srz / n)):
+            z = min(max(d_mean * self._scale, -self.z_clip), self.z_clip)
+            S = self._S[kind]
+            S[0] = min(max(0.0, S[0] + z - self.k), self._s_max)  # S+ = max(0, S+ + z - k)
+            S[1] = min(max(0.0, S[1] - z - self.k), self._s_max)  # S- = max(0, S- - z - k)
+            self._recent[kind].append(r_mean)
+            for side in (0, 1):
+                if S[side] == 0.0:
+                    self._onset[kind][side] = t_end
+                    self._n_since[kind][side] = 0
+                else:
+                    if self._onset[kind][side] is None:
+                        self._onset[kind][side] = self._t_open if self._t_open is not None else t_end
+                    self._n_since[kind][side] += 1
+            self._decide(kind, t_end, rpm)
+
+    def _decide(self, kind: str, t_end: float, rpm: float) -> None:
+        S = self._S[kind]
+        side = 0 if S[0] >= S[1] else 1
+        s = S[side]
+        level = 2 if s > self.h_fault else 1 if s > self.h_warning else 0
+        latched = self._latched[kind]
+        if latched is None and not self._armed[kind] and max(S) < self.hysteresis * self.h_warning:
+            self._armed[kind] = True
+        if level == 0:
+            return
+        if latched is None and not self._armed[kind]:
+            return
+        if latched is not None and level <= latched.level:
+            return
+        n = max(1, min(self._n_since[kind][side], len(self._recent[kind])))
+        recent = list(self._recent[kind])[-n:]
+        r = sum(recent) / len(recent)
+        change = 100.0 * r
+        stiff = 100.0 * ((1.0 + r) ** 2 - 1.0) if kind == FREQUENCY else None
+        since = self._onset[kind][side]
+        since = t_end if since is None else since
+        if latched is not None:  # escalation keeps the onset of the latched alarm
+            since = latched.since_t_s
+        alarm = Alarm(kind, level, float(since), float(t_end), float(rpm), float(change),
+                      None if stiff is None else float(stiff), _message(kind, level, change, stiff, since, rpm))
+        self._latched[kind] = alarm
+        self._armed[kind] = False
+        self._pending.append(alarm)
+
+    # -- commands ----------------------------------------------------------------------------
+    def acknowledge(self, kind: str | None = None) -> None:
+        """Clear the latched alarm(s) and restart their statistics at zero.
+
+        Parameters
+        ----------
+        kind
+            ``"frequency"``, ``"damping"`` or None for both.
+        """
+        if kind is not None and kind not in KINDS:
+            raise ValueError(f"ChangeDetector.acknowledge: expected kind in {KINDS}, but got {kind!r}")
+        for kd in KINDS if kind is None else (kind,):
+            self._latched[kd] = None
+            self._S[kd] = [0.0, 0.0]
+            self._onset[kd] = [None, None]
+            self._n_since[kd] = [0, 0]
+            self._recent[kd].clear()
+            self._armed[kd] = True  # statistic is 0 < hysteresis * h_warning
+        self._pending = [a for a in self._pending if self._latched[a.kind] is not None]
+
+    def reset(self) -> None:
+        """Forget everything (statistics, latched alarms); for a re-learned baseline."""
+        self._reset_all()
+
+    # -- read-only results ---------------------------------------------------------------------
+    @property
+    def active(self) -> Alarm | None:
+        """The latched alarm of highest level (frequency first on equal levels), or None."""
+        alarms = self.alarms
+        if not alarms:
+            return None
+        return max(alarms, key=lambda a: (a.level, a.kind == FREQUENCY))
+
+    @property
+    def alarms(self) -> tuple[Alarm, ...]:
+        """All latched alarms (at most one per kind)."""
+        return tuple(a for a in (self._latched[k] for k in KINDS) if a is not None)
+
+    @property
+    def statistics(self) -> Mapping[str, float]:
+        """Current CUSUM values: ``frequency_up``, ``frequency_down``, ``damping_up``, ``damping_down``."""
+        return MappingProxyType({
+            "frequency_up": self._S[FREQUENCY][0],
+            "frequency_down": self._S[FREQUENCY][1],
+            "damping_up": self._S[DAMPING][0],
+            "damping_down": self._S[DAMPING][1],
+        })
+
+    # -- persistence -----------------------------------------------------------------------------
+    def params(self) -> dict[str, float]:
+        return {
+            "k": self.k, "h_warning": self.h_warning, "h_fault": self.h_fault,
+            "update_interval_s": self.update_interval_s, "hysteresis": self.hysteresis,
+            "correlation_s": self.correlation_s, "z_clip": self.z_clip, "change_window_s": self.change_window_s,
+        }
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain (JSON-able) state; :meth:`from_dict` restores it, latched alarms included."""
+        return {
+            "params": self.params(),
+            "S": {k: list(v) for k, v in self._S.items()},
+            "onset": {k: list(v) for k, v in self._onset.items()},
+            "n_since": {k: list(v) for k, v in self._n_since.items()},
+            "recent": {k: list(v) for k, v in self._recent.items()},
+            "latched": {k: (None if a is None else a.as_dict()) for k, a in self._latched.items()},
+            "armed": dict(self._armed),
+            "pending": [a.as_dict() for a in self._pending],
+            "t_open": self._t_open,
+            "t_last": self._t_last,
+            "acc": list(self._acc),
+        }
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> ChangeDetector:
+        """Rebuild a detector saved by :meth:`to_dict`."""
+        try:
+            det = cls(**data["params"])
+            det._S = {k: [float(x) for x in data["S"][k]] for k in KINDS}
+            det._onset = {k: [None if x is None else float(x) for x in data["onset"][k]] for k in KINDS}
+            det._n_since = {k: [int(x) for x in data["n_since"][k]] for k in KINDS}
+            det._recent = {k: deque((float(x) for x in data["recent"][k]), maxlen=det._n_recent) for k in KINDS}
+            det._latched = {k: (None if a is None else Alarm(**a)) for k, a in data["latched"].items()}
+            det._armed = {k: bool(data["armed"][k]) for k in KINDS}
+            det._pending = [Alarm(**a) for a in data.get("pending", [])]
+            det._t_open = data.get("t_open")
+            det._t_last = data.get("t_last")
+            acc = data.get("acc", [0, 0.0, 0.0, 0.0, 0.0, 0.0])
+            det._acc = [int(acc[0])] + [float(x) for x in acc[1:]]
+        except (KeyError, TypeError) as err:
+            raise ConfigError(f"ChangeDetector.from_dict: saved state is incomplete or malformed ({err!r})") from err
+        return det

@@ -1,0 +1,84 @@
+"""Tests of the per speed band baseline (online_id.core.baseline)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from online_id.core.baseline import Baseline
+from online_id.errors import ConfigError, InputDataError
+
+
+@pytest.mark.parametrize("seed,f0,zeta0,slope", [(0, 14.0, 0.05, 0.0004), (1, 27.0, 0.12, -0.0002), (2, 38.0, 0.03, 0.0)])
+def test_learns_mean_and_std_per_band(seed, f0, zeta0, slope):
+    rng = np.random.default_rng(seed)
+    base = Baseline(band_rpm=250.0, min_count=60)
+    truth = {}
+    for rpm in (1000.0, 1500.0, 2000.0):  # round operating points sit in the middle of their bands
+        f_b = f0 * (1 + slope * (rpm - 1500))  # mild speed dependence
+        f = f_b * (1 + 0.01 * rng.standard_normal(400))
+        z = zeta0 * (1 + 0.1 * rng.standard_normal(400))
+        for fi, zi in zip(f, z):
+            base.learn(speed_rpm=rpm + rng.uniform(-50, 50), f0_hz=fi, zeta=zi)
+        truth[rpm] = (f.mean(), f.std(ddof=1), z.mean(), z.std(ddof=1))
+    for rpm, (mf, sf, mz, sz) in truth.items():
+        st = base.lookup(rpm)
+        assert st.band[0] <= rpm < st.band[1] and st.count == 400
+        assert st.mean_f == pytest.approx(mf, rel=1e-12) and st.std_f == pytest.approx(sf, rel=1e-9)
+        assert st.mean_zeta == pytest.approx(mz, rel=1e-12) and st.std_zeta == pytest.approx(sz, rel=1e-9)
+    assert base.learned_range_rpm == (875.0, 2125.0)
+
+
+def test_std_floors_for_a_quiet_stream():
+    base = Baseline(min_count=10, min_rel_std_f=0.002, min_rel_std_zeta=0.03)
+    for _ in range(20):
+        base.learn(speed_rpm=1500.0, f0_hz=20.0, zeta=0.08)
+    st = base.lookup(1500.0)
+    assert st.std_f == pytest.approx(0.04) and st.std_zeta == pytest.approx(0.0024)
+
+
+def test_lookup_outside_learned_range_and_neighbours():
+    base = Baseline(band_rpm=250.0, min_count=5)
+    for _ in range(5):
+        base.learn(speed_rpm=1500.0, f0_hz=20.0, zeta=0.05)  # band 1375-1625
+    for _ in range(4):
+        base.learn(speed_rpm=2500.0, f0_hz=20.0, zeta=0.05)  # too few
+    assert base.lookup(1500.0).band == (1375.0, 1625.0)
+    assert base.lookup(1700.0).band == (1375.0, 1625.0)  # adjacent band falls back
+    assert base.lookup(1300.0).band == (1375.0, 1625.0)
+    assert base.lookup(2000.0) is None  # two bands away
+    assert base.lookup(2500.0) is None  # not enough counts
+    assert base.lookup(float("nan")) is None
+    assert base.learned_range_rpm == (1375.0, 1625.0)
+    base.reset()
+    assert base.lookup(1500.0) is None and base.learned_range_rpm is None
+    assert Baseline().learned_range_rpm is None
+
+
+def test_round_trip():
+    rng = np.random.default_rng(4)
+    base = Baseline(band_rpm=200.0, min_count=10)
+    for _ in range(300):
+        base.learn(speed_rpm=rng.uniform(900, 2500), f0_hz=20 + rng.standard_normal(), zeta=0.05 + 0.001 * rng.random())
+    copy = Baseline.from_dict(json.loads(json.dumps(base.to_dict())))
+    for rpm in np.arange(800, 2700, 50.0):
+        assert copy.lookup(rpm) == base.lookup(rpm)
+    assert copy.learned_range_rpm == base.learned_range_rpm
+    copy.learn(speed_rpm=1000.0, f0_hz=21.0, zeta=0.05)
+    base.learn(speed_rpm=1000.0, f0_hz=21.0, zeta=0.05)
+    assert copy.lookup(1000.0) == base.lookup(1000.0)
+
+
+def test_validation():
+    with pytest.raises(ConfigError):
+        Baseline(band_rpm=0.0)
+    with pytest.raises(ConfigError):
+        Baseline(min_count=1)
+    with pytest.raises(ConfigError):
+        Baseline(min_rel_std_f=-0.1)
+    with pytest.raises(InputDataError):
+        Baseline().learn(speed_rpm=1500.0, f0_hz=float("nan"), zeta=0.05)
+    with pytest.raises(ConfigError):
+        Baseline.from_dict({"band_rpm": 250.0})
