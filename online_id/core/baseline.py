@@ -41,6 +41,7 @@ import math
 from dataclasses import dataclass
 from typing import Any, Mapping
 
+from online_id.core.checks import integer, number
 from online_id.errors import ConfigError, InputDataError
 
 
@@ -111,9 +112,7 @@ class Baseline:
         min_rel_std_zeta: float = 0.03,
     ) -> None:
         self.band_rpm = _positive("band_rpm", band_rpm)
-        if isinstance(min_count, bool) or not isinstance(min_count, int) or min_count < 2:
-            raise ConfigError(f"Baseline: expected min_count an integer >= 2, but got {min_count!r}")
-        self.min_count = min_count
+        self.min_count = integer("Baseline", "min_count", min_count, minimum=2)
         self.min_rel_std_f = _positive("min_rel_std_f", min_rel_std_f)
         self.min_rel_std_zeta = _positive("min_rel_std_zeta", min_rel_std_zeta)
         self._bands: dict[int, _Welford] = {}
@@ -218,10 +217,4 @@ class Baseline:
 
 
 def _positive(name: str, value: float) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError) as err:
-        raise ConfigError(f"Baseline: expected a number for {name}, but got {value!r}") from err
-    if not math.isfinite(v) or v <= 0:
-        raise ConfigError(f"Baseline: expected {name} > 0, but got {value!r}")
-    return v
+    return number("Baseline", name, value)

@@ -93,6 +93,7 @@ from dataclasses import asdict, dataclass
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Any, Mapping
 
+from online_id.core.checks import number
 from online_id.errors import ConfigError
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -152,15 +153,8 @@ def _message(kind: str, level: int, change_pct: float, stiff_pct: float | None, 
     return ("fault: " if level >= 2 else "warning: ") + text
 
 
-def _check(name: str, value: float, *, low: float = 0.0, strict: bool = True) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError) as err:
-        raise ConfigError(f"ChangeDetector: expected a number for {name}, but got {value!r}") from err
-    if not math.isfinite(v) or (v <= low if strict else v < low):
-        rel = ">" if strict else ">="
-        raise ConfigError(f"ChangeDetector: expected {name} {rel} {low}, but got {value!r}")
-    return v
+def _num(name: str, value: float, *, low: float = 0.0, strict: bool = True) -> float:
+    return number("ChangeDetector", name, value, low=low, strict=strict)
 
 
 class ChangeDetector:
@@ -203,18 +197,18 @@ class ChangeDetector:
         z_clip: float = 5.0,
         change_window_s: float = 5.0,
     ) -> None:
-        self.k = _check("k", k, strict=False)
-        self.h_warning = _check("h_warning", h_warning)
-        self.h_fault = _check("h_fault", h_fault)
+        self.k = _num("k", k, strict=False)
+        self.h_warning = _num("h_warning", h_warning)
+        self.h_fault = _num("h_fault", h_fault)
         if self.h_fault <= self.h_warning:
             raise ConfigError(f"ChangeDetector: expected h_fault > h_warning = {h_warning}, but got {h_fault}")
-        self.update_interval_s = _check("update_interval_s", update_interval_s)
-        self.hysteresis = _check("hysteresis", hysteresis, strict=False)
+        self.update_interval_s = _num("update_interval_s", update_interval_s)
+        self.hysteresis = _num("hysteresis", hysteresis, strict=False)
         if self.hysteresis >= 1.0:
             raise ConfigError(f"ChangeDetector: expected 0 <= hysteresis < 1, but got {hysteresis}")
-        self.correlation_s = _check("correlation_s", correlation_s)
-        self.z_clip = _check("z_clip", z_clip)
-        self.change_window_s = _check("change_window_s", change_window_s)
+        self.correlation_s = _num("correlation_s", correlation_s)
+        self.z_clip = _num("z_clip", z_clip)
+        self.change_window_s = _num("change_window_s", change_window_s)
         rho = math.exp(-self.update_interval_s / self.correlation_s)
         self._scale = math.sqrt((1.0 - rho) / (1.0 + rho))  # 1 / long-run std of the interval mean
         self._s_max = 2.0 * self.h_fault

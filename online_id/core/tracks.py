@@ -60,6 +60,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from online_id.core.poles import Pole
+from online_id.core.checks import integer, number
 from online_id.errors import ConfigError
 
 DRIVELINE = "driveline"
@@ -242,19 +243,11 @@ class PoleTracker:
         lock: float = 0.8,
     ) -> None:
         def pos(name: str, v: float) -> float:
-            try:
-                x = float(v)
-            except (TypeError, ValueError) as err:
-                raise ConfigError(f"PoleTracker: expected a number for {name}, but got {v!r}") from err
-            if not math.isfinite(x) or x <= 0:
-                raise ConfigError(f"PoleTracker: expected {name} > 0, but got {v!r}")
-            return x
+            return number("PoleTracker", name, v)
 
         self.dt = pos("dt", dt)
         self.max_jump_pct = pos("max_jump_pct", max_jump_pct)
-        if isinstance(history, bool) or not isinstance(history, int) or history < 10:
-            raise ConfigError(f"PoleTracker: expected history an integer >= 10, but got {history!r}")
-        self.history = history
+        self.history = integer("PoleTracker", "history", history, minimum=10)
         self.pulses_per_rev = None if pulses_per_rev is None else pos("pulses_per_rev", pulses_per_rev)
         self.f_min_hz = pos("f_min_hz", f_min_hz)
         self.f_max_hz = 0.4 / self.dt if f_max_hz is None else pos("f_max_hz", f_max_hz)
