@@ -205,6 +205,9 @@ def _convert(tp: Any, value: Any, key: str, file: str) -> Any:
     if origin in (typing.Union, types.UnionType):
         if value is None and type(None) in typing.get_args(tp):
             return None
+        options = [a for a in typing.get_args(tp) if a is not type(None)]
+        if len(options) == 1:  # an optional value: its own error names the nested key
+            return _convert(options[0], value, key, file)
         for arg in typing.get_args(tp):
             if arg is type(None):
                 continue
@@ -272,6 +275,12 @@ def build(cls: type, data: Any, prefix: str = "", file: str = "<config>") -> Any
     try:
         return cls(**kwargs)
     except ConfigError as err:
+        field_key = getattr(err, "key", None)  # a FieldError from the dataclass's own validation
+        if field_key is not None:
+            full = f"{prefix}.{field_key}" if prefix else field_key
+            raise ConfigError(f"{file}: {full}: {err.reason}, got {err.value!r}") from None
+        raise ConfigError(f"{file}: {where}: {err}") from None
+    except TypeError as err:  # a required field is missing
         raise ConfigError(f"{file}: {where}: {err}") from None
 
 

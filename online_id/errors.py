@@ -31,3 +31,15 @@ class InputDataError(OnlineIdError, ValueError):
 
 class EstimationError(OnlineIdError, ArithmeticError):
     """The estimation cannot produce a result from the given data."""
+
+
+class FieldError(ConfigError):
+    """A dataclass field failed its own validation; ``key`` is relative to the dataclass.
+
+    :func:`online_id.config.build` turns it into a message with the full key
+    path and the file.
+    """
+
+    def __init__(self, key: str, value: object, reason: str) -> None:
+        super().__init__(f"{key} = {value!r}: {reason}")
+        self.key, self.value, self.reason = key, value, reason

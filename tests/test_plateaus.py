@@ -8,7 +8,7 @@ from online_id.core.plateaus import find_plateaus, plateaus_from_times
 
 def profile(levels, dwell_s, ramp_s, fs=200.0, noise=2.0, seed=0):
     rng = np.random.default_rng(seed)
-    pieces, t0, prev = [], 0.0, levels[0]
+    pieces, prev = [], levels[0]
     for k, lv in enumerate(levels):
         if k:
             n = int(ramp_s * fs)

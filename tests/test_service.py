@@ -17,7 +17,7 @@ import pytest
 from online_id.bench.scenario import BenchScenario, OperatingPoint
 from online_id.bench.simulate import simulate_bench
 from online_id.cli import main
-from online_id.config import BusSettings, ExcitationSettings, InertiaSettings, Settings, StateSettings
+from online_id.config import BusSettings, ExcitationSettings, Settings, StateSettings
 from online_id.errors import BusError
 from online_id.io.bus import CanBus
 from online_id.io.dbc import OutputEncoder, encode_inputs, load_dbc

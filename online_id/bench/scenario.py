@@ -12,30 +12,22 @@ the value and the file.
 from __future__ import annotations
 
 import dataclasses
-import types
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-from online_id.errors import ConfigError
+from online_id.errors import ConfigError, FieldError
 
 DELAYABLE_SIGNALS = ("dyno_speed", "engine_speed", "dyno_torque")
 
 
-class _FieldError(ConfigError):
-    """A field failed validation; ``key`` is relative to the dataclass."""
-
-    def __init__(self, key: str, value: Any, reason: str) -> None:
-        super().__init__(f"{key} = {value!r}: {reason}")
-        self.key, self.value, self.reason = key, value, reason
 
 
 def _require(ok: bool, key: str, value: Any, reason: str) -> None:
     if not ok:
-        raise _FieldError(key, value, reason)
+        raise FieldError(key, value, reason)
 
 
 def _positive(obj: Any, *names: str) -> None:
@@ -298,9 +290,9 @@ def scenario_from_dict(data: Any, source: str = "<dict>") -> BenchScenario:
         On unknown keys, wrong types or invalid values; the message names the
         key path, the value and ``source``.
     """
-    if data is None:
-        data = {}
-    return _build(BenchScenario, data, "", source)
+    from online_id.config import build  # the one YAML -> dataclass builder of the project
+
+    return build(BenchScenario, data, "", source)
 
 
 def load_scenario(path: str | Path) -> BenchScenario:
@@ -315,63 +307,3 @@ def load_scenario(path: str | Path) -> BenchScenario:
     except yaml.YAMLError as err:
         raise ConfigError(f"Invalid YAML in scenario file {path}: {err}") from err
     return scenario_from_dict(data, str(path))
-
-
-def _join(path: str, key: str) -> str:
-    return f"{path}.{key}" if path else key
-
-
-def _fail(path: str, value: Any, source: str, reason: str) -> ConfigError:
-    return ConfigError(f"Invalid {path or 'scenario'} = {value!r} in {source}: {reason}.")
-
-
-def _build(cls: type, data: Any, path: str, source: str) -> Any:
-    if not isinstance(data, dict):
-        raise _fail(path, data, source, f"expected a mapping of {cls.__name__} settings")
-    hints = typing.get_type_hints(cls)
-    names = [f.name for f in dataclasses.fields(cls)]
-    kwargs = {}
-    for key, value in data.items():
-        if key not in names:
-            raise ConfigError(
-                f"Unknown key {_join(path, str(key))!r} in {source}; "
-                f"expected one of: {', '.join(names)}."
-            )
-        kwargs[key] = _convert(hints[key], value, _join(path, key), source)
-    try:
-        return cls(**kwargs)
-    except _FieldError as err:
-        raise _fail(_join(path, err.key), err.value, source, err.reason) from None
-    except TypeError as err:  # a required field is missing
-        raise _fail(path, data, source, str(err)) from None
-
-
-def _convert(tp: Any, value: Any, path: str, source: str) -> Any:
-    origin = typing.get_origin(tp)
-    if origin in (types.UnionType, typing.Union):
-        if value is None:
-            return None
-        (inner,) = [a for a in typing.get_args(tp) if a is not type(None)]
-        return _convert(inner, value, path, source)
-    if origin is tuple:
-        if not isinstance(value, (list, tuple)):
-            raise _fail(path, value, source, "expected a list")
-        item_type = typing.get_args(tp)[0]
-        return tuple(
-            _convert(item_type, v, f"{path}[{i}]", source) for i, v in enumerate(value)
-        )
-    if dataclasses.is_dataclass(tp):
-        return _build(tp, value, path, source)
-    if tp is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise _fail(path, value, source, "expected a number")
-        return float(value)
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or value != int(value):
-            raise _fail(path, value, source, "expected an integer")
-        return int(value)
-    if tp is str:
-        if not isinstance(value, str):
-            raise _fail(path, value, source, "expected a string")
-        return value
-    raise TypeError(f"unsupported field type {tp!r}")  # programming error
