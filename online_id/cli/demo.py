@@ -29,7 +29,7 @@ from online_id.report import TerminalProgress, identification_table, plot_identi
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "demo",
-        help="simulate the default bench and identify it (no hardware needed)",
+        help="the service on a simulated bench, live on a virtual CAN bus (no hardware needed)",
         description=__doc__.split("\n\n")[0],
     )
     p.add_argument("--seed", type=int, default=0, help="simulation seed (default 0)")
