@@ -173,7 +173,9 @@ class Service:
         except BusError as err:
             self.say(f"bus down: {err}")
             return 1
-        self.say(f"listening on {s.bus.interface}:{s.bus.channel}")
+        rcvbuf = getattr(bus, "receive_buffer_bytes", None)
+        self.say(f"listening on {s.bus.interface}:{s.bus.channel}"
+                 + (f" (kernel receive buffer {rcvbuf} bytes)" if rcvbuf else ""))
         self.notifier.ready(f"listening on {s.bus.interface}:{s.bus.channel}")
         t_start = time.monotonic()
         next_save = time.monotonic() + s.state.save_interval_s

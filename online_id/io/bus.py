@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import socket
 from dataclasses import dataclass
 
 import can
@@ -25,7 +26,7 @@ class CanBus:
     """A python-can bus opened with ``ignore_config=True`` (no ~/can.conf, no CAN_* variables)."""
 
     def __init__(self, interface: str, channel: str, bitrate: int | None = None,
-                 receive_own_messages: bool = False, **kwargs) -> None:
+                 receive_own_messages: bool = False, receive_buffer_bytes: int = 4 << 20, **kwargs) -> None:
         self.interface = interface
         self.channel = channel
         opts = dict(kwargs)
@@ -36,6 +37,30 @@ class CanBus:
                                 receive_own_messages=receive_own_messages, **opts)
         except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as err:
             raise BusError(f"cannot open CAN bus {interface}:{channel}: {err}") from err
+        self.receive_buffer_bytes = self._grow_receive_buffer(receive_buffer_bytes)
+
+    def _grow_receive_buffer(self, size: int) -> int | None:
+        """Ask for a large kernel receive buffer on SocketCAN, so a short stall loses no frames.
+
+        SO_RCVBUFFORCE needs CAP_NET_ADMIN; without it SO_RCVBUF is capped by
+        ``net.core.rmem_max`` (raise that sysctl on a busy bench).  Returns the
+        size the kernel granted, or None for interfaces without a socket.
+        """
+        sock = getattr(self._bus, "socket", None)
+        if sock is None or not size:
+            return None
+        for option in (getattr(socket, "SO_RCVBUFFORCE", None), socket.SO_RCVBUF):
+            if option is None:
+                continue
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, option, size)
+                break
+            except OSError:
+                continue
+        try:
+            return int(sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
+        except OSError:
+            return None
 
     def recv(self, timeout: float) -> Frame | None:
         """The next frame, or None after ``timeout`` seconds."""
