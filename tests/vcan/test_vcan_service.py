@@ -41,6 +41,20 @@ def _lines_until(proc: subprocess.Popen, needle: str, lines: list[str], timeout_
     raise AssertionError(f"service did not print {needle!r}; its output:\n" + "\n".join(lines))
 
 
+def _wait_for_status(dump_file: Path, state: int, timeout_s: float) -> None:
+    encoder = OutputEncoder(load_dbc(None))
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for line in dump_file.read_text().splitlines():
+            mm = CANDUMP_LINE.match(line)
+            if mm and int(mm["id"], 16) == 0x303:
+                data = bytes.fromhex(mm["data"])
+                if encoder.verify(0x303, data) and int(encoder.decode(0x303, data)["State"]) == state:
+                    return
+        time.sleep(0.5)
+    raise AssertionError(f"no status frame with state {state} within {timeout_s} s")
+
+
 def test_service_with_can_player_cansend_candump_and_cantools(vcan0, can_utils, run_process, online_id_argv,
                                                              tmp_path: Path) -> None:
     # a short bench log at 250 Hz (UML is slow: keep the frame rate modest)
@@ -71,7 +85,9 @@ def test_service_with_can_player_cansend_candump_and_cantools(vcan0, can_utils, 
         player = run_process([sys.executable, "-m", "can.player", "-i", "socketcan", "-c", vcan0, str(log)])
         out, err = player.communicate(timeout=TIMEOUT_S)
         assert player.returncode == 0, err
-        time.sleep(2.0)
+        # the service may still be working through its socket buffer (UML is slow): it has read
+        # everything once it reports the silence after the last frame (status INPUT_TIMEOUT)
+        _wait_for_status(dump_file, state=4, timeout_s=TIMEOUT_S)
         service.send_signal(signal.SIGTERM)
         service.wait(timeout=TIMEOUT_S)
         time.sleep(0.5)
