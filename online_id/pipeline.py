@@ -255,12 +255,15 @@ class Pipeline:
     # -- outputs ---------------------------------------------------------------------------------
     def _alert(self, out: list[Publication], t_s: float, kind: AlertKind, severity: int, value_pct: float,
                message: str) -> None:
-        alert = AlertOut(t_s, kind, severity, value_pct, self.estimator.speed_rpm, message)
+        self._record(AlertOut(t_s, kind, severity, value_pct, self.estimator.speed_rpm, message), out)
+
+    def _record(self, alert: AlertOut, out: list[Publication], data: dict | None = None) -> None:
+        """Keep (bounded), count and publish one new alert."""
         self.alerts.append(alert)
         self.alerts_total += 1
         if len(self.alerts) > MAX_EVENTS:
             del self.alerts[: len(self.alerts) - MAX_EVENTS]
-        self.events.append(Event(t_s, "alert", message, {"kind": kind.name}))
+        self.events.append(Event(alert.t_s, "alert", alert.message, {"kind": alert.kind.name, **(data or {})}))
         out.append(alert)
 
     def _set_state(self, state: ServiceState, t_s: float, out: list[Publication], why: str = "") -> None:
@@ -343,11 +346,7 @@ class Pipeline:
         return AlertOut(t_s, kind, alarm.level, alarm.change_pct, alarm.speed_rpm, alarm.message)
 
     def _raise(self, alarm: Alarm, out: list[Publication]) -> None:
-        a = self._alert_out(alarm, alarm.detected_t_s)
-        self.alerts.append(a)
-        self.alerts_total += 1
-        self.events.append(Event(a.t_s, "alert", a.message, {"kind": a.kind.name, **alarm.as_dict()}))
-        out.append(a)
+        self._record(self._alert_out(alarm, alarm.detected_t_s), out, alarm.as_dict())
 
     def status(self, t_s: float) -> StatusOut:
         c = self.counters

@@ -53,7 +53,8 @@ class TerminalProgress:
             self.stream.flush()
 
 
-def _fmt(x: float | None, spec: str) -> str:
+def fmt(x: float | None, spec: str) -> str:
+    """``x`` formatted with ``spec``, or ``-`` when it is None or not finite."""
     return "-" if x is None or not np.isfinite(x) else format(x, spec)
 
 
@@ -76,7 +77,7 @@ def identification_table(result: IdentificationResult, *, show_real: bool = Fals
             label = CLASS_LABEL.get(q.cls, q.cls)
             if q.order is not None:
                 label += f" (order {q.order:g})"
-            lines.append(f"{head}  {_fmt(q.f_hz, '8.2f')}  {_fmt(q.zeta, '7.4f')}  {label}")
+            lines.append(f"{head}  {fmt(q.f_hz, '8.2f')}  {fmt(q.zeta, '7.4f')}  {label}")
             first = False
         if not show_real and n_real:
             lines.append(" " * 31 + f"+ {n_real} real pole(s)")
@@ -96,11 +97,11 @@ def driveline_text(result: IdentificationResult) -> str:
         "Driveline",
         f"  resonance        f0   = {d.f0_hz:8.3f} Hz   (std {mode.f0_std_hz:.3f} Hz over {mode.n_points} points)",
         f"  damping ratio    zeta = {d.zeta:8.4f}      (std {mode.zeta_std:.4f})",
-        f"  anti-resonance   fa   = {_fmt(d.fa_hz, '8.3f')} Hz",
-        f"  dyno inertia     J1   = {_fmt(d.J1, '8.4f')} kg m^2",
-        f"  engine inertia   J2   = {_fmt(d.J2, '8.4f')} kg m^2",
-        f"  shaft stiffness  c_s  = {_fmt(d.c_s, '8.1f')} Nm/rad",
-        f"  shaft damping    d_s  = {_fmt(d.d_s, '8.3f')} Nms/rad",
+        f"  anti-resonance   fa   = {fmt(d.fa_hz, '8.3f')} Hz",
+        f"  dyno inertia     J1   = {fmt(d.J1, '8.4f')} kg m^2",
+        f"  engine inertia   J2   = {fmt(d.J2, '8.4f')} kg m^2",
+        f"  shaft stiffness  c_s  = {fmt(d.c_s, '8.1f')} Nm/rad",
+        f"  shaft damping    d_s  = {fmt(d.d_s, '8.3f')} Nms/rad",
         f"  inertias from: {d.source}",
     ]
     return "\n".join(out)

@@ -10,7 +10,7 @@ import sys
 from online_id.config import Settings, load_config
 from online_id.core.identification import IdentificationResult, identify
 from online_id.errors import ConfigError
-from online_id.report import TerminalProgress, identification_table, plot_identification
+from online_id.report import TerminalProgress, fmt, identification_table, plot_identification
 from online_id.signals import read_bench_csv
 
 
@@ -115,7 +115,6 @@ def run_recursive(args: argparse.Namespace, s: Settings) -> int:
         sys.stdout.write("\n")
         return 0
     d = result["driveline"]
-    fmt = lambda x, f: "-" if x is None else format(x, f)  # noqa: E731
     print(f"online-id identify --recursive {args.path}: {result['counters']['samples']} samples, "
           f"final state {result['state']}")
     print(f"  resonance  f0 {fmt(d['f0_hz'], '.3f')} Hz, damping ratio {fmt(d['zeta'], '.4f')}, valid {d['valid']}")

@@ -9,7 +9,7 @@ import time
 
 from online_id.config import load_config
 from online_id.io.canlog import read_log
-from online_id.report import TerminalProgress
+from online_id.report import TerminalProgress, fmt
 from online_id.runtime import Runtime
 
 
@@ -68,7 +68,6 @@ def run(args: argparse.Namespace) -> int:
     d = result["driveline"]
     print(f"online-id replay {args.log}: {runtime.frames_in} frames in {elapsed:.1f} s "
           f"({runtime.frames_in / max(elapsed, 1e-9):,.0f} frames/s), {published} frames published")
-    fmt = lambda x, f: "-" if x is None else format(x, f)  # noqa: E731
     print(f"  final state      {result['state']}")
     print(f"  resonance  f0    {fmt(d['f0_hz'], '.3f')} Hz   damping ratio {fmt(d['zeta'], '.4f')}   "
           f"valid {d['valid']}")

@@ -20,7 +20,14 @@ import numpy as np
 from online_id.core.settings import IdentificationSettings, InertiaSettings
 from online_id.core.model import ArmaxOrders
 from online_id.core.pem import ArmaxFit, fit_armax
-from online_id.core.physical import DrivelineParameters, ResponseFit, fit_response, frequency_response, parameters
+from online_id.core.physical import (
+    DrivelineParameters,
+    ResponseFit,
+    fit_response,
+    frequency_response,
+    parameters,
+    response_grid,
+)
 from online_id.core.plateaus import Plateau, find_plateaus, plateaus_from_times
 from online_id.core.poles import DRIVELINE, Pole, PoleSorting, poles_of, sort_poles
 from online_id.core.preprocess import decimate, decimation_factor
@@ -149,13 +156,7 @@ def _fit_point(y: np.ndarray, u: np.ndarray, orders: ArmaxOrders, recursive_star
 
 
 def _response_band(point: PointResult, f0_hz: float, nyquist_hz: float) -> np.ndarray:
-    hi = min(2.5 * f0_hz, 0.8 * nyquist_hz)
-    f = np.geomspace(0.35 * f0_hz, hi, 300)
-    keep = np.ones(f.shape, bool)
-    for q in point.poles:
-        if q.kind == "complex" and q.cls != DRIVELINE and q.zeta < 0.15:
-            keep &= np.abs(f - q.f_hz) > 0.05 * q.f_hz
-    return f[keep]
+    return response_grid(f0_hz, nyquist_hz, [q for q in point.poles if q.cls != DRIVELINE], 300)
 
 
 def identify(

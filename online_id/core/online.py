@@ -31,7 +31,14 @@ import numpy as np
 from scipy.signal import firwin
 
 from online_id.core.model import ArmaxOrders
-from online_id.core.physical import DrivelineParameters, fit_response, frequency_response, parameters
+from online_id.core.pem import fpe_criterion
+from online_id.core.physical import (
+    DrivelineParameters,
+    fit_response,
+    frequency_response,
+    parameters,
+    response_grid,
+)
 from online_id.core.poles import Pole, order_of, pole_std, poles_of
 from online_id.core.rels import RecursiveArmax
 from online_id.errors import EstimationError
@@ -199,7 +206,7 @@ class OnlineDriveline:
         n_eff = min(self._n_used, int(1.0 / max(1.0 - self.forgetting, 1e-9)))
         d = self.orders.n_params
         V = self._e2
-        fpe = V * (1 + d / n_eff) / (1 - d / n_eff) if n_eff > d else float("nan")
+        fpe = fpe_criterion(V, n_eff, d) if n_eff > d else float("nan")
         std_f = std_z = float("inf")
         if pick is not None:
             self._pick = pick.f_hz
@@ -237,13 +244,9 @@ class OnlineDriveline:
         if J1 is not None and J2 is not None:
             return parameters(est.f0_hz, est.zeta, None, None, J1=J1, J2=J2)
         a, b, _c = self.rels.polynomials()
-        f = np.geomspace(0.35 * est.f0_hz, min(2.5 * est.f0_hz, 0.4 / self.dt), 200)
-        keep = np.ones(f.shape, bool)
-        for p in est.poles:
-            if p.kind == "complex" and abs(p.f_hz - est.f0_hz) > 1e-9 and p.zeta < 0.15:
-                keep &= np.abs(f - p.f_hz) > 0.05 * p.f_hz
+        f = response_grid(est.f0_hz, 0.5 / self.dt, [p for p in est.poles if abs(p.f_hz - est.f0_hz) > 1e-9])
         try:
-            fit = fit_response(f[keep], frequency_response(b, a, f[keep], self.dt), est.f0_hz, est.zeta)
+            fit = fit_response(f, frequency_response(b, a, f, self.dt), est.f0_hz, est.zeta)
         except EstimationError:
             return None
         return parameters(est.f0_hz, est.zeta, fit.fa_hz, fit.gain, J1=J1, J2=J2, J_total=J_total)

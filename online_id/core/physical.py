@@ -76,6 +76,21 @@ def frequency_response(b: np.ndarray, a: np.ndarray, f_hz: np.ndarray, dt: float
     return num / den
 
 
+def response_grid(f0_hz: float, nyquist_hz: float, other_poles, n: int = 200) -> np.ndarray:
+    """Frequencies for :func:`fit_response`: 0.35 f0 to 2.5 f0 (below 0.8 Nyquist), log-spaced.
+
+    Frequencies within 5 % of a lightly damped (zeta < 0.15) complex pole of
+    ``other_poles`` (the non-driveline poles: spurious pole-zero pairs leave
+    wiggles in the response) are left out.
+    """
+    f = np.geomspace(0.35 * f0_hz, min(2.5 * f0_hz, 0.8 * nyquist_hz), n)
+    keep = np.ones(f.shape, bool)
+    for q in other_poles:
+        if q.kind == "complex" and q.zeta < 0.15:
+            keep &= np.abs(f - q.f_hz) > 0.05 * q.f_hz
+    return f[keep]
+
+
 def fit_response(
     f_hz: np.ndarray, response: np.ndarray, f0_hz: float, zeta: float, *, fa_guess_hz: float | None = None
 ) -> ResponseFit:
