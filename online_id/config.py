@@ -110,6 +110,9 @@ class ModelSettings:
     learning_s: float = 10.0
     pulses_per_rev: float | None = None
     band_hz: tuple[float, float] = (3.0, 120.0)
+    window_s: float = 10.0
+    refit_s: float = 1.0
+    max_speed_span_rpm: float = 40.0
 
 
 @dataclass(frozen=True)
@@ -322,7 +325,7 @@ def _check_service(s: Settings, file: str) -> None:
             raise ConfigError(f"{file}: input.slow_roles: unknown role {role!r} "
                               "(roles: dyno_speed, engine_speed, dyno_torque)")
     m = s.model
-    positive("model", m, "sample_rate_hz", "p0", "learning_s")
+    positive("model", m, "sample_rate_hz", "p0", "learning_s", "window_s", "refit_s", "max_speed_span_rpm")
     if m.sample_rate_hz > s.input.sample_rate_hz:
         raise ConfigError(f"{file}: model.sample_rate_hz: {m.sample_rate_hz:g} Hz is above the input rate "
                           f"input.sample_rate_hz = {s.input.sample_rate_hz:g} Hz")

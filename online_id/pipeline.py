@@ -152,6 +152,9 @@ class Pipeline:
             learning_s=m.learning_s,
             pulses_per_rev=m.pulses_per_rev,
             band_hz=m.band_hz,
+            window_s=m.window_s,
+            refit_s=m.refit_s,
+            max_speed_span_rpm=m.max_speed_span_rpm,
         )
 
     # -- counters --------------------------------------------------------------------------------
@@ -291,7 +294,8 @@ class Pipeline:
         out: list[Publication] = []
         est = self.estimator.estimate()
         self._estimate = est
-        self._set_state(self._judge(est, t_s), t_s, out)
+        state = self._judge(est, t_s)
+        self._set_state(state, t_s, out, est.why if state == ServiceState.LEARNING else "")
         if est.valid and (self._physical is None or t_s >= self._next_physical):
             # the refit of the physical parameters (a least-squares fit, ~10 ms) runs on the next sample
             # that publishes nothing, so it never delays an estimate; c_s and d_s lag by one publication

@@ -19,7 +19,7 @@ import numpy as np
 
 from online_id.core.settings import IdentificationSettings, InertiaSettings
 from online_id.core.model import ArmaxOrders
-from online_id.core.pem import ArmaxFit, fit_armax
+from online_id.core.pem import ArmaxFit
 from online_id.core.physical import (
     DrivelineParameters,
     ResponseFit,
@@ -31,7 +31,7 @@ from online_id.core.physical import (
 from online_id.core.plateaus import Plateau, find_plateaus, plateaus_from_times
 from online_id.core.poles import DRIVELINE, Pole, PoleSorting, poles_of, sort_poles
 from online_id.core.preprocess import decimate, decimation_factor
-from online_id.core.rels import RecursiveArmax
+from online_id.core.window import fit_two_starts
 from online_id.errors import EstimationError, InputDataError
 from online_id.records import BenchData
 
@@ -136,25 +136,6 @@ def _segment(data: BenchData, p: Plateau, factor: int) -> tuple[np.ndarray, np.n
     return decimate(y, factor), decimate(u, factor)
 
 
-def _fit_point(y: np.ndarray, u: np.ndarray, orders: ArmaxOrders, recursive_start: bool) -> ArmaxFit:
-    """PEM fit from two starts (Hannan-Rissanen, and the recursive estimate); the lower loss wins.
-
-    The prediction-error criterion of an over-parametrised ARMAX model has
-    local minima: one start alone can settle where the compression oscillator
-    is missing from the model.
-    """
-    fits = [fit_armax(y, u, orders)]
-    if recursive_start:
-        est = RecursiveArmax(orders, lam=1.0, p0=1e3)
-        est.update_block(y, u)
-        if np.all(np.isfinite(est.theta)):
-            try:
-                fits.append(fit_armax(y, u, orders, theta0=est.theta))
-            except EstimationError:
-                pass
-    return min(fits, key=lambda f: f.V)
-
-
 def _response_band(point: PointResult, f0_hz: float, nyquist_hz: float) -> np.ndarray:
     return response_grid(f0_hz, nyquist_hz, [q for q in point.poles if q.cls != DRIVELINE], 300)
 
@@ -205,7 +186,7 @@ def identify(
         for orders in candidates:
             report(done / total, f"{point.speed_rpm:.0f} rpm, na={orders.na} nb={orders.nb} nc={orders.nc}")
             try:
-                point.fits[orders] = _fit_point(y, u, orders, s.recursive_start)
+                point.fits[orders] = fit_two_starts(y, u, orders, s.recursive_start)
             except EstimationError as err:
                 warnings.append(f"{point.speed_rpm:.0f} rpm, {orders}: {err}")
             done += 1

@@ -235,7 +235,7 @@ def fit_arx(y: np.ndarray, u: np.ndarray, orders: ArmaxOrders, *,
 
 def fit_armax(y: np.ndarray, u: np.ndarray, orders: ArmaxOrders, *,
               theta0: np.ndarray | None = None, max_iter: int = 50, tol: float = 1e-6,
-              n_skip: int | None = None) -> ArmaxFit:
+              n_skip: int | None = None, start_radius: float = 0.99) -> ArmaxFit:
     """ARMAX fit by prediction-error minimisation (see module notes).
 
     Parameters
@@ -254,6 +254,10 @@ def fit_armax(y: np.ndarray, u: np.ndarray, orders: ArmaxOrders, *,
         Relative tolerance on the loss, the step and the gradient.
     n_skip
         Samples left out at the start of the criterion, default ``max_lag``.
+    start_radius
+        Roots of :math:`C` at the start value beyond this radius are pulled in
+        (reflected, then scaled) before the search begins; a warm start from
+        an earlier optimum may allow more than the default.
 
     Returns
     -------
@@ -277,7 +281,7 @@ def fit_armax(y: np.ndarray, u: np.ndarray, orders: ArmaxOrders, *,
         return fit_arx(y, u, orders, n_skip=t0)
     if theta0 is None:
         theta0 = hannan_rissanen(y, u, orders)
-    theta0 = _stabilized(theta0, orders, max_radius=0.99)
+    theta0 = _stabilized(theta0, orders, max_radius=start_radius)
     problem = _PemProblem(y, u, orders, t0)
     if not np.all(np.isfinite(problem.residuals(theta0))):
         raise EstimationError("prediction errors at the start value are not finite")
