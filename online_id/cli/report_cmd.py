@@ -1,0 +1,414 @@
+"""``online-id report LOG_OR_STATE --out DIR``: plots and a summary of a replayed log or a saved state.
+
+From a CAN log (``.log``, ``.asc``, ``.blf``) the frames go through
+:func:`online_id.cli.replay.replay` exactly as in ``online-id replay``; a
+:class:`RecordingRuntime` observes every publication on its way to the
+encoder and keeps the driveline estimates (with the engine speed at the time),
+the points of the pole tracks and the alerts.  From a state file of the
+service (``online-id-state.json``, :mod:`online_id.io.statefile`) there is no
+series of estimates: the report shows the track histories, the baselines and
+the latched alarm.
+
+Written to ``DIR``: ``frequency_vs_speed.png`` and ``damping_vs_speed.png``
+(the paper's Fig. 5 and 6), ``tracks_over_time.png``, ``report.json`` and
+``report.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from online_id.cli.replay import replay
+from online_id.config import Settings, load_config
+from online_id.core.baseline import Baseline, BandStats
+from online_id.core.detection import ChangeDetector
+from online_id.core.tracks import PoleTracker
+from online_id.errors import InputDataError, OnlineIdError
+from online_id.io.canlog import SUFFIXES as LOG_SUFFIXES
+from online_id.io.statefile import load_state
+from online_id.records import AlertKind, AlertOut, EstimateOut, Publication
+from online_id.report import (
+    AlertMark,
+    EstimateSeries,
+    TerminalProgress,
+    TrackSeries,
+    fmt,
+    plot_tracks_over_time,
+    plot_versus_speed,
+)
+from online_id.runtime import OutFrame, Runtime
+
+STATE_SUFFIXES = (".json",)
+FIGURES = ("frequency_vs_speed.png", "damping_vs_speed.png", "tracks_over_time.png")
+SEVERITY = {0: "info", 1: "warning", 2: "fault"}
+EPOCH_S = 1e8  # stream times above this are Unix times (a live service), below: seconds from a log start
+
+
+def add_subparser(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "report",
+        help="plot estimates, tracks, baselines and alerts of a CAN log or a saved state",
+        description="Replay a CAN log (.log, .asc, .blf) through the service pipeline, or read a state file "
+        "of the service (.json), and write to DIR: frequency and damping against engine speed with the "
+        "learned baselines (frequency_vs_speed.png, damping_vs_speed.png), f0 and zeta over time with "
+        "baselines and alerts (tracks_over_time.png), report.json and report.md.",
+    )
+    p.add_argument("source", metavar="LOG_OR_STATE", help="CAN log (.log, .asc, .blf) or state file (.json)")
+    p.add_argument("--out", metavar="DIR", required=True, help="directory for the figures and the summary")
+    p.add_argument("--config", metavar="FILE", help="YAML configuration (DBC, mapping, model, detection)")
+    p.set_defaults(func=run)
+
+
+# --- collected data ----------------------------------------------------------------------------------
+
+
+@dataclass
+class ReportData:
+    """Everything the report shows; times are seconds from ``t0_s`` (a stream time)."""
+
+    source: Path
+    kind: str  # "can_log" or "state"
+    t0_s: float
+    estimates: EstimateSeries | None
+    tracks: list[TrackSeries]
+    baselines: tuple[BandStats, ...]
+    min_count: int
+    alerts: list[AlertOut]
+    active_alarm: dict | None
+    final: dict
+    extra: dict = field(default_factory=dict)
+
+
+class RecordingRuntime(Runtime):
+    """A :class:`~online_id.runtime.Runtime` that keeps what the pipeline publishes.
+
+    Every publication passes :meth:`frames` on its way to the encoder; the
+    estimates are kept with the engine speed of the estimator at that moment
+    and, per track matched at that publication, its newest point.  Acknowledge
+    and re-learn notices (alerts of kind NONE) are kept too; the raised alerts
+    are the pipeline's own list (the 1 Hz repeats of a latched alarm are not
+    new alerts).
+    """
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        self.estimates: list[tuple[float, float, float, float, bool]] = []
+        self.track_points: dict[int, list[tuple[float, float, float, float]]] = {}
+        self.track_info: dict[int, tuple[str, float | None]] = {}
+        self.notices: list[AlertOut] = []
+
+    def frames(self, pubs: list[Publication]) -> list[OutFrame]:
+        for pub in pubs:
+            if isinstance(pub, EstimateOut):
+                self._observe_estimate(pub)
+            elif isinstance(pub, AlertOut) and pub.kind == AlertKind.NONE:
+                self.notices.append(pub)
+        return super().frames(pubs)
+
+    def _observe_estimate(self, pub: EstimateOut) -> None:
+        p = self.pipeline
+        self.estimates.append((pub.t_s, p.estimator.speed_rpm, pub.f0_hz, pub.zeta, bool(pub.valid)))
+        for tr in p.tracker.tracks:
+            self.track_info[tr.id] = (tr.cls, tr.order)
+            if tr.last_seen_s == pub.t_s:  # matched (or started) at this publication
+                self.track_points.setdefault(tr.id, []).append((tr.last_seen_s, tr.speed_rpm, tr.f_hz, tr.zeta))
+
+
+def _fin(x: Any) -> float | None:
+    return float(x) if x is not None and math.isfinite(float(x)) else None
+
+
+def _series(rows: list[tuple], t0: float) -> np.ndarray:
+    arr = np.array(rows, dtype=float).reshape(-1, 4)
+    arr[:, 0] -= t0
+    return arr
+
+
+def from_log(path: Path, settings: Settings) -> ReportData:
+    """Replay the log through the service pipeline and collect the report data."""
+    runtime = RecordingRuntime(settings)
+    progress = TerminalProgress("report")
+    t_wall = time.monotonic()
+    try:
+        replay(str(path), runtime, progress=progress)
+    finally:
+        progress.close()
+    pipe = runtime.pipeline
+    if not runtime.estimates:
+        c = pipe.counters
+        bad = ", ".join(f"{k.name.lower()} {v}" for k, v in c.faults.items() if v) or "none"
+        raise InputDataError(
+            f"{path}: expected dyno speed, engine speed and dyno torque frames of the DBC, but got "
+            f"{runtime.frames_in} frames, {c.samples} samples and no estimate (unused frames: {bad})")
+    t0 = pipe.t_first or 0.0
+    est = np.array(runtime.estimates, dtype=float).reshape(-1, 5)
+    estimates = EstimateSeries(est[:, 0] - t0, est[:, 1], est[:, 2], est[:, 3], est[:, 4].astype(bool))
+    tracks = []
+    for tid, pts in sorted(runtime.track_points.items()):
+        cls, order = runtime.track_info[tid]
+        a = _series(pts, t0)
+        tracks.append(TrackSeries(tid, cls, order, a[:, 0], a[:, 1], a[:, 2], a[:, 3]))
+    result = pipe.result()
+    final = dict(result["driveline"], state=result["state"], t_s=float(estimates.t_s[-1]), source="estimator")
+    alerts = sorted(list(pipe.alerts) + runtime.notices, key=lambda a: a.t_s)
+    return ReportData(
+        source=path, kind="can_log", t0_s=t0, estimates=estimates, tracks=tracks,
+        baselines=pipe.baseline.bands, min_count=pipe.baseline.min_count,
+        alerts=[dataclasses.replace(a, t_s=a.t_s - t0) for a in alerts],
+        active_alarm=_alarm_dict(pipe.detector, t0), final=final,
+        extra={"frames_in": runtime.frames_in, "frames_out": runtime.frames_out,
+               "replay_s": round(time.monotonic() - t_wall, 3), "quality": result["quality"],
+               "counters": result["counters"], "status_changes": result["status_changes"]},
+    )
+
+
+def _alarm_dict(detector: ChangeDetector, t0: float) -> dict | None:
+    a = detector.active
+    if a is None:
+        return None
+    d = a.as_dict()
+    d["since_t_s"] -= t0
+    d["detected_t_s"] -= t0
+    return d
+
+
+def from_state(path: Path) -> ReportData:
+    """Read a state file of the service and collect the report data."""
+    state = load_state(path)
+    if not isinstance(state, dict) or not {"baseline", "detector", "tracker"} <= state.keys():
+        if isinstance(state, dict):
+            got = "the keys " + ", ".join(f'"{k}"' for k in sorted(state)) if state else "an empty object"
+        else:
+            got = f"a JSON {type(state).__name__}"
+        raise InputDataError(f"{path}: expected a state file of online-id with \"baseline\", \"detector\" and "
+                             f"\"tracker\", but got {got}")
+    try:
+        baseline = Baseline.from_dict(state["baseline"])
+        detector = ChangeDetector.from_dict(state["detector"])
+        tracker = PoleTracker.from_dict(state["tracker"])
+        raw_alerts = [AlertOut(**(a | {"kind": AlertKind(a["kind"])})) for a in state.get("alerts", [])]
+    except OnlineIdError as err:
+        raise InputDataError(f"{path}: {err}") from err
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError) as err:
+        raise InputDataError(f"{path}: saved state is incomplete or malformed ({err!r})") from err
+    times = [float(t) for tr in tracker.tracks for t in tr.history.t_s if math.isfinite(t)]
+    times += [a.t_s for a in raw_alerts]
+    t0 = min(times) if times and min(times) > EPOCH_S else 0.0  # Unix times from a live service: from the oldest
+    tracks = []
+    for tr in tracker.tracks:
+        h = tr.history
+        tracks.append(TrackSeries(tr.id, tr.cls, tr.order, h.t_s - t0, h.speed_rpm, h.f_hz, h.zeta))
+    drive = tracker.driveline()
+    final = {"f0_hz": None, "zeta": None, "valid": False, "source": "no driveline track"}
+    if drive is not None:
+        final = {"f0_hz": _fin(drive.f_hz), "zeta": _fin(drive.zeta), "speed_rpm": _fin(drive.speed_rpm),
+                 "t_s": _fin(drive.last_seen_s - t0), "valid": True,
+                 "source": f"driveline track {drive.id} (confidence {drive.confidence:.2f})"}
+    return ReportData(
+        source=path, kind="state", t0_s=t0, estimates=None, tracks=tracks, baselines=baseline.bands,
+        min_count=baseline.min_count, alerts=[dataclasses.replace(a, t_s=a.t_s - t0) for a in raw_alerts],
+        active_alarm=_alarm_dict(detector, t0), final=final,
+        extra={"state_version": state.get("version")},
+    )
+
+
+def load_source(path: Path, config: str | None) -> ReportData:
+    """The report data of a CAN log or a state file, told apart by suffix (then by content)."""
+    if not path.exists():
+        raise InputDataError(f"{path}: cannot read: no such file")
+    if not path.is_file():
+        raise InputDataError(f"{path}: expected a CAN log or a state file, but got a directory")
+    settings = load_config(config)
+    suffix = path.suffix.lower()
+    if suffix in LOG_SUFFIXES:
+        return from_log(path, settings)
+    if suffix in STATE_SUFFIXES or _looks_like_json(path):
+        return from_state(path)
+    raise InputDataError(
+        f"{path}: expected a CAN log ({', '.join(LOG_SUFFIXES)}) or a state file (.json), "
+        f"but got {path.suffix or 'no suffix'!r}")
+
+
+def _looks_like_json(path: Path) -> bool:
+    try:
+        with path.open("rb") as fh:
+            head = fh.read(64).lstrip()
+    except OSError as err:
+        raise InputDataError(f"{path}: cannot read: {err.strerror or err}") from err
+    return head.startswith(b"{")
+
+
+# --- outputs ----------------------------------------------------------------------------------------
+
+
+def _plain(obj: Any) -> Any:
+    """``obj`` with numpy scalars as Python numbers and non-finite floats as None (strict JSON)."""
+    if isinstance(obj, dict):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, (np.floating, float)):
+        return _fin(obj)
+    if isinstance(obj, (np.integer, np.bool_)):
+        return obj.item()
+    return obj
+
+
+def _stats(x: np.ndarray) -> dict | None:
+    x = x[np.isfinite(x)]
+    if x.size == 0:
+        return None
+    return {"median": float(np.median(x)), "min": float(x.min()), "max": float(x.max())}
+
+
+def _band_dict(b: BandStats, min_count: int) -> dict:
+    return {"band_rpm": [float(b.band[0]), float(b.band[1])], "f0_hz": _fin(b.mean_f), "f0_std_hz": _fin(b.std_f),
+            "zeta": _fin(b.mean_zeta), "zeta_std": _fin(b.std_zeta), "count": int(b.count),
+            "learned": b.count >= min_count}
+
+
+def _alert_dict(a: AlertOut) -> dict:
+    return {"t_s": _fin(a.t_s), "kind": a.kind.name, "severity": int(a.severity),
+            "level": SEVERITY.get(int(a.severity), str(a.severity)), "value_pct": _fin(a.value_pct),
+            "speed_rpm": _fin(a.speed_rpm), "message": a.message}
+
+
+def summary_t0(data: ReportData) -> str:
+    """The time origin as an ISO 8601 UTC date (for Unix stream times)."""
+    return datetime.fromtimestamp(data.t0_s, timezone.utc).isoformat(timespec="seconds")
+
+
+def summary(data: ReportData) -> dict:
+    """The JSON-able summary written to ``report.json``."""
+    out: dict[str, Any] = {"source": str(data.source), "kind": data.kind, "t0_s": data.t0_s}
+    if data.t0_s > EPOCH_S:
+        out["t0_utc"] = summary_t0(data)
+    e = data.estimates
+    counts = {"estimates": len(e) if e is not None else 0,
+              "valid_estimates": int(e.valid.sum()) if e is not None else 0,
+              "tracks": len(data.tracks), "track_points": int(sum(t.t_s.size for t in data.tracks)),
+              "baseline_bands": len(data.baselines),
+              "learned_bands": sum(b.count >= data.min_count for b in data.baselines),
+              "alerts": len(data.alerts), "warnings": sum(a.severity == 1 for a in data.alerts),
+              "faults": sum(a.severity >= 2 for a in data.alerts)}
+    out["counts"] = counts
+    if e is not None and len(e):
+        ok = e.valid  # statistics of the valid estimates
+        out["estimates"] = {"t_first_s": float(e.t_s[0]), "t_last_s": float(e.t_s[-1]),
+                            "first_valid_t_s": float(e.t_s[ok][0]) if ok.any() else None,
+                            "speed_rpm": _stats(e.speed_rpm[ok]), "f0_hz": _stats(e.f0_hz[ok]),
+                            "zeta": _stats(e.zeta[ok])}
+    out["baselines"] = [_band_dict(b, data.min_count) for b in data.baselines]
+    out["tracks"] = [{"id": t.id, "class": t.cls, "order": t.order, "points": int(t.t_s.size),
+                      "t_first_s": _fin(t.t_s[0]) if t.t_s.size else None,
+                      "t_last_s": _fin(t.t_s[-1]) if t.t_s.size else None,
+                      "f_hz": _stats(t.f_hz), "zeta": _stats(t.zeta)} for t in data.tracks]
+    out["alerts"] = [_alert_dict(a) for a in data.alerts]
+    out["active_alarm"] = data.active_alarm
+    out["final_estimate"] = data.final
+    out.update(data.extra)
+    out["figures"] = list(FIGURES)
+    return out
+
+
+def _plural(n: int, word: str) -> str:
+    return f"{n} {word}" + ("" if n == 1 else "s")
+
+
+def markdown(data: ReportData, doc: dict) -> str:
+    """A short Markdown summary: figures, final estimate, baselines, alerts."""
+    c = doc["counts"]
+    what = "CAN log replayed through the service pipeline" if data.kind == "can_log" else "state file of the service"
+    lines = [f"# online-id report: {data.source.name}", "",
+             f"Source: `{data.source}` ({what}).", ""]
+    if data.kind == "can_log":
+        lines.append(f"{c['estimates']} estimates published, {c['valid_estimates']} valid; "
+                     f"{c['tracks']} pole tracks; {c['alerts']} alerts "
+                     f"({_plural(c['warnings'], 'warning')}, {_plural(c['faults'], 'fault')}). Times are seconds from the first sample.")
+    else:
+        when = (f"Times are seconds from the oldest track point or alert, {doc['t0_utc']}." if "t0_utc" in doc
+                else "Times are the stream's (seconds from the start of the log or bus).")
+        lines.append(f"{c['tracks']} live pole tracks ({c['track_points']} points); {c['alerts']} recent alerts. "
+                     + when)
+    lines += ["", "## Figures", ""]
+    titles = ("Driveline frequency against engine speed (paper Fig. 5)",
+              "Damping ratio against engine speed (paper Fig. 6)",
+              "Frequency and damping over time, baselines and alerts")
+    for name, title in zip(FIGURES, titles):
+        lines.append(f"- [{title}]({name})")
+    f = data.final
+    lines += ["", "## Final estimate", "", "| f0 [Hz] | zeta | valid | from |", "|---:|---:|:---:|---|",
+              f"| {fmt(f.get('f0_hz'), '.3f')} | {fmt(f.get('zeta'), '.4f')} "
+              f"| {'yes' if f.get('valid') else 'no'} | {f.get('source', '')} |"]
+    lines += ["", "## Baselines", ""]
+    if doc["baselines"]:
+        lines += ["| band [rpm] | f0 [Hz] | std f0 [Hz] | zeta | std zeta | count | learned |",
+                  "|---|---:|---:|---:|---:|---:|:---:|"]
+        for b in doc["baselines"]:
+            lines.append(f"| {b['band_rpm'][0]:.0f}-{b['band_rpm'][1]:.0f} | {b['f0_hz']:.3f} | {b['f0_std_hz']:.3f} "
+                         f"| {b['zeta']:.4f} | {b['zeta_std']:.4f} | {b['count']} | "
+                         f"{'yes' if b['learned'] else 'no'} |")
+    else:
+        lines.append("No baseline learned yet.")
+    lines += ["", "## Alerts", ""]
+    if doc["alerts"]:
+        lines += ["| t [s] | kind | level | speed [rpm] | change [%] | message |", "|---:|---|---|---:|---:|---|"]
+        for a in doc["alerts"]:
+            lines.append(f"| {fmt(a['t_s'], '.1f')} | {a['kind']} | {a['level']} | "
+                         f"{fmt(a['speed_rpm'], '.0f')} | {fmt(a['value_pct'], '+.1f')} | "
+                         f"{a['message'].replace('|', '/')} |")
+    else:
+        lines.append("No alerts.")
+    alarm = doc["active_alarm"]
+    lines += ["", "## Active alarm", "",
+              f"{alarm['message']} (detected at t = {alarm['detected_t_s']:.1f} s, not acknowledged)."
+              if alarm else "None.", ""]
+    return "\n".join(lines)
+
+
+def write_report(data: ReportData, out: Path) -> list[Path]:
+    """Write the figures, ``report.json`` and ``report.md`` to ``out``; returns the paths."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise InputDataError(f"{out}: cannot create the report directory: {err.strerror or err}") from err
+    name = data.source.name
+    paths = [out / f for f in FIGURES]
+    try:
+        plot_versus_speed(paths[0], "f0", data.estimates, data.tracks, data.baselines, data.min_count,
+                          title=f"driveline frequency against engine speed, {name}")
+        plot_versus_speed(paths[1], "zeta", data.estimates, data.tracks, data.baselines, data.min_count,
+                          title=f"driveline damping against engine speed, {name}")
+        marks = [AlertMark(a.t_s, int(a.severity), a.message if a.kind == AlertKind.NONE else
+                           f"{a.kind.name.lower()} {SEVERITY.get(int(a.severity), '')}") for a in data.alerts]
+        if data.active_alarm is not None:
+            marks.append(AlertMark(data.active_alarm["since_t_s"], 0, "onset of the active alarm"))
+        label = ("time from the first sample [s]" if data.kind == "can_log" else
+                 f"time from {summary_t0(data)} [s]" if data.t0_s > EPOCH_S else "stream time [s]")
+        plot_tracks_over_time(paths[2], data.estimates, data.tracks, data.baselines, marks, label,
+                              title=f"driveline estimate over time, {name}")
+        doc = summary(data)
+        paths.append(out / "report.json")
+        paths[-1].write_text(json.dumps(_plain(doc), indent=2, allow_nan=False) + "\n", encoding="utf-8")
+        paths.append(out / "report.md")
+        paths[-1].write_text(markdown(data, doc), encoding="utf-8")
+    except OSError as err:
+        raise InputDataError(f"{out}: cannot write the report: {err.strerror or err}") from err
+    return paths
+
+
+def run(args: argparse.Namespace) -> int:
+    data = load_source(Path(args.source), args.config)
+    for path in write_report(data, Path(args.out)):
+        print(f"wrote {path}")
+    return 0
