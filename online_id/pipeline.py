@@ -423,12 +423,14 @@ class Pipeline:
         self.alerts = [AlertOut(**(a | {"kind": AlertKind(a["kind"])})) for a in state.get("alerts", [])]
 
 
-def run_bench_data(data, settings: Settings, progress=None) -> Pipeline:
+def run_bench_data(data, settings: Settings, progress=None, on_output=None) -> Pipeline:
     """Feed bench data (a :class:`~online_id.records.BenchData`) through the pipeline, sample by sample.
 
     The values go through the same assembler and estimator as decoded frames
     do, in the order a bench sends them (dyno speed, engine speed, torque),
     so a replay of the same data as CAN frames gives the same result.
+    ``on_output(pipeline, t_s, publications)`` is called with every non-empty
+    list of publications (e.g. to acknowledge alerts as an operator would).
     """
     import dataclasses
 
@@ -444,7 +446,9 @@ def run_bench_data(data, settings: Settings, progress=None) -> Pipeline:
     for k in range(n):
         tk = float(t[k])
         for role, arr in cols:
-            pipe.on_signal(SignalSample(role, float(arr[k]), tk))
+            out = pipe.on_signal(SignalSample(role, float(arr[k]), tk))
+            if out and on_output is not None:
+                on_output(pipe, tk, out)
         if progress is not None and k % step == 0:
             progress(k / n, f"t = {tk:.1f} s")
     return pipe

@@ -12,6 +12,7 @@ the value and the file.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -80,14 +81,27 @@ class PiGains:
 
 @dataclass(frozen=True)
 class Friction:
-    """Engine friction ``sign(y2) (b0 + b1 |y2| + b2 y2^2)``, y2 in rad/s."""
+    """Engine friction ``sign(y2) (b0 + b1 |y2| + b2 y2^2)``, y2 in rad/s.
+
+    ``drift`` makes it temperature-like: all three coefficients are scaled by
+    ``1 + drift (1 - exp(-t / drift_tau_s))`` (e.g. ``drift = -0.3``: the oil
+    warms up and friction falls by 30 %), updated every 10 s of the run.
+    """
 
     b0: float = 5.0
     b1: float = 0.02
     b2: float = 2e-5
+    drift: float = 0.0
+    drift_tau_s: float = 900.0
 
     def __post_init__(self) -> None:
         _non_negative(self, "b0", "b1", "b2")
+        _positive(self, "drift_tau_s")
+        _require(self.drift > -1.0, "drift", self.drift, "expected a value > -1")
+
+    def scale(self, t_s: float) -> float:
+        """Factor on the coefficients at time ``t_s``."""
+        return 1.0 + self.drift * (1.0 - math.exp(-t_s / self.drift_tau_s))
 
 
 @dataclass(frozen=True)

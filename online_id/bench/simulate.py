@@ -187,10 +187,17 @@ def simulate_bench(
     y1 = np.zeros(n)
     y2 = np.zeros(n)
     u = np.zeros(n)
-    edges = np.linspace(0, n, _N_CHUNKS + 1).astype(int)
+    drift = s.friction.drift != 0.0
+    n_chunks = max(_N_CHUNKS, int(math.ceil(n / (10.0 * fs)))) if drift else _N_CHUNKS
+    edges = np.linspace(0, n, n_chunks + 1).astype(int)
+    params = _parameters(s)
     for k0, k1 in zip(edges[:-1], edges[1:]):
+        p = params
+        if drift:  # temperature-like friction: piecewise constant over chunks of at most 10 s
+            p = params.copy()
+            p[[plant.P_B0, plant.P_B1, plant.P_B2]] *= s.friction.scale(0.5 * (k0 + k1) / fs)
         integral = plant.run_plant(
-            x, integral, int(k0), int(k1), fs, int(substeps), _parameters(s), tdc, strength,
+            x, integral, int(k0), int(k1), fs, int(substeps), p, tdc, strength,
             s.third_inertia is not None, gains.kp, gains.ki, ref_rpm / RPM_PER_RAD_S, u_test,
             c_s, d_s, noise_dyno / RPM_PER_RAD_S, force, y1, y2, u)
         if progress is not None:
