@@ -87,7 +87,8 @@ def plot(results: list[ev.RunResult], path: Path) -> None:
     ax1.set_xticks(range(len(cases)), cases, rotation=20)
     ax1.set_ylabel("detection delay [s]")
     ax1.set_title("delay from the fault to the alarm (dotted 20 s, dashed 60 s)")
-    ax1.legend(loc="upper right")
+    if cases:
+        ax1.legend(loc="upper right")
     ax1.grid(alpha=0.3)
     for r in results:
         if r.case == "fault-free" and r.f0_err_pct:

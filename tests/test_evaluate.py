@@ -1,0 +1,99 @@
+"""The detection evaluation: its plan, its summary, the command, and the simulator's friction drift."""
+
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+
+from online_id.bench import evaluate as ev
+from online_id.bench.scenario import BenchScenario, Friction, OperatingPoint
+from online_id.bench.simulate import simulate_bench
+from online_id.cli import main
+from online_id.errors import FieldError
+
+
+def _f0(sc: BenchScenario) -> float:
+    J = sc.J1 * sc.J2 / (sc.J1 + sc.J2)
+    return math.sqrt(sc.c_s / J) / (2 * math.pi)
+
+
+def test_plan_covers_the_hours_and_every_fault_case():
+    specs = ev.plan(2.5, 2, seed=3)
+    free = [s for s in specs if s.case == "fault-free"]
+    assert len(free) == 3
+    assert sum(s.scenario.duration_s for s in free) == pytest.approx(2.5 * 3600, abs=3 * 60)
+    faults = [s for s in specs if s.case != "fault-free"]
+    assert len(faults) == 2 * len(ev.FAULT_CASES)
+    for s in faults:
+        assert s.t_fault_s is not None and 100.0 < s.t_fault_s < s.scenario.duration_s - 60.0
+        assert s.expect in ev.DRIFT_KINDS
+
+
+def test_random_plants_vary_and_avoid_order_lines():
+    f0s, zetas, drifts = [], [], []
+    for seed in range(40):
+        spec = ev.fault_free_spec(seed, 1800.0)
+        sc = spec.scenario
+        f0 = _f0(sc)
+        f0s.append(f0)
+        zetas.append(sc.d_s / (2 * math.sqrt(sc.c_s * sc.J1 * sc.J2 / (sc.J1 + sc.J2))))
+        drifts.append(sc.friction.drift)
+        speeds = {round(p.speed_rpm / 250) * 250 for p in sc.operating_points}
+        assert 3 <= len(speeds) <= 4
+        for p in sc.operating_points:
+            assert abs(sc.n_cyl / 2 * p.speed_rpm / 60 - f0) > 0.2 * f0
+    assert min(f0s) < 20 and max(f0s) > 30
+    assert min(zetas) < 0.04 and max(zetas) > 0.07
+    assert min(drifts) < -0.2 and max(drifts) > 0.1
+
+
+def test_summary_counts_false_alarms_and_delays():
+    def rr(case, dur, **kw):
+        return ev.RunResult(case, 1, dur, 25.0, 0.05, [], **kw)
+
+    results = [
+        rr("fault-free", 3600.0, false_alarms=1, alarms=[{"t_s": 10.0, "kind": "FREQ_DRIFT", "severity": 1}]),
+        rr("fault-free", 1800.0),
+        rr("stiffness -10 %", 250.0, t_fault_s=120.0, warning_delay_s=8.0, fault_delay_s=12.0),
+        rr("stiffness -10 %", 250.0, t_fault_s=120.0, warning_delay_s=14.0),
+        rr("stiffness -10 %", 250.0, t_fault_s=120.0),
+    ]
+    s = ev.summarize(results)
+    assert s["fault_free"]["hours"] == pytest.approx(1.5)
+    assert s["fault_free"]["false_alarms_per_hour"] == pytest.approx(1 / 1.5)
+    row = next(r for r in s["faults"] if r["case"] == "stiffness -10 %")
+    assert (row["runs"], row["detected"], row["missed"], row["fault_level_reached"]) == (3, 2, 1, 1)
+    assert row["warning_delay_s_median"] == pytest.approx(11.0) and row["warning_delay_s_worst"] == 14.0
+
+
+def test_friction_drift_changes_the_load_like_warming_oil():
+    base = dataclasses.replace(BenchScenario(), operating_points=(OperatingPoint(1500.0, 90.0),), seed=2)
+    cold = simulate_bench(dataclasses.replace(base, friction=Friction(b0=8.0, b1=0.1)))
+    warm = simulate_bench(dataclasses.replace(base, friction=Friction(b0=8.0, b1=0.1, drift=-0.5, drift_tau_s=20.0)))
+    late = slice(80000, 90000)
+    ratio = np.mean(warm.dyno_torque_nm[late]) / np.mean(cold.dyno_torque_nm[late])
+    assert ratio == pytest.approx(1 - 0.5 * (1 - math.exp(-85 / 20)), abs=0.03)
+    early = slice(0, 1000)  # the first chunk (4.5 s) runs at its mid-time factor, 0.95
+    assert np.mean(warm.dyno_torque_nm[early]) == pytest.approx(np.mean(cold.dyno_torque_nm[early]), rel=0.08)
+    with pytest.raises(FieldError):
+        Friction(drift=-1.5)
+
+
+def test_evaluate_command_writes_table_json_and_plot(tmp_path, capsys):
+    rc = main(["evaluate", "--hours", "0.04", "--fault-plants", "0", "--jobs", "1", "--out", str(tmp_path)])
+    assert rc == 0
+    out = capsys.readouterr().out
+    assert "Fault-free: 0.0 h in 1 runs" in out
+    doc = json.loads((tmp_path / "results.json").read_text())
+    assert doc["summary"]["fault_free"]["runs"] == 1 and len(doc["runs"]) == 1
+    assert doc["runs"][0]["duration_s"] == pytest.approx(144.0, abs=1.0)
+    assert (tmp_path / "table.md").read_text().startswith("Fault-free")
+    assert (tmp_path / "evaluation.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_evaluate_command_rejects_bad_arguments(capsys):
+    assert main(["evaluate", "--jobs", "0"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: Expected --hours >= 0") and len(err.strip().splitlines()) == 1
