@@ -30,7 +30,7 @@ from online_id.assembly import AssembledSample, SampleAssembler
 from online_id.bench.prbs import mls
 from online_id.config import Settings
 from online_id.core.baseline import Baseline, BandStats
-from online_id.core.detection import Alarm, ChangeDetector
+from online_id.core.detection import Alarm, ChangeDetector, correlation_for_window
 from online_id.core.model import ArmaxOrders
 from online_id.core.online import OnlineDriveline, OnlineEstimate
 from online_id.core.physical import DrivelineParameters
@@ -122,7 +122,8 @@ class Pipeline:
         d = s.detection
         self.tracker = PoleTracker(dt=self.estimator.dt, pulses_per_rev=s.model.pulses_per_rev)
         self.baseline = Baseline(band_rpm=d.band_rpm, min_count=d.min_count)
-        self.detector = ChangeDetector(k=d.k, h_warning=d.h_warning, h_fault=d.h_fault)
+        self.detector = ChangeDetector(k=d.k, h_warning=d.h_warning, h_fault=d.h_fault,
+                                       correlation_s=correlation_for_window(settings.model.window_s))
         self._next_learn: float | None = None
         self._next_alarm_repeat = 0.0
         self.state = ServiceState.STARTING

@@ -48,8 +48,8 @@ def table(summary: dict) -> str:
         f"Fault-free: {f['hours']:.1f} h in {f['runs']} runs, {f['false_alarms']} false alarms "
         f"({fmt(f['false_alarms_per_hour'], '.2f')} per hour, {f['false_fault_alarms']} at fault level); "
         f"estimate valid {100 * (f['valid_fraction'] or 0):.0f} % of the time; "
-        f"|f0 error| median {fmt(f['f0_error_pct_p50_abs'], '.3f')} %, "
-        f"99th percentile {fmt(f['f0_error_pct_p99_abs'], '.3f')} %.",
+        f"|f0 error| against the linear truth (runs without backlash) median "
+        f"{fmt(f['f0_error_pct_p50_abs'], '.3f')} %, 99th percentile {fmt(f['f0_error_pct_p99_abs'], '.3f')} %.",
         "",
         "| fault | runs | detected | warning delay median / worst [s] | fault-level delay median / worst [s] "
         "| false alarms before the fault |",

@@ -18,10 +18,10 @@ with :math:`\\bar f, s_f` the band's baseline mean and (floored) spread and
 :math:`\\sigma_{f,\\text{model}}` the estimator's own uncertainty: a
 momentarily poor estimate weighs less.
 
-**Autocorrelation.**  The estimates come from a recursive estimator with
-forgetting (memory :math:`\\tau` of about 20 s), so neighbouring samples are
-strongly correlated and a CUSUM fed at 10 Hz with white-noise thresholds
-would alarm constantly.  The deviations are therefore averaged over
+**Autocorrelation.**  The estimates come from fits over overlapping windows
+(10 s, refitted every second), so neighbouring samples are strongly
+correlated and a CUSUM fed at 10 Hz with white-noise thresholds would alarm
+constantly.  The deviations are therefore averaged over
 intervals of :math:`T` = ``update_interval_s`` and each interval mean is
 scaled by the long-run standard deviation of an AR(1) process with
 :math:`\\rho = e^{-T/\\tau}` (an effective-sample-size correction):
@@ -32,8 +32,12 @@ scaled by the long-run standard deviation of an AR(1) process with
     \\pm z_{\\max}\\right)
 
 so that a sum of :math:`m \\gg \\tau/T` values of :math:`z` has variance
-about :math:`m`, as for white unit noise.  The clip bounds the effect of a
-single wild estimate.
+about :math:`m`, as for white unit noise. A fit over a window of :math:`W`
+seconds averages :math:`W/T` intervals, like a moving average whose long-run
+variance is :math:`W/T` times the marginal one; the AR(1) with the same
+long-run variance has :math:`(1+\\rho)/(1-\\rho) = W/T`
+(:func:`correlation_for_window`: :math:`\\tau \\approx` 5 s for 10 s
+windows). The clip bounds the effect of a single wild estimate.
 
 **Two-sided CUSUM** per quantity (:math:`k` = ``k``):
 
@@ -52,12 +56,10 @@ frequency also as a stiffness change
 :math:`\\Delta c/c = (1 + r_f)^2 - 1` (since :math:`\\omega_0^2 \\propto c_s`).
 
 Defaults: with :math:`k = 0.5`, :math:`h` = 8 / 16, :math:`T` = 1 s and
-:math:`\\tau` = 20 s, a mean shift of :math:`\\delta` marginal standard
-deviations gives :math:`z \\approx \\delta / 6.2`; with a typical spread of
-0.3-0.5 % of :math:`f_0`, a 2.5 % frequency drop (5 % stiffness) crosses the
-warning level in 10-30 s and a 5 % drop (10 % stiffness) in 5-10 s, plus the
-estimator's lag.  Fault-free AR(1) streams with the baseline's spread give
-no alarm in 10 h (see ``tests/test_detection.py``).
+10 s windows, a mean shift of :math:`\\delta` marginal standard deviations
+gives :math:`z \\approx \\delta / 3.2`. The false-alarm rate and the
+detection delays on simulated benches come from ``online-id evaluate``
+(README).
 
 **Alarm rules** (per kind, "frequency" and "damping"):
 
@@ -157,6 +159,13 @@ def _num(name: str, value: float, *, low: float = 0.0, strict: bool = True) -> f
     return number("ChangeDetector", name, value, low=low, strict=strict)
 
 
+def correlation_for_window(window_s: float, interval_s: float = 1.0) -> float:
+    """AR(1) correlation time with the long-run variance of estimates from windows of ``window_s``."""
+    m = max(window_s / interval_s, 1.0 + 1e-9)
+    rho = (m - 1.0) / (m + 1.0)
+    return -interval_s / math.log(rho) if rho > 0.0 else interval_s
+
+
 class ChangeDetector:
     """Two-sided CUSUM on the normalised deviations of :math:`f_0` and :math:`\\zeta`.
 
@@ -176,8 +185,8 @@ class ChangeDetector:
         A disarmed kind is re-armed once its statistic is below
         ``hysteresis * h_warning`` (``0 <= hysteresis < 1``).
     correlation_s
-        Correlation time :math:`\\tau` of the estimation error (about the
-        estimator's memory :math:`T_s / (1 - \\lambda)`).
+        Correlation time :math:`\\tau` of the estimation error; for estimates
+        from overlapping windows see :func:`correlation_for_window`.
     z_clip
         Largest magnitude of one normalised interval mean.
     change_window_s
