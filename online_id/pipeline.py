@@ -156,6 +156,7 @@ class Pipeline:
             window_s=m.window_s,
             refit_s=m.refit_s,
             max_speed_span_rpm=m.max_speed_span_rpm,
+            auto_refit=False,  # run by _consume on a sample that publishes nothing
         )
 
     # -- counters --------------------------------------------------------------------------------
@@ -240,6 +241,8 @@ class Pipeline:
                 if self._next_publish <= a.t_s:  # after a gap: no burst of publications
                     self._next_publish = a.t_s + 1.0 / self.settings.publish.rate_hz
                 out.extend(self._publish(a.t_s))
+            elif self.estimator.refit_due:
+                self.estimator.refit()  # the window refit (10-20 ms) never delays a publication
             elif self._refit_pending:
                 self._refit()
         return out

@@ -129,13 +129,15 @@ class OnlineDriveline:
         window_s: float = 10.0,
         refit_s: float = 1.0,
         max_speed_span_rpm: float = 40.0,
+        auto_refit: bool = True,
     ) -> None:
         factor = max(1, int(np.floor(input_rate_hz / model_rate_hz + 1e-9)))
         self.dt = factor / input_rate_hz
         self.decimator = StreamDecimator(factor, 3)
         self.rels = RecursiveArmax(orders, lam=forgetting, p0=p0, min_excitation=min_excitation_nm**2)
         self.window = SlidingPem(orders, self.dt, window_s=window_s, refit_s=refit_s,
-                                 max_speed_span_rpm=max_speed_span_rpm, min_excitation_nm=min_excitation_nm)
+                                 max_speed_span_rpm=max_speed_span_rpm, min_excitation_nm=min_excitation_nm,
+                                 auto=auto_refit)
         self.orders = orders
         self.forgetting = forgetting
         self.p0 = p0
@@ -186,6 +188,15 @@ class OnlineDriveline:
         self.decimator.reset()
         self.window.clear()
         self._mean_ready = False
+
+    @property
+    def refit_due(self) -> bool:
+        """A window refit is due (only without ``auto_refit``; run it with :meth:`refit`)."""
+        return self.window.due
+
+    def refit(self) -> None:
+        """Run the due window refit (see :class:`~online_id.core.window.SlidingPem`)."""
+        self.window.refit()
 
     # -- at the publish rate --------------------------------------------------------------------
     @property

@@ -24,8 +24,12 @@ varies by at most ``max_speed_span_rpm`` between the means of its half-second
 blocks, and the RMS of the (DC-blocked) torque is at least
 ``min_excitation_nm``. Otherwise the last fit is marked stale.
 
-Refits happen at fixed sample counts, so a replay gives the same results as
-the live stream, whatever the machine's speed.
+Refits fall due at fixed sample counts. With ``auto`` they run inside
+:meth:`SlidingPem.push`; the service pipeline instead runs a due refit on the
+next sample that publishes nothing, so a refit (10-20 ms, a cold one about
+0.5 s) never delays an estimate frame. Either way the schedule depends only
+on the samples, so a replay gives the same results as the live stream,
+whatever the machine's speed.
 """
 
 from __future__ import annotations
@@ -69,7 +73,7 @@ class SlidingPem:
 
     def __init__(self, orders: ArmaxOrders, dt: float, *, window_s: float = 10.0, refit_s: float = 1.0,
                  max_speed_span_rpm: float = 40.0, min_excitation_nm: float = 1.0,
-                 warm_iterations: int = 40, warm_tol: float = 1e-3) -> None:
+                 warm_iterations: int = 40, warm_tol: float = 1e-3, auto: bool = True) -> None:
         self.orders = orders
         self.dt = float(dt)
         self.n_window = max(int(round(window_s / dt)), 4 * orders.n_params)
@@ -88,13 +92,15 @@ class SlidingPem:
         self.fit_speed_rpm = float("nan")
         self.current = False  # the last refit attempt succeeded on a steady, excited window
         self.reason = "window filling"
+        self.auto = auto  # refit inside push(); otherwise the owner calls refit() when it suits (``due``)
+        self.due = False
         self.n_fits = 0
         self.n_cold = 0
         self.n_failed = 0
 
     # -- per sample ---------------------------------------------------------------------------
     def push(self, y: float, u: float, speed_rad_s: float) -> bool:
-        """Add one decimated sample; returns True when a refit was attempted."""
+        """Add one decimated sample; returns True when a refit fell due (and ran, with ``auto``)."""
         if not (np.isfinite(y) and np.isfinite(u) and np.isfinite(speed_rad_s)):
             self.clear()
             return False
@@ -106,14 +112,23 @@ class SlidingPem:
         if self._count < self.n_window or self._since < self.n_refit:
             return False
         self._since = 0
-        self._refit()
+        self.due = True
+        if self.auto:
+            self.refit()
         return True
+
+    def refit(self) -> None:
+        """Run the refit that is due (a no-op when none is)."""
+        if self.due:
+            self.due = False
+            self._refit()
 
     def clear(self) -> None:
         """Forget the window (after a gap): the next fit needs a full window of new samples."""
         self._count = 0
         self._since = 0
         self._pos = 0
+        self.due = False
         self.current = False
         self.reason = "window filling"
 
