@@ -91,6 +91,13 @@ def test_evaluate_command_writes_table_json_and_plot(tmp_path, capsys):
     assert doc["runs"][0]["duration_s"] == pytest.approx(144.0, abs=1.0)
     assert (tmp_path / "table.md").read_text().startswith("Fault-free")
     assert (tmp_path / "evaluation.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # the summary again from the saved runs, without simulating
+    again = tmp_path / "again"
+    assert main(["evaluate", "--from-results", str(tmp_path / "results.json"), "--out", str(again)]) == 0
+    assert (again / "table.md").read_text() == (tmp_path / "table.md").read_text()
+    (tmp_path / "bad.json").write_text("{}")
+    assert main(["evaluate", "--from-results", str(tmp_path / "bad.json")]) == 2
+    assert "bad.json: not a results.json" in capsys.readouterr().err
 
 
 def test_evaluate_command_rejects_bad_arguments(capsys):

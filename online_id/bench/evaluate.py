@@ -261,6 +261,14 @@ def summarize(results: list[RunResult]) -> dict[str, Any]:
         },
         "faults": [],
     }
+    # false alarms by undeclared effect present in the run (an alarm can count under several effects)
+    by_effect = {}
+    for name in ("none", "backlash", "torque_ripple", "disturbance", "sensor_delay", "structural_resonance"):
+        rs = [r for r in free if (name in r.effects if name != "none" else not r.effects)]
+        if rs:
+            by_effect[name] = {"hours": sum(r.duration_s for r in rs) / 3600.0,
+                               "false_alarms": sum(r.false_alarms for r in rs)}
+    out["fault_free"]["by_effect"] = by_effect
     for label, *_ in FAULT_CASES:
         rs = [r for r in results if r.case == label]
         if not rs:

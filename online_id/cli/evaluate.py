@@ -34,6 +34,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="parallel processes (default: all cores)")
     p.add_argument("--out", type=Path, metavar="DIR", help="write results.json, table.md and evaluation.png here")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON document")
+    p.add_argument("--from-results", type=Path, metavar="results.json",
+                   help="no simulation: summarise, tabulate and plot the runs of an earlier results.json")
     p.set_defaults(func=run)
 
 
@@ -50,6 +52,10 @@ def table(summary: dict) -> str:
         f"estimate valid {100 * (f['valid_fraction'] or 0):.0f} % of the time; "
         f"|f0 error| against the linear truth (runs without backlash) median "
         f"{fmt(f['f0_error_pct_p50_abs'], '.3f')} %, 99th percentile {fmt(f['f0_error_pct_p99_abs'], '.3f')} %.",
+        "",
+        "Fault-free hours and false alarms by the undeclared effect present: "
+        + ", ".join(f"{k} {v['hours']:.1f} h / {v['false_alarms']}" for k, v in f.get("by_effect", {}).items())
+        + ".",
         "",
         "| fault | runs | detected | warning delay median / worst [s] | fault-level delay median / worst [s] "
         "| false alarms before the fault |",
@@ -111,6 +117,8 @@ def run(args: argparse.Namespace) -> int:
             args.out.mkdir(parents=True, exist_ok=True)
         except OSError as err:
             raise InputDataError(f"{args.out}: cannot create the output directory ({err.strerror})") from None
+    if args.from_results is not None:
+        return _from_results(args)
     specs = ev.plan(args.hours, args.fault_plants, args.seed)
     specs.sort(key=lambda s: -s.scenario.duration_s)  # longest first: the pool finishes together
     total_s = sum(s.scenario.duration_s for s in specs)
@@ -129,11 +137,34 @@ def run(args: argparse.Namespace) -> int:
             print(f"[{len(results):3d}/{len(specs)}] {100 * done_s / total_s:5.1f}%  {r.case:16s} seed {r.seed:5d}  "
                   f"{r.duration_s / 60:5.1f} min simulated in {r.elapsed_s:5.1f} s  {what}", file=sys.stderr)
     elapsed = time.monotonic() - t0
+    settings = {"hours": args.hours, "fault_plants": args.fault_plants, "seed": args.seed,
+                "jobs": args.jobs, "elapsed_s": round(elapsed, 1),
+                "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"}
+    _write(args, results, settings)
+    if not args.json:
+        print(f"\n{total_s / 3600:.1f} simulated hours in {elapsed / 60:.1f} min"
+              + (f"; results in {args.out}/ (results.json, table.md, evaluation.png)" if args.out else ""))
+    return 0
+
+
+def _from_results(args: argparse.Namespace) -> int:
+    path = args.from_results
+    try:
+        doc = json.loads(path.read_text())
+        results = [ev.RunResult(**r) for r in doc["runs"]]
+        settings = doc["summary"].get("settings", {})
+    except OSError as err:
+        raise InputDataError(f"{path}: cannot read the results ({err.strerror})") from None
+    except (ValueError, KeyError, TypeError, AttributeError) as err:
+        raise InputDataError(f"{path}: not a results.json of online-id evaluate ({err})") from None
+    _write(args, results, settings)
+    return 0
+
+
+def _write(args: argparse.Namespace, results: list[ev.RunResult], settings: dict) -> None:
     results.sort(key=lambda r: (r.case, r.seed))
     summary = ev.summarize(results)
-    summary["settings"] = {"hours": args.hours, "fault_plants": args.fault_plants, "seed": args.seed,
-                           "jobs": args.jobs, "elapsed_s": round(elapsed, 1),
-                           "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"}
+    summary["settings"] = settings
     text = table(summary)
     if args.out is not None:
         (args.out / "results.json").write_text(json.dumps(
@@ -145,6 +176,3 @@ def run(args: argparse.Namespace) -> int:
         sys.stdout.write("\n")
     else:
         print(text)
-        print(f"\n{total_s / 3600:.1f} simulated hours in {elapsed / 60:.1f} min"
-              + (f"; results in {args.out}/ (results.json, table.md, evaluation.png)" if args.out else ""))
-    return 0
