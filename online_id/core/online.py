@@ -155,6 +155,8 @@ class OnlineDriveline:
         self._speed = 0.0
         self._pick: float | None = None
         self._valid = False
+        self._poles_key: tuple | None = None
+        self._poles: list[Pole] = []
 
     # -- per sample ---------------------------------------------------------------------------
     def update(self, dyno_speed: float, engine_speed: float, dyno_torque: float) -> None:
@@ -234,7 +236,12 @@ class OnlineDriveline:
     def estimate(self) -> OnlineEstimate:
         """The current driveline estimate (see module notes)."""
         a, _b, _c, cov_a, V, source = self.polynomials()
-        poles = poles_of(a, self.dt) if np.all(np.isfinite(a)) else []
+        key = (source, self.window.n_fits) if source == "window" else None
+        if key is not None and self._poles_key == key:
+            poles = self._poles  # the refit runs once a second; publications come at 10 Hz
+        else:
+            poles = poles_of(a, self.dt) if np.all(np.isfinite(a)) else []
+            self._poles_key, self._poles = key, poles
         cands = self._candidates(poles)
         pick = None
         if cands:
