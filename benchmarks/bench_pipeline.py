@@ -295,7 +295,7 @@ def latency_inprocess(settings: Settings, frames: list, db) -> dict:
         dt[i] = t1 - t0
         completes[i] = counters.samples != before
         if out:
-            refit = pipeline._next_physical != next_physical and pipeline._estimate.valid
+            refit = pipeline._next_physical != next_physical and pipeline.last_estimate.valid
             for oid, odata in out:
                 if oid == est_id:
                     reference.append((i, odata, pipeline.state.name, refit))

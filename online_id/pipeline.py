@@ -159,6 +159,11 @@ class Pipeline:
             auto_refit=False,  # run by _consume on a sample that publishes nothing
         )
 
+    @property
+    def last_estimate(self) -> OnlineEstimate | None:
+        """The estimate of the latest publication (None before the first)."""
+        return self._estimate
+
     # -- counters --------------------------------------------------------------------------------
     @property
     def counters(self):

@@ -12,7 +12,6 @@ import pytest
 
 from online_id.bench.scenario import BenchScenario, OperatingPoint
 from online_id.bench.simulate import simulate_bench
-from online_id.cli.demo import record_to_data
 from online_id.core.identification import identify
 from online_id.core.poles import DRIVELINE, SPEED_DEPENDENT
 from online_id.core.settings import IdentificationSettings, InertiaSettings
@@ -55,7 +54,7 @@ def run_case(case, seed, duration_s=30.0, inertias=None):
     )
     record = simulate_bench(scenario)
     inert = InertiaSettings(J1=J1) if inertias is None else inertias
-    result = identify(record_to_data(record, "sim"), IdentificationSettings(), inert)
+    result = identify(record.to_data("sim"), IdentificationSettings(), inert)
     return record.truth, result
 
 

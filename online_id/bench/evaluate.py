@@ -49,7 +49,7 @@ from online_id.bench.scenario import (
 from online_id.bench.simulate import simulate_bench
 from online_id.config import ModelSettings, Settings
 from online_id.pipeline import COMMAND_ACK, Pipeline, run_bench_data
-from online_id.records import AlertKind, BenchData
+from online_id.records import AlertKind, EstimateOut
 
 DRIFT_KINDS = (AlertKind.FREQ_DRIFT, AlertKind.DAMPING_DRIFT)
 FAULT_CASES = (  # (label, stiffness factor, damping factor, expected alarm)
@@ -196,9 +196,7 @@ def run(spec: RunSpec, settings: Settings | None = None) -> RunResult:
     """Simulate one run and feed it through the pipeline (see module notes)."""
     t0 = time.monotonic()
     rec = simulate_bench(spec.scenario)
-    w = math.pi / 30.0
-    data = BenchData(rec.time_s, rec.dyno_speed_rpm * w, rec.engine_speed_rpm * w, rec.dyno_torque_nm.copy(),
-                     f"evaluation {spec.case} seed {spec.seed}")
+    data = rec.to_data(f"evaluation {spec.case} seed {spec.seed}")
     truth = rec.truth
     res = RunResult(spec.case, spec.seed, float(rec.time_s[-1]), truth["f0_hz"], truth["zeta"],
                     [k for k, v in truth["effects"].items() if v is not None], t_fault_s=spec.t_fault_s)
@@ -224,8 +222,8 @@ def run(spec: RunSpec, settings: Settings | None = None) -> RunResult:
                     res.fault_delay_s = delay
             if open_since[0] is None:
                 open_since[0] = a.t_s
-        est = pipe._estimate
-        if est is not None and any(type(o).__name__ == "EstimateOut" for o in out):
+        est = pipe.last_estimate
+        if est is not None and any(isinstance(o, EstimateOut) for o in out):
             n_pub[0] += 1
             n_pub[1] += int(est.valid)
             if est.valid and t_s >= next_err[0] and (spec.t_fault_s is None or t_s < spec.t_fault_s):

@@ -19,6 +19,7 @@ import numpy as np
 from online_id.bench import plant
 from online_id.bench.prbs import prbs_hold_samples, prbs_signal
 from online_id.bench.scenario import BenchScenario, PiGains, scenario_to_dict
+from online_id.records import BenchData
 
 RPM_PER_RAD_S = 60.0 / (2.0 * math.pi)
 DEFAULT_SUBSTEPS = 10
@@ -37,6 +38,12 @@ class BenchRecord:
     engine_speed_rpm: np.ndarray
     dyno_torque_nm: np.ndarray
     truth: dict[str, Any] = field(default_factory=dict)
+
+    def to_data(self, source: str) -> BenchData:
+        """The signals in SI units (rad/s, Nm) as identification and the pipeline take them."""
+        w = math.pi / 30.0
+        return BenchData(self.time_s, self.dyno_speed_rpm * w, self.engine_speed_rpm * w,
+                         self.dyno_torque_nm.copy(), source)
 
     def columns(self) -> dict[str, np.ndarray]:
         """The signals by CSV column name, in CSV column order."""

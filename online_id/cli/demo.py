@@ -22,7 +22,6 @@ from online_id.bench.scenario import BenchScenario
 from online_id.bench.simulate import simulate_bench
 from online_id.config import IdentificationSettings, InertiaSettings
 from online_id.core.identification import identify
-from online_id.records import BenchData
 from online_id.report import TerminalProgress, identification_table, plot_identification
 
 
@@ -38,19 +37,6 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--offline", action="store_true",
                    help="batch identification per operating point (the paper's Fig. 5/6) instead of the service")
     p.set_defaults(func=run)
-
-
-def record_to_data(record, source: str) -> BenchData:
-    cols = record.columns()
-    import numpy as np
-
-    return BenchData(
-        cols["time_s"],
-        cols["dyno_speed_rpm"] * (np.pi / 30.0),
-        cols["engine_speed_rpm"] * (np.pi / 30.0),
-        cols["dyno_torque_nm"].copy(),
-        source,
-    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -79,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
     write_csv_columns(out / "bench.csv", record.columns(), {"time_s": "%.6f"})
     (out / "bench.truth.json").write_text(json.dumps(truth, indent=2, default=float))
 
-    data = record_to_data(record, "simulated bench")
+    data = record.to_data("simulated bench")
     settings = IdentificationSettings(pulses_per_rev=truth["pulses_per_rev"])
     progress = TerminalProgress("identify")
     t0 = time.monotonic()

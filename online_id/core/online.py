@@ -214,11 +214,13 @@ class OnlineDriveline:
         a, b, c = self.rels.polynomials()
         return a, b, c, self._e2 * self.rels.P[:na, :na], self._e2, "recursive"
 
-    def poles(self) -> list[Pole]:
-        a = self.polynomials()[0]
-        if not np.all(np.isfinite(a)):
-            return []
-        return poles_of(a, self.dt)
+    def _poles_for(self, a: np.ndarray, source: str) -> list[Pole]:
+        """Poles of ``a``; a window refit's are computed once (refits come once a second, estimates at 10 Hz)."""
+        key = (source, self.window.n_fits) if source == "window" else None
+        if key is None or self._poles_key != key:
+            self._poles = poles_of(a, self.dt) if np.all(np.isfinite(a)) else []
+            self._poles_key = key
+        return self._poles
 
     def _candidates(self, poles: list[Pole]) -> list[Pole]:
         rpm = self.speed_rpm
@@ -236,12 +238,7 @@ class OnlineDriveline:
     def estimate(self) -> OnlineEstimate:
         """The current driveline estimate (see module notes)."""
         a, _b, _c, cov_a, V, source = self.polynomials()
-        key = (source, self.window.n_fits) if source == "window" else None
-        if key is not None and self._poles_key == key:
-            poles = self._poles  # the refit runs once a second; publications come at 10 Hz
-        else:
-            poles = poles_of(a, self.dt) if np.all(np.isfinite(a)) else []
-            self._poles_key, self._poles = key, poles
+        poles = self._poles_for(a, source)
         cands = self._candidates(poles)
         pick = None
         if cands:
