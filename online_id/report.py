@@ -112,10 +112,7 @@ def driveline_text(result: IdentificationResult) -> str:
 
 def plot_identification(result: IdentificationResult, path: str | Path, title: str = "") -> None:
     """Frequency and damping of the identified poles against engine speed (paper Fig. 5/6)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     styles = {
         DRIVELINE: dict(color="tab:red", marker="o", s=60, zorder=3),
@@ -155,11 +152,7 @@ def plot_identification(result: IdentificationResult, path: str | Path, title: s
     ax_f.legend(loc="upper left", fontsize=8)
     ax_f.grid(alpha=0.3)
     ax_z.grid(alpha=0.3)
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, title)
 
 
 # --- the report of a replayed log or a saved state (``online-id report``) -----------------------------
@@ -208,13 +201,23 @@ class AlertMark:
     label: str
 
 
-def _pyplot():
+def pyplot():
+    """matplotlib's pyplot on the file-only Agg backend (no display needed)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     return plt
+
+
+def save_figure(fig, path: str | Path, title: str = "") -> None:
+    """Title, lay out, write (PNG by the suffix) and close a figure."""
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    pyplot().close(fig)
 
 
 def _no_data(ax) -> None:
@@ -253,7 +256,7 @@ def plot_versus_speed(path: str | Path, quantity: str, estimates: EstimateSeries
     """
     from matplotlib.patches import Rectangle
 
-    plt = _pyplot()
+    plt = pyplot()
     is_f = quantity == "f0"
     ylabel = "frequency [Hz]" if is_f else "damping ratio [-]"
     rows = 2 if tracks else 1
@@ -326,11 +329,7 @@ def plot_versus_speed(path: str | Path, quantity: str, estimates: EstimateSeries
     if ax.get_legend_handles_labels()[0]:
         ax.legend(loc="best", fontsize=8, markerscale=3)
     ax.grid(alpha=0.3)
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, title)
 
 
 def invalid_spans(t_s: np.ndarray, valid: np.ndarray) -> list[tuple[float, float]]:
@@ -380,7 +379,7 @@ def plot_tracks_over_time(path: str | Path, estimates: EstimateSeries | None, tr
     ``max_labels`` of them labelled; stretches without a valid estimate are
     greyed.
     """
-    plt = _pyplot()
+    plt = pyplot()
     fig, (ax_f, ax_z) = plt.subplots(2, 1, figsize=(10, 7), sharex=True)
     have_est = estimates is not None and len(estimates) > 0
     zoom_f: list[np.ndarray] = []
@@ -438,8 +437,4 @@ def plot_tracks_over_time(path: str | Path, estimates: EstimateSeries | None, tr
         labels.append("fault")
     if handles:
         ax_f.legend(handles, labels, loc="best", fontsize=7, markerscale=3, ncol=2)
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, title)

@@ -15,7 +15,7 @@ import numpy as np
 
 from online_id.bench import evaluate as ev
 from online_id.errors import ConfigError, InputDataError
-from online_id.report import fmt
+from online_id.report import fmt, pyplot, save_figure
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
@@ -37,10 +37,6 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--from-results", type=Path, metavar="results.json",
                    help="no simulation: summarise, tabulate and plot the runs of an earlier results.json")
     p.set_defaults(func=run)
-
-
-def _run(spec: ev.RunSpec) -> ev.RunResult:
-    return ev.run(spec)
 
 
 def table(summary: dict) -> str:
@@ -72,10 +68,7 @@ def table(summary: dict) -> str:
 
 def plot(results: list[ev.RunResult], path: Path) -> None:
     """Detection delays per case, and the f0 error of every fault-free run over time."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(13, 4.8))
     cases = [c[0] for c in ev.FAULT_CASES if any(r.case == c[0] for r in results)]
@@ -103,9 +96,7 @@ def plot(results: list[ev.RunResult], path: Path) -> None:
     ax2.set_ylabel("f0 error [%]")
     ax2.set_title("fault-free runs: f0 error of the valid estimates")
     ax2.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -129,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
     done_s = 0.0
     ctx = multiprocessing.get_context("fork")
     with ctx.Pool(args.jobs) as pool:
-        for r in pool.imap_unordered(_run, specs):
+        for r in pool.imap_unordered(ev.run, specs):
             results.append(r)
             done_s += r.duration_s
             what = (f"{r.false_alarms} false alarms" if r.case == "fault-free"
