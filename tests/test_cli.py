@@ -72,14 +72,6 @@ def test_identify_other_columns_units_and_sign(tmp_path, capsys, bench_csv):
     assert got["zeta"] == pytest.approx(ref["zeta"], rel=1e-3)
 
 
-def _fail(capsys, argv):
-    capsys.readouterr()
-    assert main(argv) == 2
-    err = capsys.readouterr().err.strip()
-    assert err.startswith("error: ") and "\n" not in err and "Traceback" not in err
-    return err
-
-
 def _csv(tmp_path, rows, header="time_s,dyno_speed_rpm,engine_speed_rpm,dyno_torque_nm", name="in.csv"):
     p = tmp_path / name
     p.write_text(header + "\n" + "\n".join(",".join(str(v) for v in r) for r in rows) + "\n")
@@ -92,58 +84,58 @@ def _rows(n=3000, torque=None):
     return [[f"{a:.3f}", 1500.0, 1500.0, b] for a, b in zip(t, m)]
 
 
-def test_bad_input_missing_column(tmp_path, capsys):
+def test_bad_input_missing_column(tmp_path, cli_error):
     p = _csv(tmp_path, _rows(), header="time_s,dyno_speed,engine_speed_rpm,dyno_torque_nm")
-    err = _fail(capsys, ["identify", str(p)])
+    err = cli_error(["identify", str(p)])
     assert str(p) in err and "'dyno_speed_rpm'" in err
 
 
-def test_bad_input_non_numeric_and_nan(tmp_path, capsys):
+def test_bad_input_non_numeric_and_nan(tmp_path, cli_error):
     rows = _rows()
     rows[10][1] = "fast"
-    err = _fail(capsys, ["identify", str(_csv(tmp_path, rows))])
+    err = cli_error(["identify", str(_csv(tmp_path, rows))])
     assert ":12:" in err and "'dyno_speed_rpm'" in err and "'fast'" in err
     rows = _rows()
     rows[20][3] = "NaN"
-    err = _fail(capsys, ["identify", str(_csv(tmp_path, rows, name="nan.csv"))])
+    err = cli_error(["identify", str(_csv(tmp_path, rows, name="nan.csv"))])
     assert ":22:" in err and "'dyno_torque_nm'" in err
 
 
-def test_bad_input_time_not_increasing(tmp_path, capsys):
+def test_bad_input_time_not_increasing(tmp_path, cli_error):
     rows = _rows()
     rows[100][0] = rows[99][0]
-    err = _fail(capsys, ["identify", str(_csv(tmp_path, rows))])
+    err = cli_error(["identify", str(_csv(tmp_path, rows))])
     assert ":102:" in err and "time does not increase" in err
 
 
-def test_bad_input_too_few_samples(tmp_path, capsys):
-    assert "only 20 samples" in _fail(capsys, ["identify", str(_csv(tmp_path, _rows(20)))])
+def test_bad_input_too_few_samples(tmp_path, cli_error):
+    assert "only 20 samples" in cli_error(["identify", str(_csv(tmp_path, _rows(20)))])
 
 
-def test_bad_input_no_excitation(tmp_path, capsys):
-    err = _fail(capsys, ["identify", str(_csv(tmp_path, _rows(torque=-12.5)))])
+def test_bad_input_no_excitation(tmp_path, cli_error):
+    err = cli_error(["identify", str(_csv(tmp_path, _rows(torque=-12.5)))])
     assert "no excitation" in err and "constant" in err
 
 
-def test_bad_input_single_operating_point(tmp_path, capsys):
+def test_bad_input_single_operating_point(tmp_path, cli_error):
     cfg = tmp_path / "one.yaml"
     cfg.write_text("operating_points: [{speed_rpm: 1500, duration_s: 20}]\n")
     assert main(["simulate", "--config", str(cfg), "--out", str(tmp_path / "one.csv")]) == 0
-    err = _fail(capsys, ["identify", str(tmp_path / "one.csv")])
+    err = cli_error(["identify", str(tmp_path / "one.csv")])
     assert "found 1 steady operating point" in err and "1500 rpm" in err
 
 
-def test_bad_config_and_flags(tmp_path, capsys, bench_csv):
+def test_bad_config_and_flags(tmp_path, bench_csv, cli_error):
     cfg = tmp_path / "c.yaml"
     cfg.write_text("identification: {smaple_rate_hz: 100}\n")
-    err = _fail(capsys, ["identify", str(bench_csv), "--config", str(cfg)])
+    err = cli_error(["identify", str(bench_csv), "--config", str(cfg)])
     assert "identification.smaple_rate_hz" in err and str(cfg) in err
-    assert "--operating-point" in _fail(capsys, ["identify", str(bench_csv), "--operating-point", "30-10"])
-    assert "--J1" in _fail(capsys, ["identify", str(bench_csv), "--J1", "-1"])
+    assert "--operating-point" in cli_error(["identify", str(bench_csv), "--operating-point", "30-10"])
+    assert "--J1" in cli_error(["identify", str(bench_csv), "--J1", "-1"])
 
 
-def test_missing_file(tmp_path, capsys):
-    assert "cannot open" in _fail(capsys, ["identify", str(tmp_path / "missing.csv")])
+def test_missing_file(tmp_path, cli_error):
+    assert "cannot open" in cli_error(["identify", str(tmp_path / "missing.csv")])
 
 
 def test_debug_shows_traceback(tmp_path):

@@ -81,7 +81,7 @@ def test_friction_drift_changes_the_load_like_warming_oil():
         Friction(drift=-1.5)
 
 
-def test_evaluate_command_writes_table_json_and_plot(tmp_path, capsys):
+def test_evaluate_command_writes_table_json_and_plot(tmp_path, capsys, cli_error):
     rc = main(["evaluate", "--hours", "0.04", "--fault-plants", "0", "--jobs", "1", "--out", str(tmp_path)])
     assert rc == 0
     out = capsys.readouterr().out
@@ -96,11 +96,8 @@ def test_evaluate_command_writes_table_json_and_plot(tmp_path, capsys):
     assert main(["evaluate", "--from-results", str(tmp_path / "results.json"), "--out", str(again)]) == 0
     assert (again / "table.md").read_text() == (tmp_path / "table.md").read_text()
     (tmp_path / "bad.json").write_text("{}")
-    assert main(["evaluate", "--from-results", str(tmp_path / "bad.json")]) == 2
-    assert "bad.json: not a results.json" in capsys.readouterr().err
+    assert "bad.json: not a results.json" in cli_error(["evaluate", "--from-results", str(tmp_path / "bad.json")])
 
 
-def test_evaluate_command_rejects_bad_arguments(capsys):
-    assert main(["evaluate", "--jobs", "0"]) == 2
-    err = capsys.readouterr().err
-    assert err.startswith("error: Expected --hours >= 0") and len(err.strip().splitlines()) == 1
+def test_evaluate_command_rejects_bad_arguments(cli_error):
+    assert cli_error(["evaluate", "--jobs", "0"]).startswith("error: Expected --hours >= 0")

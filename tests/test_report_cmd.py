@@ -136,52 +136,44 @@ def test_report_from_a_state_file(tmp_path, capsys):
     assert main(["report", str(other), "--out", str(tmp_path / "r2")]) == 0
 
 
-def _fail(capsys, argv):
-    capsys.readouterr()
-    assert main(argv) == 2
-    err = capsys.readouterr().err.strip()
-    assert err.startswith("error: ") and "\n" not in err and "Traceback" not in err
-    return err
-
-
-def test_bad_input_one_line_errors(tmp_path, capsys):
+def test_bad_input_one_line_errors(tmp_path, cli_error):
     out = str(tmp_path / "out")
     missing = tmp_path / "missing.log"
-    err = _fail(capsys, ["report", str(missing), "--out", out])
+    err = cli_error(["report", str(missing), "--out", out])
     assert str(missing) in err and "no such file" in err
     garbage = tmp_path / "garbage.blf"
     garbage.write_bytes(bytes(np.random.default_rng(1).integers(0, 256, 4096, dtype=np.uint8)))
-    assert str(garbage) in _fail(capsys, ["report", str(garbage), "--out", out])
+    assert str(garbage) in cli_error(["report", str(garbage), "--out", out])
     text = tmp_path / "garbage.log"
     text.write_text("this is not a candump log\n" * 20)
-    assert str(text) in _fail(capsys, ["report", str(text), "--out", out])
+    assert str(text) in cli_error(["report", str(text), "--out", out])
     no_inputs = tmp_path / "foreign.log"
     no_inputs.write_text("".join(f"({k * 0.001:.6f}) can0 7E0#0011223344556677\n" for k in range(100)))
-    err = _fail(capsys, ["report", str(no_inputs), "--out", out])
+    err = cli_error(["report", str(no_inputs), "--out", out])
     assert str(no_inputs) in err and "no estimate" in err and "unknown_id 100" in err
     unknown = tmp_path / "bench.mf4"
     unknown.write_text("MDF 4.10")
-    err = _fail(capsys, ["report", str(unknown), "--out", out])
+    err = cli_error(["report", str(unknown), "--out", out])
     assert str(unknown) in err and "'.mf4'" in err and ".blf" in err
     broken = tmp_path / "state.json"
     broken.write_text("{not json")
-    err = _fail(capsys, ["report", str(broken), "--out", out])
+    err = cli_error(["report", str(broken), "--out", out])
     assert str(broken) in err and "cannot read saved state" in err
     alien = tmp_path / "other.json"
     alien.write_text(json.dumps({"version": 1, "foo": 2}))
-    err = _fail(capsys, ["report", str(alien), "--out", out])
+    err = cli_error(["report", str(alien), "--out", out])
     assert str(alien) in err and '"tracker"' in err and "foo" in err
-    err = _fail(capsys, ["report", str(tmp_path), "--out", out])
+    err = cli_error(["report", str(tmp_path), "--out", out])
     assert str(tmp_path) in err and "directory" in err
     assert not (tmp_path / "out").exists()  # nothing is written for bad input
 
 
-def test_out_is_a_file(tmp_path, capsys):
+def test_out_is_a_file(tmp_path, cli_error):
     state = tmp_path / "s.json"
     save_state(state, Pipeline(Settings()).get_state())
     blocker = tmp_path / "file"
     blocker.write_text("x")
-    err = _fail(capsys, ["report", str(state), "--out", str(blocker)])
+    err = cli_error(["report", str(state), "--out", str(blocker)])
     assert str(blocker) in err and "cannot create the report directory" in err
     # an empty state (nothing learned or tracked) still gives the figures and the summary
     assert main(["report", str(state), "--out", str(tmp_path / "empty")]) == 0
