@@ -34,6 +34,8 @@ whatever the machine's speed.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from online_id.core.model import ArmaxOrders
@@ -101,7 +103,7 @@ class SlidingPem:
     # -- per sample ---------------------------------------------------------------------------
     def push(self, y: float, u: float, speed_rad_s: float) -> bool:
         """Add one decimated sample; returns True when a refit fell due (and ran, with ``auto``)."""
-        if not (np.isfinite(y) and np.isfinite(u) and np.isfinite(speed_rad_s)):
+        if not (math.isfinite(y) and math.isfinite(u) and math.isfinite(speed_rad_s)):  # scalars: math is 10x cheaper
             self.clear()
             return False
         b = self._buf
