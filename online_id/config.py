@@ -155,6 +155,9 @@ class DetectionSettings:
     h_warning: float = 8.0
     h_fault: float = 16.0
     min_excitation_nm: float = 2.0
+    min_freq_change_pct: float = 0.5
+    min_damping_change_pct: float = 10.0
+    settle_s: float = 20.0
 
 
 @dataclass(frozen=True)
@@ -347,6 +350,10 @@ def _check_service(s: Settings, file: str) -> None:
     positive("bus", s.bus, "reopen_max_s")
     d = s.detection
     positive("detection", d, "band_rpm", "min_count", "k", "h_warning", "h_fault")
+    for name in ("min_freq_change_pct", "min_damping_change_pct", "settle_s"):
+        v = getattr(d, name)
+        if not 0 <= v < float("inf"):
+            raise ConfigError(f"{file}: detection.{name}: expected a number >= 0, got {v!r}")
     if d.h_fault < d.h_warning:
         raise ConfigError(f"{file}: detection.h_fault: must be >= detection.h_warning ({d.h_warning:g}), "
                           f"got {d.h_fault!r}")

@@ -123,7 +123,11 @@ class Pipeline:
         self.tracker = PoleTracker(dt=self.estimator.dt, pulses_per_rev=s.model.pulses_per_rev)
         self.baseline = Baseline(band_rpm=d.band_rpm, min_count=d.min_count)
         self.detector = ChangeDetector(k=d.k, h_warning=d.h_warning, h_fault=d.h_fault,
-                                       correlation_s=correlation_for_window(settings.model.window_s))
+                                       correlation_s=correlation_for_window(settings.model.window_s),
+                                       min_change_f=d.min_freq_change_pct / 100.0,
+                                       min_change_zeta=d.min_damping_change_pct / 100.0)
+        self._healthy_since: float | None = None  # start of the current healthy stretch (settle_s)
+        self._healthy_rpm: float | None = None  # engine speed of the last healthy estimate
         self._next_learn: float | None = None
         self._next_alarm_repeat = 0.0
         self.state = ServiceState.STARTING
@@ -334,6 +338,18 @@ class Pipeline:
         self.tracker.update(t_s=t_s, speed_rpm=speed, poles=est.poles)
         healthy = (est.valid and not est.frozen and self.state == ServiceState.TRACKING
                    and est.excitation_nm >= d.min_excitation_nm)
+        # the first fits at a new operating point start cold and, where the model does not fit exactly
+        # (backlash), may sit for a while in another local minimum: learning and detection wait settle_s
+        # after the estimate becomes healthy at another speed than it last was
+        if not healthy:
+            self._healthy_since = None
+        else:
+            if self._healthy_since is None or t_s < self._healthy_since:
+                same = (self._healthy_rpm is not None
+                        and abs(speed - self._healthy_rpm) <= self.settings.model.max_speed_span_rpm)
+                self._healthy_since = t_s - (d.settle_s if same else 0.0)
+            self._healthy_rpm = speed
+            healthy = t_s - self._healthy_since >= d.settle_s
         if self._next_learn is None or t_s < self._next_learn - 10.0:
             self._next_learn = t_s
         if healthy and self.detector.active is None and t_s >= self._next_learn:
@@ -416,7 +432,7 @@ class Pipeline:
         """Everything a restart must keep: estimator, learned baselines, detector (latched alarm), tracks."""
         return {"version": STATE_VERSION, "estimator": self.estimator.get_state(),
                 "baseline": self.baseline.to_dict(), "detector": self.detector.to_dict(),
-                "tracker": self.tracker.to_dict(),
+                "tracker": self.tracker.to_dict(), "healthy_rpm": self._healthy_rpm,
                 "alerts": [a.__dict__ | {"kind": int(a.kind)} for a in self.alerts[-50:]]}
 
     def load_state(self, state: dict) -> None:
@@ -430,6 +446,8 @@ class Pipeline:
         if "tracker" in state:
             self.tracker = PoleTracker.from_dict(state["tracker"])
         self.alerts = [AlertOut(**(a | {"kind": AlertKind(a["kind"])})) for a in state.get("alerts", [])]
+        rpm = state.get("healthy_rpm")
+        self._healthy_rpm = float(rpm) if isinstance(rpm, (int, float)) else None
 
 
 def run_bench_data(data, settings: Settings, progress=None, on_output=None) -> Pipeline:

@@ -45,6 +45,8 @@ identification:
     ("identification: {operating_points: [[40, 10]]}", "operating_points[0]"),
     ("identification: {na: [8, x]}", "identification.na[1]"),
     ("- just a list", "top level"),
+    ("detection: {min_freq_change_pct: -1}", "detection.min_freq_change_pct"),
+    ("detection: {settle_s: .nan}", "detection.settle_s"),
 ])
 def test_bad_values_name_key_and_file(tmp_path, text, needle):
     p = write(tmp_path, text)

@@ -12,7 +12,7 @@ from online_id.core.baseline import BandStats
 from online_id.core.detection import Alarm, ChangeDetector
 from online_id.errors import ConfigError
 
-TAU_S = 20.0  # correlation time of the estimation error (RELS memory)
+TAU_S = 5.0  # correlation time of the estimation error (10 s windows refitted every second)
 LAG_S = 5.0  # time constant with which the estimator follows a step
 
 
@@ -109,7 +109,7 @@ def test_escalation_and_report_size():
     alarms = run(det, t, f, z, base_of(*plant))
     assert [a.level for a in alarms if a.kind == "frequency"] == [1, 2]
     fault = alarms[[a.level for a in alarms].index(2)]
-    assert -14.0 <= fault.stiffness_change_pct <= -8.0  # the estimator lags the step a little
+    assert -14.0 <= fault.stiffness_change_pct <= -6.0  # the estimator still lags the step at detection
     assert f"stiffness about {abs(fault.stiffness_change_pct):.0f} % lower" in fault.message
     assert fault.message.startswith("fault:")
     assert det.active == fault  # latched at the highest level
@@ -153,7 +153,7 @@ def test_suppression_freezes_statistics():
 def test_latching_acknowledge_and_hysteresis():
     plant = PLANTS[1]
     base = base_of(*plant)
-    t, f, z = estimates(6, 0.25, f0=plant[0], zeta0=plant[1], rel_std_f=plant[2], rel_std_z=plant[3], df=-0.05)
+    t, f, z = estimates(6, 0.25, f0=plant[0], zeta0=plant[1], rel_std_f=plant[2], rel_std_z=plant[3], df=-0.03)
     det = ChangeDetector()
     n1 = int(400 / 0.1)
     alarms = run(det, t[:n1], f[:n1], z[:n1], base)
@@ -164,7 +164,7 @@ def test_latching_acknowledge_and_hysteresis():
     # the change persists: re-reported, but only after the statistic climbed from zero again
     n2 = n1 + int(60 / 0.1)
     again = run(det, t[n1:n2], f[n1:n2], z[n1:n2], base, stop_at_level=1)
-    assert again and again[0].detected_t_s - t[n1] >= 3.0
+    assert again and again[0].detected_t_s - t[n1] >= 2.0  # at least two intervals to climb past h_warning
     det.acknowledge()
     # the change has gone when acknowledged: no new alarm
     n3 = n2 + int(300 / 0.1)
@@ -191,7 +191,7 @@ def test_both_kinds_reported_one_per_call():
 def test_round_trip_keeps_active_alarm():
     plant = PLANTS[0]
     base = base_of(*plant)
-    t, f, z = estimates(8, 0.15, f0=plant[0], zeta0=plant[1], rel_std_f=plant[2], rel_std_z=plant[3], df=-0.03)
+    t, f, z = estimates(8, 0.15, f0=plant[0], zeta0=plant[1], rel_std_f=plant[2], rel_std_z=plant[3], df=-0.02)
     det = ChangeDetector(h_warning=6.0, h_fault=30.0)
     n1 = int(360 / 0.1)
     run(det, t[:n1], f[:n1], z[:n1], base)
@@ -214,3 +214,26 @@ def test_statistics_read_only_and_validation():
             ChangeDetector(**kw)
     with pytest.raises(ValueError):
         det.acknowledge("stiffness")
+
+
+@pytest.mark.parametrize("seed,plant,shift", [(21, PLANTS[0], -0.0035), (22, PLANTS[1], 0.003), (23, PLANTS[3], -0.003)])
+def test_dead_band_ignores_small_persistent_shifts(seed, plant, shift):
+    # a healthy bench whose apparent resonance sits a little off its baseline for hours (load, temperature):
+    # no alarm with the default dead band of 0.5 % (10 % in damping), an alarm without it
+    quiet = (plant[0], plant[1], plant[2] / 4, plant[3] / 4)
+    t, f, z = estimates(seed, 2.0, f0=plant[0] * (1 + shift), zeta0=plant[1] * (1 + 20 * shift),
+                        rel_std_f=quiet[2], rel_std_z=quiet[3], dt=1.0)
+    assert run(ChangeDetector(), t, f, z, base_of(*quiet)) == []
+    bare = run(ChangeDetector(min_change_f=0.0, min_change_zeta=0.0), t, f, z, base_of(*quiet), stop_at_level=1)
+    assert bare and bare[0].detected_t_s < 600.0
+
+
+def test_dead_band_keeps_the_reported_size():
+    plant = PLANTS[1]
+    df = np.sqrt(0.90) - 1  # 10 % stiffness loss: 5.1 % in f0, reported whole (not minus the dead band)
+    t, f, z = estimates(24, 0.15, f0=plant[0], zeta0=plant[1], rel_std_f=plant[2], rel_std_z=plant[3], df=df)
+    a = run(ChangeDetector(), t, f, z, base_of(*plant), stop_at_level=2)[-1]
+    assert -13.0 <= a.stiffness_change_pct <= -6.0
+    with pytest.raises(ConfigError):
+        ChangeDetector(min_change_f=-0.01)
+    assert ChangeDetector.from_dict(ChangeDetector(min_change_f=0.02).to_dict()).min_change_f == 0.02
