@@ -237,3 +237,15 @@ def test_dead_band_keeps_the_reported_size():
     with pytest.raises(ConfigError):
         ChangeDetector(min_change_f=-0.01)
     assert ChangeDetector.from_dict(ChangeDetector(min_change_f=0.02).to_dict()).min_change_f == 0.02
+
+
+def test_message_says_clock_time_for_unix_timestamps():
+    # SocketCAN and candump logs stamp frames with Unix time: the operator reads a UTC clock time, not 1.7e9 s
+    plant = PLANTS[1]
+    t, f, z = estimates(25, 0.15, f0=plant[0], zeta0=plant[1], rel_std_f=plant[2], rel_std_z=plant[3],
+                        df=np.sqrt(0.9) - 1)
+    t0 = 1_795_000_000.0  # 2026-11-18 UTC
+    a = run(ChangeDetector(), t + t0, f, z, base_of(*plant), stop_at_level=1)[0]
+    assert "since 2026-11-18 " in a.message and " UTC at 1600 rpm" in a.message and "t = " not in a.message
+    b = run(ChangeDetector(), t, f, z, base_of(*plant), stop_at_level=1)[0]
+    assert f"since t = {b.since_t_s:.1f} s at" in b.message

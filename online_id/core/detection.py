@@ -106,6 +106,7 @@ alarm and the next call returns the other.
 from __future__ import annotations
 
 import math
+import time
 from collections import deque
 from dataclasses import asdict, dataclass
 from types import MappingProxyType
@@ -160,6 +161,16 @@ class Alarm:
         return asdict(self)
 
 
+EPOCH_AFTER_S = 1e8  # stream times above this are Unix time (SocketCAN, candump logs), below it seconds from a start
+
+
+def _when(t_s: float) -> str:
+    """A stream time for people: UTC clock time for Unix timestamps, else ``t = ... s``."""
+    if t_s > EPOCH_AFTER_S:
+        return time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime(t_s))
+    return f"t = {t_s:.1f} s"
+
+
 def _message(kind: str, level: int, change_pct: float, stiff_pct: float | None, since: float, rpm: float) -> str:
     word = "lower" if change_pct < 0 else "higher"
     what = "driveline frequency" if kind == FREQUENCY else "driveline damping"
@@ -167,7 +178,7 @@ def _message(kind: str, level: int, change_pct: float, stiff_pct: float | None, 
     if stiff_pct is not None:
         sword = "lower" if stiff_pct < 0 else "higher"
         text += f" (stiffness about {abs(stiff_pct):.0f} % {sword})"
-    text += f" since t = {since:.1f} s at {rpm:.0f} rpm"
+    text += f" since {_when(since)} at {rpm:.0f} rpm"
     return ("fault: " if level >= 2 else "warning: ") + text
 
 
