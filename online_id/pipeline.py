@@ -442,7 +442,8 @@ class Pipeline:
         if "baseline" in state:
             self.baseline = Baseline.from_dict(state["baseline"])
         if "detector" in state:
-            self.detector = ChangeDetector.from_dict(state["detector"])
+            # statistics and latched alarms from the state, levels and dead bands from the config in force
+            self.detector = ChangeDetector.from_dict({**state["detector"], "params": self.detector.params()})
         if "tracker" in state:
             self.tracker = PoleTracker.from_dict(state["tracker"])
         self.alerts = [AlertOut(**(a | {"kind": AlertKind(a["kind"])})) for a in state.get("alerts", [])]

@@ -1,5 +1,7 @@
 """Wear detection inside the pipeline: persistence of baselines and latched alarms, commands."""
 
+import dataclasses
+
 import numpy as np
 
 from online_id.config import Settings
@@ -32,6 +34,12 @@ def test_restart_keeps_baseline_and_latched_alarm(tmp_path):
     assert "stiffness about" in b.detector.active.message and "lower" in b.detector.active.message
     st = b.baseline.lookup(1500.0)
     assert st is not None and st.count == 80 and abs(st.mean_f - 25.0) < 0.05
+    # the levels and dead bands come from the config in force, not from the state (an edited config counts)
+    edited = Settings(detection=dataclasses.replace(Settings().detection, h_warning=5.0, min_freq_change_pct=1.5))
+    c = Pipeline(edited)
+    c.load_state(load_state(tmp_path / "s.json"))
+    assert c.detector.h_warning == 5.0 and c.detector.min_change_f == 0.015
+    assert c.detector.active == b.detector.active and dict(c.detector.statistics) == dict(b.detector.statistics)
 
 
 def test_ack_clears_and_relearn_forgets():
