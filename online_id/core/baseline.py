@@ -27,8 +27,8 @@ normalised deviations).
 **When to learn is the caller's decision**: only from estimates that are
 valid, from a well excited window, and never while a change alarm is active
 or the window is flagged faulty -- a baseline learned from a faulty driveline
-would hide the fault.  The estimates are strongly autocorrelated (memory of
-the recursive estimator about 20 s), so the spread is only representative
+would hide the fault.  The estimates are strongly autocorrelated (fits over
+overlapping 10 s windows), so the spread is only representative
 once a band has been learned over several correlation times; feed
 :meth:`Baseline.learn` at about 1 Hz (then ``min_count = 60`` is one minute)
 rather than at the 10 Hz publish rate, or raise ``min_count``.
