@@ -322,6 +322,12 @@ def _check_service(s: Settings, file: str) -> None:
             if not value > 0:
                 raise ConfigError(f"{file}: {section}.{name}: expected a number > 0, got {value!r}")
 
+    def nonnegative(section: str, obj: Any, *names: str) -> None:
+        for name in names:
+            value = getattr(obj, name)
+            if not 0 <= value < float("inf"):
+                raise ConfigError(f"{file}: {section}.{name}: expected a number >= 0, got {value!r}")
+
     positive("input", s.input, "sample_rate_hz", "timeout_s")
     for role in s.input.slow_roles:
         if role not in ("dyno_speed", "engine_speed", "dyno_torque"):
@@ -340,8 +346,7 @@ def _check_service(s: Settings, file: str) -> None:
         raise ConfigError(f"{file}: model.na: at least 2 is needed for a resonance, got {m.na!r}")
     if not 0.9 <= m.forgetting <= 1.0:
         raise ConfigError(f"{file}: model.forgetting: expected a number in [0.9, 1], got {m.forgetting!r}")
-    if m.min_excitation_nm < 0:
-        raise ConfigError(f"{file}: model.min_excitation_nm: expected a number >= 0, got {m.min_excitation_nm!r}")
+    nonnegative("model", m, "min_excitation_nm")
     positive("publish", s.publish, "rate_hz", "physical_interval_s")
     for name, ident in s.publish.frame_ids.items():
         if not 0 <= ident <= 0x1FFFFFFF:
@@ -350,10 +355,7 @@ def _check_service(s: Settings, file: str) -> None:
     positive("bus", s.bus, "reopen_max_s")
     d = s.detection
     positive("detection", d, "band_rpm", "min_count", "k", "h_warning", "h_fault")
-    for name in ("min_freq_change_pct", "min_damping_change_pct", "settle_s"):
-        v = getattr(d, name)
-        if not 0 <= v < float("inf"):
-            raise ConfigError(f"{file}: detection.{name}: expected a number >= 0, got {v!r}")
+    nonnegative("detection", d, "min_freq_change_pct", "min_damping_change_pct", "settle_s")
     if d.h_fault < d.h_warning:
         raise ConfigError(f"{file}: detection.h_fault: must be >= detection.h_warning ({d.h_warning:g}), "
                           f"got {d.h_fault!r}")
