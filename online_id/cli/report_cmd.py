@@ -325,6 +325,11 @@ def _plural(n: int, word: str) -> str:
     return f"{n} {word}" + ("" if n == 1 else "s")
 
 
+def _section(title: str, header: str, align: str, empty: str, rows: list[str]) -> list[str]:
+    """A Markdown section: a table of ``rows``, or the sentence ``empty`` when there are none."""
+    return ["", f"## {title}", ""] + ([header, align, *rows] if rows else [empty])
+
+
 def markdown(data: ReportData, doc: dict) -> str:
     """A short Markdown summary: figures, final estimate, baselines, alerts."""
     c = doc["counts"]
@@ -350,25 +355,16 @@ def markdown(data: ReportData, doc: dict) -> str:
     lines += ["", "## Final estimate", "", "| f0 [Hz] | zeta | valid | from |", "|---:|---:|:---:|---|",
               f"| {fmt(f.get('f0_hz'), '.3f')} | {fmt(f.get('zeta'), '.4f')} "
               f"| {'yes' if f.get('valid') else 'no'} | {f.get('source', '')} |"]
-    lines += ["", "## Baselines", ""]
-    if doc["baselines"]:
-        lines += ["| band [rpm] | f0 [Hz] | std f0 [Hz] | zeta | std zeta | count | learned |",
-                  "|---|---:|---:|---:|---:|---:|:---:|"]
-        for b in doc["baselines"]:
-            lines.append(f"| {b['band_rpm'][0]:.0f}-{b['band_rpm'][1]:.0f} | {b['f0_hz']:.3f} | {b['f0_std_hz']:.3f} "
-                         f"| {b['zeta']:.4f} | {b['zeta_std']:.4f} | {b['count']} | "
-                         f"{'yes' if b['learned'] else 'no'} |")
-    else:
-        lines.append("No baseline learned yet.")
-    lines += ["", "## Alerts", ""]
-    if doc["alerts"]:
-        lines += ["| t [s] | kind | level | speed [rpm] | change [%] | message |", "|---:|---|---|---:|---:|---|"]
-        for a in doc["alerts"]:
-            lines.append(f"| {fmt(a['t_s'], '.1f')} | {a['kind']} | {a['level']} | "
-                         f"{fmt(a['speed_rpm'], '.0f')} | {fmt(a['value_pct'], '+.1f')} | "
-                         f"{a['message'].replace('|', '/')} |")
-    else:
-        lines.append("No alerts.")
+    lines += _section("Baselines", "| band [rpm] | f0 [Hz] | std f0 [Hz] | zeta | std zeta | count | learned |",
+                      "|---|---:|---:|---:|---:|---:|:---:|", "No baseline learned yet.", [
+                          f"| {b['band_rpm'][0]:.0f}-{b['band_rpm'][1]:.0f} | {b['f0_hz']:.3f} | "
+                          f"{b['f0_std_hz']:.3f} | {b['zeta']:.4f} | {b['zeta_std']:.4f} | {b['count']} | "
+                          f"{'yes' if b['learned'] else 'no'} |" for b in doc["baselines"]])
+    lines += _section("Alerts", "| t [s] | kind | level | speed [rpm] | change [%] | message |",
+                      "|---:|---|---|---:|---:|---|", "No alerts.", [
+                          f"| {fmt(a['t_s'], '.1f')} | {a['kind']} | {a['level']} | "
+                          f"{fmt(a['speed_rpm'], '.0f')} | {fmt(a['value_pct'], '+.1f')} | "
+                          f"{a['message'].replace('|', '/')} |" for a in doc["alerts"]])
     alarm = doc["active_alarm"]
     lines += ["", "## Active alarm", "",
               f"{alarm['message']} (detected at t = {alarm['detected_t_s']:.1f} s, not acknowledged)."
