@@ -146,17 +146,18 @@ class ExcitationSettings:
 
 @dataclass(frozen=True)
 class DetectionSettings:
-    """Wear and fault detection: baselines per speed band and sequential change detection."""
+    """Wear and fault detection: baselines per speed band and load, and sequential change detection."""
 
     enabled: bool = True
     band_rpm: float = 250.0
+    load_band_nm: float = 2.0
     min_count: int = 60
     k: float = 0.5
     h_warning: float = 8.0
     h_fault: float = 16.0
     min_excitation_nm: float = 2.0
     min_freq_change_pct: float = 0.5
-    min_damping_change_pct: float = 10.0
+    min_damping_change_pct: float = 40.0
     settle_s: float = 20.0
 
 
@@ -354,7 +355,7 @@ def _check_service(s: Settings, file: str) -> None:
     positive("state", s.state, "save_interval_s")
     positive("bus", s.bus, "reopen_max_s")
     d = s.detection
-    positive("detection", d, "band_rpm", "min_count", "k", "h_warning", "h_fault")
+    positive("detection", d, "band_rpm", "load_band_nm", "min_count", "k", "h_warning", "h_fault")
     nonnegative("detection", d, "min_freq_change_pct", "min_damping_change_pct", "settle_s")
     if d.h_fault < d.h_warning:
         raise ConfigError(f"{file}: detection.h_fault: must be >= detection.h_warning ({d.h_warning:g}), "

@@ -30,7 +30,7 @@ from online_id.assembly import AssembledSample, SampleAssembler
 from online_id.bench.prbs import mls
 from online_id.config import Settings
 from online_id.core.baseline import Baseline, BandStats
-from online_id.core.detection import Alarm, ChangeDetector, correlation_for_window
+from online_id.core.detection import FREQUENCY, Alarm, ChangeDetector, correlation_for_window
 from online_id.core.model import ArmaxOrders
 from online_id.core.online import OnlineDriveline, OnlineEstimate
 from online_id.core.physical import DrivelineParameters
@@ -121,13 +121,14 @@ class Pipeline:
         self.excitation = Excitation(s)
         d = s.detection
         self.tracker = PoleTracker(dt=self.estimator.dt, pulses_per_rev=s.model.pulses_per_rev)
-        self.baseline = Baseline(band_rpm=d.band_rpm, min_count=d.min_count)
+        self.baseline = Baseline(band_rpm=d.band_rpm, min_count=d.min_count, load_band_nm=d.load_band_nm)
         self.detector = ChangeDetector(k=d.k, h_warning=d.h_warning, h_fault=d.h_fault,
                                        correlation_s=correlation_for_window(settings.model.window_s),
                                        min_change_f=d.min_freq_change_pct / 100.0,
                                        min_change_zeta=d.min_damping_change_pct / 100.0)
         self._healthy_since: float | None = None  # start of the current healthy stretch (settle_s)
         self._healthy_rpm: float | None = None  # engine speed of the last healthy estimate
+        self._references: dict[int, np.ndarray] = {}  # per baseline band: a window solution it was learned from
         self._next_learn: float | None = None
         self._next_alarm_repeat = 0.0
         self.state = ServiceState.STARTING
@@ -208,6 +209,7 @@ class Pipeline:
             out.append(AlertOut(t_s, AlertKind.NONE, 0, 0.0, self.estimator.speed_rpm, "alerts acknowledged"))
         elif command == COMMAND_RELEARN:
             self.baseline.reset()
+            self._references.clear()
             self.detector.reset()
             self.events.append(Event(t_s, "command", "baselines forgotten: learning anew"))
             out.append(AlertOut(t_s, AlertKind.NONE, 0, 0.0, self.estimator.speed_rpm, "baselines re-learned"))
@@ -325,16 +327,11 @@ class Pipeline:
         return out
 
     # -- wear and fault detection ------------------------------------------------------------------
-    def _band(self, speed_rpm: float) -> BandStats | None:
-        for b in self.baseline.bands:
-            if b.band[0] <= speed_rpm < b.band[1]:
-                return b
-        return None
-
     def _track_and_detect(self, est: OnlineEstimate, t_s: float, out: list[Publication]) -> None:
         """Pole tracks, baseline learning (1 Hz) and change detection, at the publish rate."""
         d = self.settings.detection
         speed = self.estimator.speed_rpm
+        load = est.load_nm
         self.tracker.update(t_s=t_s, speed_rpm=speed, poles=est.poles)
         healthy = (est.valid and not est.frozen and self.state == ServiceState.TRACKING
                    and est.excitation_nm >= d.min_excitation_nm)
@@ -354,13 +351,24 @@ class Pipeline:
             self._next_learn = t_s
         if healthy and self.detector.active is None and t_s >= self._next_learn:
             self._next_learn = t_s + 1.0  # about one independent-ish estimate per second
-            band = self._band(speed)
-            if band is None or band.count < d.min_count:  # a learned band stays fixed until re-learned
-                self.baseline.learn(speed_rpm=speed, f0_hz=est.f0_hz, zeta=est.zeta)
-        stats = self.baseline.lookup(speed)
+            cell = self.baseline.cell(speed, load)
+            if cell is None and self.estimator.verify():
+                # a new cell is learned from the best of several starts, not from whichever of the nearly equal
+                # minima of a mismatched model (backlash) the warm-started refits happen to follow
+                est = self.estimator.estimate()
+                self._estimate = est
+                load = est.load_nm
+            if ((cell is None or cell.count < d.min_count) and est.valid and math.isfinite(load)
+                    and math.isfinite(est.f0_hz)):  # a learned cell stays fixed until re-learned
+                self.baseline.learn(speed_rpm=speed, f0_hz=est.f0_hz, zeta=est.zeta, load_nm=load)
+                solution = self.estimator.solution
+                if solution is not None:
+                    self._references[self.baseline.key(speed)] = solution
+        stats = self.baseline.lookup(speed, load)
         alarm = self.detector.update(
             t_s=t_s, speed_rpm=speed, f0_hz=est.f0_hz, zeta=est.zeta, f0_std_hz=est.f0_std_hz,
             zeta_std=est.zeta_std, baseline=stats, suppressed=not healthy,
+            confirm=lambda kind: self._confirm(kind, stats, t_s),
         )
         if alarm is not None:
             self._raise(alarm, out)
@@ -369,6 +377,27 @@ class Pipeline:
             # a latched alarm is repeated on CAN once a second until acknowledged (not logged again)
             self._next_alarm_repeat = t_s + 1.0
             out.append(self._alert_out(self.detector.active, t_s))
+
+    def _confirm(self, kind: str, stats: BandStats, t_s: float) -> bool:
+        """Before a new drift alarm: does a refit of the window from several starts still deviate?
+
+        The starts include the solution the band's baseline was learned from
+        (see :class:`~online_id.core.detection.ChangeDetector`, *confirm*).
+        """
+        ref = self._references.get(self.baseline.key(0.5 * (stats.band[0] + stats.band[1])))
+        self.estimator.verify([] if ref is None else [ref])
+        est = self.estimator.estimate()
+        if kind == FREQUENCY:
+            value, mean, width = est.f0_hz, stats.mean_f, self.detector.min_change_f
+        else:
+            value, mean, width = est.zeta, stats.mean_zeta, self.detector.min_change_zeta
+        change = value / mean - 1.0
+        if not math.isfinite(change) or abs(change) > width:
+            return True
+        self.events.append(Event(t_s, "withheld", f"{kind} alarm withheld: a refit of the window from other starts "
+                                 f"is {100 * change:+.1f} % from the baseline, inside the "
+                                 f"{100 * width:.1f} % dead band", {"kind": kind, "change_pct": 100 * change}))
+        return False
 
     def _alert_out(self, alarm: Alarm, t_s: float) -> AlertOut:
         kind = AlertKind.FREQ_DRIFT if alarm.kind == "frequency" else AlertKind.DAMPING_DRIFT
@@ -412,7 +441,7 @@ class Pipeline:
                         "excitation_nm": fin(est.excitation_nm), "samples_used": est.samples_used},
             "state": self.state.name,
             "active_alarm": self.detector.active.as_dict() if self.detector.active else None,
-            "baseline": [{"band_rpm": list(b.band), "f0_hz": b.mean_f, "f0_std_hz": b.std_f, "zeta": b.mean_zeta,
+            "baseline": [{"band_rpm": list(b.band), "load_nm": fin(b.load_nm), "f0_hz": b.mean_f, "f0_std_hz": b.std_f, "zeta": b.mean_zeta,
                           "zeta_std": b.std_zeta, "count": b.count} for b in self.baseline.bands],
             "tracks": [{"id": t.id, "f_hz": t.f_hz, "zeta": t.zeta, "class": t.cls, "confidence": t.confidence,
                         "order": t.order} for t in self.tracker.tracks],
@@ -433,6 +462,7 @@ class Pipeline:
         return {"version": STATE_VERSION, "estimator": self.estimator.get_state(),
                 "baseline": self.baseline.to_dict(), "detector": self.detector.to_dict(),
                 "tracker": self.tracker.to_dict(), "healthy_rpm": self._healthy_rpm,
+                "references": {str(k): v.tolist() for k, v in self._references.items()},
                 "alerts": [a.__dict__ | {"kind": int(a.kind)} for a in self.alerts[-50:]]}
 
     def load_state(self, state: dict) -> None:
@@ -447,6 +477,9 @@ class Pipeline:
         if "tracker" in state:
             self.tracker = PoleTracker.from_dict(state["tracker"])
         self.alerts = [AlertOut(**(a | {"kind": AlertKind(a["kind"])})) for a in state.get("alerts", [])]
+        n = self.estimator.orders.n_params
+        self._references = {int(k): np.asarray(v, dtype=float) for k, v in state.get("references", {}).items()
+                            if isinstance(v, list) and len(v) == n}
         rpm = state.get("healthy_rpm")
         self._healthy_rpm = float(rpm) if isinstance(rpm, (int, float)) else None
 

@@ -56,14 +56,14 @@ def test_fault_while_the_service_restarts(tmp_path):
     a = Pipeline(settings)
     out = _feed(a, rec, 0, stop)
     assert not [o for o in out if isinstance(o, AlertOut) and o.kind == AlertKind.FREQ_DRIFT]
-    band = a.baseline.lookup(a.estimator.speed_rpm)
+    band = a.baseline.lookup(a.estimator.speed_rpm, a.last_estimate.load_nm)
     assert band is not None and band.count >= settings.detection.min_count
     save_state(tmp_path / "state.json", a.get_state())
     del a
 
     b = Pipeline(settings)
     b.load_state(load_state(tmp_path / "state.json"))
-    kept = b.baseline.lookup(float(np.mean(rec.engine_speed_rpm[stop - 1000:stop])))
+    kept = b.baseline.lookup(float(np.mean(rec.engine_speed_rpm[stop - 1000:stop])), band.load_nm)
     assert kept is not None and kept.count == band.count and kept.mean_f == band.mean_f
     out = _feed(b, rec, start, len(rec.time_s))
     alarms = [o for o in out if isinstance(o, AlertOut) and o.kind == AlertKind.FREQ_DRIFT]
@@ -71,7 +71,7 @@ def test_fault_while_the_service_restarts(tmp_path):
     assert alarms[0].t_s - spec.t_fault_s <= 25.0  # 20 s after the restart
     assert b.detector.active is not None
     # the baseline was not re-learned from the faulty shaft
-    assert b.baseline.lookup(alarms[0].speed_rpm).mean_f == band.mean_f
+    assert b.baseline.lookup(alarms[0].speed_rpm, band.load_nm).mean_f == band.mean_f
 
     # and a second restart keeps the latched alarm, which is repeated on CAN until acknowledged
     save_state(tmp_path / "state.json", b.get_state())

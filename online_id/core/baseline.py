@@ -1,14 +1,27 @@
-"""Learned baseline of the driveline frequency and damping per engine-speed band.
+"""Learned baseline of the driveline frequency and damping per engine-speed band and load.
 
 Notes
 -----
+An operating point of an engine is a speed and a torque, and the apparent
+driveline resonance can depend on both: with backlash in the coupling and a
+test torque that reverses the shaft torque, the share of time the shaft
+spends in the gap -- and with it the linearised stiffness -- depends on the
+mean load (about 0.1-0.3 % in :math:`f_0` per Nm on the simulated benches of
+``online-id evaluate``, where the load drifts by several Nm as the engine's
+friction changes with temperature); progressive (rubber) couplings stiffen
+with torque. Each speed band therefore keeps *cells* by load, the mean dyno
+torque of the fitted window: an estimate is learned into the cell whose
+mean load is within ``load_band_nm / 2`` of its own (a new cell otherwise),
+and compared with the learned cell nearest its load within
+``load_band_nm`` (:meth:`Baseline.lookup`).
+
 Engine speed is cut into bands of width :math:`B` = ``band_rpm`` centred on
 multiples of :math:`B` (bench operating points are round numbers: a point
 at 2000 rpm must not sit on a band edge); band :math:`i = \\lfloor n / B +
 \\tfrac12 \\rfloor` covers :math:`[(i-\\tfrac12)B, (i+\\tfrac12)B)` rpm (the seed
 paper shows a mild speed dependence of the identified mode, so each band
-keeps its own statistics).  Each band holds Welford running statistics of
-:math:`f_0` and :math:`\\zeta`:
+keeps its own statistics).  Each cell holds Welford running statistics of
+:math:`f_0` and :math:`\\zeta` (and the running mean of its load):
 
 .. math::
 
@@ -59,6 +72,9 @@ class BandStats:
         Number of learned estimates.
     band
         The band's speed range ``(low_rpm, high_rpm)``.
+    load_nm
+        Mean load (dyno torque) of the learned estimates [Nm]; nan for a
+        cell saved before loads were kept (it serves any load).
     """
 
     mean_f: float
@@ -67,16 +83,27 @@ class BandStats:
     std_zeta: float
     count: int
     band: tuple[float, float]
+    load_nm: float = 0.0
 
 
 class _Welford:
-    __slots__ = ("n", "mean_f", "m2_f", "mean_z", "m2_z")
+    """Running statistics of one cell: frequency, damping and the mean load."""
 
-    def __init__(self, n: int = 0, mean_f: float = 0.0, m2_f: float = 0.0, mean_z: float = 0.0, m2_z: float = 0.0):
+    __slots__ = ("n", "mean_f", "m2_f", "mean_z", "m2_z", "load")
+
+    def __init__(self, n: int = 0, mean_f: float = 0.0, m2_f: float = 0.0, mean_z: float = 0.0, m2_z: float = 0.0,
+                 load: float = 0.0):
         self.n, self.mean_f, self.m2_f, self.mean_z, self.m2_z = int(n), mean_f, m2_f, mean_z, m2_z
+        self.load = load
 
-    def add(self, f: float, z: float) -> None:
+    def distance(self, load_nm: float) -> float:
+        """How far ``load_nm`` is from the cell's load (0 for a cell without one)."""
+        return abs(load_nm - self.load) if math.isfinite(self.load) else 0.0
+
+    def add(self, f: float, z: float, load: float) -> None:
         self.n += 1
+        if math.isfinite(self.load):
+            self.load += (load - self.load) / self.n
         d = f - self.mean_f
         self.mean_f += d / self.n  # mean <- mean + delta / N
         self.m2_f += d * (f - self.mean_f)  # M2 <- M2 + delta (x - mean)
@@ -85,22 +112,26 @@ class _Welford:
         self.m2_z += d * (z - self.mean_z)
 
     def as_list(self) -> list[float]:
-        return [self.n, self.mean_f, self.m2_f, self.mean_z, self.m2_z]
+        return [self.n, self.mean_f, self.m2_f, self.mean_z, self.m2_z, self.load]
 
 
 class Baseline:
-    """Per speed band statistics of the driveline frequency and damping (see module notes).
+    """Per speed band and load statistics of the driveline frequency and damping (see module notes).
 
     Parameters
     ----------
     band_rpm
         Width of one engine-speed band [rpm].
     min_count
-        Learned estimates a band needs before :meth:`lookup` returns it.
+        Learned estimates a cell needs before :meth:`lookup` returns it.
     min_rel_std_f
         Floor of the frequency spread, relative to the mean frequency.
     min_rel_std_zeta
         Floor of the damping spread, relative to the mean damping.
+    load_band_nm
+        Width of a load cell [Nm]: an estimate is learned into the cell of
+        its speed band whose load is within half of it, and compared with a
+        learned cell whose load is within all of it.
     """
 
     def __init__(
@@ -110,40 +141,66 @@ class Baseline:
         min_count: int = 60,
         min_rel_std_f: float = 0.002,
         min_rel_std_zeta: float = 0.03,
+        load_band_nm: float = 2.0,
     ) -> None:
         self.band_rpm = _positive("band_rpm", band_rpm)
         self.min_count = integer("Baseline", "min_count", min_count, minimum=2)
         self.min_rel_std_f = _positive("min_rel_std_f", min_rel_std_f)
         self.min_rel_std_zeta = _positive("min_rel_std_zeta", min_rel_std_zeta)
-        self._bands: dict[int, _Welford] = {}
+        self.load_band_nm = _positive("load_band_nm", load_band_nm)
+        self._bands: dict[int, list[_Welford]] = {}
 
     def _index(self, speed_rpm: float) -> int:
         return int(math.floor(speed_rpm / self.band_rpm + 0.5))
+
+    def key(self, speed_rpm: float) -> int:
+        """The index of the band of ``speed_rpm`` (centred on ``key * band_rpm``)."""
+        return self._index(speed_rpm)
 
     def _edges(self, i: int) -> tuple[float, float]:
         """Speed range of band ``i``: centred on ``i * band_rpm``."""
         return ((i - 0.5) * self.band_rpm, (i + 0.5) * self.band_rpm)
 
-    def learn(self, *, speed_rpm: float, f0_hz: float, zeta: float) -> None:
-        """Add one estimate to the band of ``speed_rpm``.
+    def _learning_cell(self, i: int, load_nm: float) -> _Welford | None:
+        """The cell of band ``i`` an estimate at ``load_nm`` is learned into (None: a new one)."""
+        cells = self._bands.get(i, [])
+        if not cells:
+            return None
+        near = min(cells, key=lambda c: c.distance(load_nm))
+        return near if near.distance(load_nm) <= 0.5 * self.load_band_nm else None
+
+    def learn(self, *, speed_rpm: float, f0_hz: float, zeta: float, load_nm: float = 0.0) -> None:
+        """Add one estimate to the cell of ``speed_rpm`` and ``load_nm`` (a new cell if none is near).
 
         Raises
         ------
         InputDataError
             If a value is not finite, or the frequency or damping is not positive.
         """
-        if not (math.isfinite(speed_rpm) and math.isfinite(f0_hz) and math.isfinite(zeta)) or f0_hz <= 0 or zeta <= 0:
+        if (not (math.isfinite(speed_rpm) and math.isfinite(f0_hz) and math.isfinite(zeta) and math.isfinite(load_nm))
+                or f0_hz <= 0 or zeta <= 0):
             raise InputDataError(
-                f"Baseline.learn: expected finite speed, f0_hz > 0 and zeta > 0, "
-                f"but got speed_rpm={speed_rpm!r}, f0_hz={f0_hz!r}, zeta={zeta!r}")
+                f"Baseline.learn: expected finite speed and load, f0_hz > 0 and zeta > 0, "
+                f"but got speed_rpm={speed_rpm!r}, load_nm={load_nm!r}, f0_hz={f0_hz!r}, zeta={zeta!r}")
         i = self._index(speed_rpm)
-        band = self._bands.get(i)
-        if band is None:
-            band = self._bands[i] = _Welford()
-        band.add(float(f0_hz), float(zeta))
+        cell = self._learning_cell(i, load_nm)
+        if cell is None:
+            cell = _Welford(load=float(load_nm))
+            self._bands.setdefault(i, []).append(cell)
+        cell.add(float(f0_hz), float(zeta), float(load_nm))
 
-    def _stats(self, i: int) -> BandStats:
-        b = self._bands[i]
+    def cell(self, speed_rpm: float, load_nm: float = 0.0) -> BandStats | None:
+        """Statistics of the cell an estimate at ``speed_rpm`` and ``load_nm`` would be learned into.
+
+        None if there is none yet (or fewer than two estimates in it).
+        """
+        if not (math.isfinite(speed_rpm) and math.isfinite(load_nm)):
+            return None
+        i = self._index(speed_rpm)
+        c = self._learning_cell(i, load_nm)
+        return self._stats(i, c) if c is not None and c.n >= 2 else None
+
+    def _stats(self, i: int, b: _Welford) -> BandStats:
         std_f = math.sqrt(max(b.m2_f, 0.0) / (b.n - 1))
         std_z = math.sqrt(max(b.m2_z, 0.0) / (b.n - 1))
         return BandStats(
@@ -153,41 +210,46 @@ class Baseline:
             max(std_z, self.min_rel_std_zeta * abs(b.mean_z)),
             b.n,
             self._edges(i),
+            b.load,
         )
 
-    def _ready(self, i: int) -> bool:
-        b = self._bands.get(i)
-        return b is not None and b.n >= self.min_count
+    def _ready_cell(self, i: int, load_nm: float) -> _Welford | None:
+        """The learned cell of band ``i`` nearest ``load_nm`` within ``load_band_nm``, or None."""
+        cells = [c for c in self._bands.get(i, []) if c.n >= self.min_count and c.distance(load_nm) <= self.load_band_nm]
+        return min(cells, key=lambda c: c.distance(load_nm)) if cells else None
 
-    def lookup(self, speed_rpm: float) -> BandStats | None:
-        """Statistics of the band of ``speed_rpm``; else of a learned adjacent band; else None.
+    def lookup(self, speed_rpm: float, load_nm: float = 0.0) -> BandStats | None:
+        """Statistics to compare an estimate at ``speed_rpm`` and ``load_nm`` with, or None.
 
-        When both neighbours are learned, the one whose centre is nearer
-        ``speed_rpm`` is used.
+        The learned cell of the speed band nearest the load (within
+        ``load_band_nm``); else one of a learned adjacent band (the one whose
+        centre is nearer ``speed_rpm`` when both qualify); else None.
         """
-        if not math.isfinite(speed_rpm):
+        if not (math.isfinite(speed_rpm) and math.isfinite(load_nm)):
             return None
         i = self._index(speed_rpm)
-        if self._ready(i):
-            return self._stats(i)
-        near = [j for j in (i - 1, i + 1) if self._ready(j)]
-        if not near:
-            return None
-        j = min(near, key=lambda j: abs(j * self.band_rpm - speed_rpm))
-        return self._stats(j)
+        c = self._ready_cell(i, load_nm)
+        if c is not None:
+            return self._stats(i, c)
+        for j in sorted((i - 1, i + 1), key=lambda j: abs(j * self.band_rpm - speed_rpm)):
+            c = self._ready_cell(j, load_nm)
+            if c is not None:
+                return self._stats(j, c)
+        return None
 
     @property
     def learned_range_rpm(self) -> tuple[float, float] | None:
         """``(low, high)`` speed covered by learned bands, or None if none is learned."""
-        ready = [i for i in self._bands if self._ready(i)]
+        ready = [i for i, cells in self._bands.items() if any(c.n >= self.min_count for c in cells)]
         if not ready:
             return None
         return (self._edges(min(ready))[0], self._edges(max(ready))[1])
 
     @property
     def bands(self) -> tuple[BandStats, ...]:
-        """Statistics of every band with at least two estimates (learned or not), by speed."""
-        return tuple(self._stats(i) for i in sorted(self._bands) if self._bands[i].n >= 2)
+        """Statistics of every cell with at least two estimates (learned or not), by speed and load."""
+        return tuple(self._stats(i, c) for i in sorted(self._bands)
+                     for c in sorted(self._bands[i], key=lambda c: c.load) if c.n >= 2)
 
     def reset(self) -> None:
         """Forget all bands (re-learn on command)."""
@@ -200,17 +262,23 @@ class Baseline:
             "min_count": self.min_count,
             "min_rel_std_f": self.min_rel_std_f,
             "min_rel_std_zeta": self.min_rel_std_zeta,
-            "bands": {str(i): b.as_list() for i, b in sorted(self._bands.items())},
+            "load_band_nm": self.load_band_nm,
+            "bands": {str(i): [[x if math.isfinite(x) else None for x in c.as_list()] for c in cells]
+                      for i, cells in sorted(self._bands.items())},
         }
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> Baseline:
-        """Rebuild a baseline saved by :meth:`to_dict`."""
+        """Rebuild a baseline saved by :meth:`to_dict` (a band saved before loads were kept serves any load)."""
         try:
             base = cls(band_rpm=data["band_rpm"], min_count=int(data["min_count"]),
-                       min_rel_std_f=data["min_rel_std_f"], min_rel_std_zeta=data["min_rel_std_zeta"])
+                       min_rel_std_f=data["min_rel_std_f"], min_rel_std_zeta=data["min_rel_std_zeta"],
+                       load_band_nm=data.get("load_band_nm", 2.0))
             for key, v in data["bands"].items():
-                base._bands[int(key)] = _Welford(int(v[0]), *(float(x) for x in v[1:]))
+                cells = v if v and isinstance(v[0], list) else [list(v) + [None]]  # one cell, no load
+                base._bands[int(key)] = [
+                    _Welford(int(c[0]), *(float(x) for x in c[1:5]), float("nan") if c[5] is None else float(c[5]))
+                    for c in cells]
         except (KeyError, TypeError, ValueError, IndexError) as err:
             raise ConfigError(f"Baseline.from_dict: saved state is incomplete or malformed ({err!r})") from err
         return base

@@ -27,10 +27,14 @@ Per input sample (dyno speed :math:`y`, dyno torque :math:`u`, engine speed
 sample) takes the poles of :math:`A` of the latest refit (of the recursive
 model while no current refit exists; such an estimate is never valid),
 drops the ones on an engine order line at the current engine speed, and
-picks the driveline pair: the one closest to the previous pick, else the
-lowest-frequency lightly damped pair in the band. It is valid when the
-refit is current (steady speed, enough torque excitation) and the pole's own
-standard deviations (from the fit's covariance) are small.
+picks the driveline pair: of the pairs within 15 % of the previous pick
+(else of the lowest-frequency lightly damped pair in the band), the one
+with the largest residue in :math:`B/A`
+(:func:`~online_id.core.poles.modal_residue`). It is valid when the refit is
+current (steady speed, enough torque excitation), the pole's own standard
+deviations (from the fit's covariance) are small and no second pair lies
+within 5 % of it (a split mode, seen with backlash: neither pole is the
+resonance).
 """
 
 from __future__ import annotations
@@ -49,7 +53,7 @@ from online_id.core.physical import (
     parameters,
     response_grid,
 )
-from online_id.core.poles import Pole, order_of, pole_std, poles_of
+from online_id.core.poles import Pole, modal_residue, order_of, pole_std, poles_of
 from online_id.core.rels import RecursiveArmax
 from online_id.core.window import SlidingPem
 from online_id.errors import EstimationError
@@ -108,6 +112,7 @@ class OnlineEstimate:
     poles: tuple[Pole, ...]
     source: str = "recursive"  # "window": the sliding-window refit; "recursive": RELS only (never valid)
     why: str = ""  # why the window refit is not current (empty when it is)
+    load_nm: float = float("nan")  # mean dyno torque over the fitted window (the load of the operating point)
 
 
 class OnlineDriveline:
@@ -179,7 +184,7 @@ class OnlineDriveline:
             a = max(self.alpha_e2, 1.0 / self._n_used)  # running mean first, then exponential
             self._e2 += a * (e * e - self._e2)
         self._u2 += self.alpha_stat * (u_hp * u_hp - self._u2)
-        self.window.push(y_hp, u_hp, n)
+        self.window.push(y_hp, u_hp, n, u)
 
     def restart_history(self) -> None:
         """After a gap in the input: restart filters and regressors, keep theta and P."""
@@ -199,6 +204,16 @@ class OnlineDriveline:
     def refit(self) -> None:
         """Run the due window refit (see :class:`~online_id.core.window.SlidingPem`)."""
         self.window.refit()
+
+    def verify(self, starts: list[np.ndarray] = ()) -> bool:
+        """Refit the current window from several starts (see :meth:`SlidingPem.verify`)."""
+        return self.window.verify(starts)
+
+    @property
+    def solution(self) -> np.ndarray | None:
+        """Parameters of the current window fit (None while there is none)."""
+        w = self.window
+        return w.fit.theta.copy() if w.current and w.fit is not None else None
 
     # -- at the publish rate --------------------------------------------------------------------
     @property
@@ -237,17 +252,22 @@ class OnlineDriveline:
 
     def estimate(self) -> OnlineEstimate:
         """The current driveline estimate (see module notes)."""
-        a, _b, _c, cov_a, V, source = self.polynomials()
+        a, b, _c, cov_a, V, source = self.polynomials()
         poles = self._poles_for(a, source)
         cands = self._candidates(poles)
         pick = None
         if cands:
-            if self._pick is not None:
-                near = min(cands, key=lambda p: abs(p.f_hz - self._pick))
-                if abs(near.f_hz - self._pick) <= 0.15 * self._pick:
-                    pick = near
-            if pick is None:
-                pick = min(cands, key=lambda p: p.f_hz)
+            # the pairs within 15 % of the previous pick (else of the lowest pair); of these the dominant
+            # mode, the one with the largest residue in B/A: a mismatched model (backlash) can split the
+            # resonance into the mode and a lightly damped pole nearly cancelled by a zero beside it
+            ref = self._pick
+            near = [p for p in cands if ref is not None and abs(p.f_hz - ref) <= 0.15 * ref]
+            if not near:
+                ref = min(p.f_hz for p in cands)
+                near = [p for p in cands if p.f_hz <= 1.15 * ref]
+            pick = near[0] if len(near) == 1 else max(near, key=lambda p: modal_residue(a, b, p.z))
+        # two pairs within 5 % of each other at the resonance: the model splits the mode, neither is it
+        split = pick is not None and any(p is not pick and abs(p.f_hz - pick.f_hz) < 0.05 * pick.f_hz for p in cands)
         d = self.orders.n_params
         if source == "window":
             fpe = self.window.fit.fpe
@@ -265,6 +285,7 @@ class OnlineDriveline:
             and source == "window"
             and self._n_used >= self.learning_n
             and not self.rels.frozen
+            and not split
             and std_f <= k * 0.005 * pick.f_hz
             and std_z <= k * 0.15 * pick.zeta
         )
@@ -281,7 +302,8 @@ class OnlineDriveline:
             self.rels.frozen,
             tuple(poles),
             source,
-            self.window.reason,
+            "two poles at the resonance (mode split)" if split and not self.window.reason else self.window.reason,
+            self.window.fit_load_nm if source == "window" else float(self._mean[1]),
         )
 
     def physical(self, est: OnlineEstimate, J1: float | None, J2: float | None,

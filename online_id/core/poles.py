@@ -264,6 +264,31 @@ def sort_poles(
     return PoleSorting(marked, driveline, invariant)
 
 
+def modal_residue(a: np.ndarray, b: np.ndarray, z: complex) -> float:
+    """Magnitude of the residue of :math:`B/A` at the pole ``z`` (``a``, ``b`` in powers of q^-1).
+
+    Notes
+    -----
+    With :math:`A(q^{-1}) = \\prod_j (1 - p_j q^{-1})`, the partial fraction
+    of :math:`B/A` at a simple pole :math:`p_i` is :math:`r_i / (1 - p_i
+    q^{-1})` with :math:`r_i = B(p_i^{-1}) / \\prod_{j \\ne i} (1 - p_j /
+    p_i)`. It measures how much of the input-output response the mode
+    carries, whatever its damping: a pole nearly cancelled by a zero of
+    :math:`B` (a noise-model or nonlinearity artefact beside the real mode)
+    has a small residue. Returns 0 for ``z = 0``.
+    """
+    if z == 0:
+        return 0.0
+    roots = np.roots(np.asarray(a, dtype=float))
+    if roots.size == 0:
+        return 0.0
+    others = np.delete(roots, int(np.argmin(np.abs(roots - z))))
+    q = 1.0 / z
+    den = np.prod(1.0 - others * q)
+    num = np.polyval(np.asarray(b, dtype=float)[::-1], q)  # B(q) = sum b_k q^k
+    return float(abs(num / den)) if den != 0 else float("inf")
+
+
 def pole_std(a: np.ndarray, z: complex, cov_a: np.ndarray, dt: float) -> tuple[float, float]:
     """Standard deviations of a pole's frequency [Hz] and damping from the covariance of ``a``.
 

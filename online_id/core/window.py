@@ -85,13 +85,14 @@ class SlidingPem:
         self.min_excitation_nm = float(min_excitation_nm)
         self.warm_iterations = int(warm_iterations)
         self.warm_tol = float(warm_tol)
-        self._buf = np.zeros((3, self.n_window))  # y, u, engine speed; circular
+        self._buf = np.zeros((4, self.n_window))  # y, u, engine speed, load (raw torque); circular
         self._pos = 0
         self._count = 0
         self._since = 0
         self.fit: ArmaxFit | None = None
         self._start: np.ndarray | None = None  # an earlier solution (kept across a restart)
         self.fit_speed_rpm = float("nan")
+        self.fit_load_nm = float("nan")  # mean raw torque of the fitted window (the load at the operating point)
         self.current = False  # the last refit attempt succeeded on a steady, excited window
         self.reason = "window filling"
         self.auto = auto  # refit inside push(); otherwise the owner calls refit() when it suits (``due``)
@@ -101,13 +102,18 @@ class SlidingPem:
         self.n_failed = 0
 
     # -- per sample ---------------------------------------------------------------------------
-    def push(self, y: float, u: float, speed_rad_s: float) -> bool:
-        """Add one decimated sample; returns True when a refit fell due (and ran, with ``auto``)."""
-        if not (math.isfinite(y) and math.isfinite(u) and math.isfinite(speed_rad_s)):  # scalars: math is 10x cheaper
+    def push(self, y: float, u: float, speed_rad_s: float, load_nm: float = 0.0) -> bool:
+        """Add one decimated sample; returns True when a refit fell due (and ran, with ``auto``).
+
+        ``y`` and ``u`` are the (DC-blocked) model signals, ``load_nm`` the raw
+        torque, whose window mean is the load of the fit (``fit_load_nm``).
+        """
+        if not (math.isfinite(y) and math.isfinite(u) and math.isfinite(speed_rad_s)
+                and math.isfinite(load_nm)):  # scalars: math is 10x cheaper
             self.clear()
             return False
         b = self._buf
-        b[0, self._pos], b[1, self._pos], b[2, self._pos] = y, u, speed_rad_s
+        b[0, self._pos], b[1, self._pos], b[2, self._pos], b[3, self._pos] = y, u, speed_rad_s, load_nm
         self._pos = (self._pos + 1) % self.n_window
         self._count += 1
         self._since += 1
@@ -136,14 +142,14 @@ class SlidingPem:
 
     # -- fitting ----------------------------------------------------------------------------------
     def window(self) -> np.ndarray:
-        """The window, oldest sample first: rows y, u, engine speed [rad/s]."""
+        """The window, oldest sample first: rows y, u, engine speed [rad/s], load [Nm]."""
         return np.roll(self._buf, -self._pos, axis=1)
 
     def _refit(self) -> None:
         if self._count < self.n_window:
             return
         w = self.window()
-        y, u, n = w
+        y, u, n, load = w
         nb = self.n_window // self.n_block
         means = n[: nb * self.n_block].reshape(nb, self.n_block).mean(axis=1)
         span = float(means.max() - means.min()) if nb else 0.0
@@ -178,9 +184,45 @@ class SlidingPem:
         self.fit = fit
         self._start = fit.theta
         self.fit_speed_rpm = speed_rpm
+        self.fit_load_nm = float(np.mean(load))
         self.n_fits += 1
         self.current = True
         self.reason = ""
+
+    def verify(self, starts: list[np.ndarray] = ()) -> bool:
+        """Refit the current window from several starts; adopt the fit of lowest loss (True if one was made).
+
+        The starts: Hannan-Rissanen, the recursive estimate, the current
+        solution and ``starts`` (e.g. the solution the baseline was learned
+        with). Used before an alarm is raised (see
+        :class:`~online_id.core.detection.ChangeDetector`, *confirm*); about
+        0.5 s, rare. A window that is not full, not steady or not excited is
+        left as it is.
+        """
+        if self._count < self.n_window or not self.current:
+            return False
+        y, u, _n, load = self.window()
+        fits = []
+        try:
+            fits.append(fit_two_starts(y, u, self.orders, theta0=self._start))
+        except (EstimationError, FloatingPointError, ValueError, np.linalg.LinAlgError):
+            pass
+        for theta in starts:
+            if theta is None or np.shape(theta) != (self.orders.n_params,):
+                continue
+            try:
+                fits.append(fit_armax(y, u, self.orders, theta0=np.asarray(theta, dtype=float)))
+            except (EstimationError, FloatingPointError, ValueError, np.linalg.LinAlgError):
+                pass
+        fits = [f for f in fits if np.all(np.isfinite(f.theta)) and np.all(np.isfinite(f.covariance))]
+        if not fits:
+            return False
+        self.fit = min(fits, key=lambda f: f.V)
+        self._start = self.fit.theta
+        self.fit_load_nm = float(np.mean(load))
+        self.n_fits += 1
+        self.n_cold += 1
+        return True
 
     # -- persistence --------------------------------------------------------------------------------
     def get_state(self) -> dict:
