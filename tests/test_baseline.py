@@ -82,3 +82,50 @@ def test_validation():
         Baseline().learn(speed_rpm=1500.0, f0_hz=float("nan"), zeta=0.05)
     with pytest.raises(ConfigError):
         Baseline.from_dict({"band_rpm": 250.0})
+
+
+@pytest.mark.parametrize("seed,f0,slope_pct_per_nm,loads", [(3, 25.0, 0.3, (-11.0, -7.5, -4.0)),
+                                                            (4, 18.0, -0.2, (5.0, 9.0)),
+                                                            (5, 31.0, 0.0, (-2.0, 2.5))])
+def test_cells_per_load(seed, f0, slope_pct_per_nm, loads):
+    # the apparent resonance moves with the load (backlash crossed by the test torque): one cell per load
+    rng = np.random.default_rng(seed)
+    base = Baseline(band_rpm=250.0, min_count=30, load_band_nm=2.0)
+    means = {}
+    for load in loads:
+        f = f0 * (1 + slope_pct_per_nm / 100 * load) * (1 + 0.001 * rng.standard_normal(40))
+        for fi in f:
+            base.learn(speed_rpm=2000.0, f0_hz=fi, zeta=0.05, load_nm=load + rng.uniform(-0.3, 0.3))
+        means[load] = f.mean()
+    assert len(base.bands) == len(loads)
+    for load, mf in means.items():
+        for offset in (-1.5, 0.0, 1.5):  # compared with the nearest learned cell within load_band_nm
+            st = base.lookup(2000.0, load + offset)
+            assert st is not None and st.mean_f == pytest.approx(mf, rel=1e-12)
+            assert abs(st.load_nm - load) < 0.3
+        assert base.cell(2000.0, load + 0.5).count == 40  # learned into the cell within half the width
+    far = min(loads) - 2.5
+    assert base.lookup(2000.0, far) is None and base.cell(2000.0, far) is None
+    base.learn(speed_rpm=2000.0, f0_hz=f0, zeta=0.05, load_nm=far)  # a new cell, not yet learned
+    assert len(base.bands) == len(loads) and base.lookup(2000.0, far) is None
+    again = Baseline.from_dict(json.loads(json.dumps(base.to_dict())))
+    assert again.bands == base.bands
+
+
+def test_state_from_before_load_cells_serves_any_load():
+    old = {"band_rpm": 250.0, "min_count": 5, "min_rel_std_f": 0.002, "min_rel_std_zeta": 0.03,
+           "bands": {"6": [10, 20.0, 0.01, 0.05, 1e-5]}}  # one band, no load
+    base = Baseline.from_dict(old)
+    for load in (-30.0, 0.0, 12.0):
+        st = base.lookup(1500.0, load)
+        assert st is not None and st.count == 10 and st.mean_f == 20.0
+    assert base.to_dict()["bands"]["6"][0][5] is None
+    assert Baseline.from_dict(base.to_dict()).to_dict() == base.to_dict()
+
+
+def test_bad_load_is_refused():
+    with pytest.raises(InputDataError, match="load_nm"):
+        Baseline().learn(speed_rpm=1500.0, f0_hz=20.0, zeta=0.05, load_nm=float("nan"))
+    assert Baseline().lookup(1500.0, float("inf")) is None
+    with pytest.raises(ConfigError, match="load_band_nm"):
+        Baseline(load_band_nm=0.0)

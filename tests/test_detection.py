@@ -249,3 +249,26 @@ def test_message_says_clock_time_for_unix_timestamps():
     assert "since 2026-11-18 " in a.message and " UTC at 1600 rpm" in a.message and "t = " not in a.message
     b = run(ChangeDetector(), t, f, z, base_of(*plant), stop_at_level=1)[0]
     assert f"since t = {b.since_t_s:.1f} s at" in b.message
+
+
+@pytest.mark.parametrize("seed,df", [(31, -0.03), (32, 0.025)])
+def test_unconfirmed_alarm_is_withheld(seed, df):
+    # before a new alarm the caller looks at the data again (the service refits the window from several
+    # starts); an alarm it does not confirm is withheld and its statistic restarts from zero, still armed
+    plant = PLANTS[1]
+    t, f, z = estimates(seed, 0.15, f0=plant[0], zeta0=plant[1], rel_std_f=plant[2], rel_std_z=plant[3], df=df)
+    asked = []
+    det = ChangeDetector()
+    for i in range(len(t)):
+        a = det.update(t_s=float(t[i]), speed_rpm=1600.0, f0_hz=float(f[i]), zeta=float(z[i]), f0_std_hz=0.0,
+                       zeta_std=0.0, baseline=base_of(*plant), suppressed=False,
+                       confirm=lambda kind: asked.append((kind, float(t[i]))) or False)
+        assert a is None
+    assert asked and {k for k, _ in asked} == {"frequency"} and det.withheld["frequency"] == len(asked) > 1
+    assert all(b - a >= 3.0 for (_, a), (_, b) in zip(asked, asked[1:]))  # each time from zero again
+    assert det.active is None and det.withheld["damping"] == 0
+    assert ChangeDetector.from_dict(det.to_dict()).withheld == det.withheld
+    # the same data, confirmed: the alarm is raised when the first question was asked
+    confirmed = run(ChangeDetector(), t, f, z, base_of(*plant), stop_at_level=1)
+    assert confirmed and confirmed[0].kind == "frequency"
+    assert abs(confirmed[0].detected_t_s - asked[0][1]) <= 1.0

@@ -10,6 +10,7 @@ from online_id.core.poles import (
     SPEED_DEPENDENT,
     Pole,
     damp,
+    modal_residue,
     order_of,
     poles_of,
     sort_poles,
@@ -114,3 +115,35 @@ def test_pole_std_matches_monte_carlo():
         zs.append(zt[0])
     assert sf == pytest.approx(np.std(fs), rel=0.1)
     assert sz == pytest.approx(np.std(zs), rel=0.1)
+
+
+def _pair(f_hz, zeta, dt):
+    w = 2 * np.pi * f_hz
+    z = np.exp(dt * complex(-zeta * w, w * np.sqrt(1 - zeta**2)))
+    return np.array([1.0, -2 * z.real, abs(z) ** 2]), z
+
+
+def test_modal_residue_matches_partial_fractions():
+    from scipy.signal import residuez
+
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        a = np.poly(rng.uniform(0.3, 0.9, 4) * np.exp(1j * rng.uniform(0.2, 2.5, 4)))
+        a = np.real(np.convolve(a, np.conj(a)))  # real coefficients, 4 conjugate pairs
+        b = rng.standard_normal(5)
+        r, p, _k = residuez(b, a)
+        for ri, pi in zip(r, p):
+            assert modal_residue(a, b, pi) == pytest.approx(abs(ri), rel=1e-6)
+
+
+@pytest.mark.parametrize("f0,zeta,dt", [(25.0, 0.08, 0.002), (17.0, 0.05, 0.002), (33.0, 0.06, 0.001)])
+def test_modal_residue_tells_the_mode_from_a_nearly_cancelled_pole(f0, zeta, dt):
+    # a mismatched model splits the resonance: the mode, and a lightly damped pole 2 % above it that a zero
+    # of B nearly cancels; the mode carries the response, whatever the damping
+    a_mode, z_mode = _pair(f0, zeta, dt)
+    a_spur, z_spur = _pair(1.02 * f0, 0.01, dt)
+    b_zero, _ = _pair(1.021 * f0, 0.011, dt)
+    a = np.convolve(a_mode, a_spur)
+    b = np.concatenate(([0.0], 1e-3 * b_zero))
+    assert modal_residue(a, b, z_mode) > 10 * modal_residue(a, b, z_spur)
+    assert modal_residue(a, b, 0j) == 0.0

@@ -272,7 +272,8 @@ def _stats(x: np.ndarray) -> dict | None:
 
 
 def _band_dict(b: BandStats, min_count: int) -> dict:
-    return {"band_rpm": [float(b.band[0]), float(b.band[1])], "f0_hz": _fin(b.mean_f), "f0_std_hz": _fin(b.std_f),
+    return {"band_rpm": [float(b.band[0]), float(b.band[1])], "load_nm": _fin(b.load_nm),
+            "f0_hz": _fin(b.mean_f), "f0_std_hz": _fin(b.std_f),
             "zeta": _fin(b.mean_zeta), "zeta_std": _fin(b.std_zeta), "count": int(b.count),
             "learned": b.count >= min_count}
 
@@ -355,9 +356,10 @@ def markdown(data: ReportData, doc: dict) -> str:
     lines += ["", "## Final estimate", "", "| f0 [Hz] | zeta | valid | from |", "|---:|---:|:---:|---|",
               f"| {fmt(f.get('f0_hz'), '.3f')} | {fmt(f.get('zeta'), '.4f')} "
               f"| {'yes' if f.get('valid') else 'no'} | {f.get('source', '')} |"]
-    lines += _section("Baselines", "| band [rpm] | f0 [Hz] | std f0 [Hz] | zeta | std zeta | count | learned |",
-                      "|---|---:|---:|---:|---:|---:|:---:|", "No baseline learned yet.", [
-                          f"| {b['band_rpm'][0]:.0f}-{b['band_rpm'][1]:.0f} | {b['f0_hz']:.3f} | "
+    lines += _section("Baselines", "| band [rpm] | load [Nm] | f0 [Hz] | std f0 [Hz] | zeta | std zeta | count "
+                      "| learned |", "|---|---:|---:|---:|---:|---:|---:|:---:|", "No baseline learned yet.", [
+                          f"| {b['band_rpm'][0]:.0f}-{b['band_rpm'][1]:.0f} | {fmt(b['load_nm'], '.1f')} "
+                          f"| {b['f0_hz']:.3f} | "
                           f"{b['f0_std_hz']:.3f} | {b['zeta']:.4f} | {b['zeta_std']:.4f} | {b['count']} | "
                           f"{'yes' if b['learned'] else 'no'} |" for b in doc["baselines"]])
     lines += _section("Alerts", "| t [s] | kind | level | speed [rpm] | change [%] | message |",
