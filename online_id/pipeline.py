@@ -441,6 +441,7 @@ class Pipeline:
                         "excitation_nm": fin(est.excitation_nm), "samples_used": est.samples_used},
             "state": self.state.name,
             "active_alarm": self.detector.active.as_dict() if self.detector.active else None,
+            "withheld_alarms": dict(self.detector.withheld),
             "baseline": [{"band_rpm": list(b.band), "load_nm": fin(b.load_nm), "f0_hz": b.mean_f, "f0_std_hz": b.std_f, "zeta": b.mean_zeta,
                           "zeta_std": b.std_zeta, "count": b.count} for b in self.baseline.bands],
             "tracks": [{"id": t.id, "f_hz": t.f_hz, "zeta": t.zeta, "class": t.cls, "confidence": t.confidence,
