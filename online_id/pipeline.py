@@ -385,7 +385,7 @@ class Pipeline:
         (see :class:`~online_id.core.detection.ChangeDetector`, *confirm*).
         """
         ref = self._references.get(self.baseline.key(0.5 * (stats.band[0] + stats.band[1])))
-        self.estimator.verify([] if ref is None else [ref])
+        self.estimator.verify((ref,))
         est = self.estimator.estimate()
         if kind == FREQUENCY:
             value, mean, width = est.f0_hz, stats.mean_f, self.detector.min_change_f
@@ -442,8 +442,7 @@ class Pipeline:
             "state": self.state.name,
             "active_alarm": self.detector.active.as_dict() if self.detector.active else None,
             "withheld_alarms": dict(self.detector.withheld),
-            "baseline": [{"band_rpm": list(b.band), "load_nm": fin(b.load_nm), "f0_hz": b.mean_f, "f0_std_hz": b.std_f, "zeta": b.mean_zeta,
-                          "zeta_std": b.std_zeta, "count": b.count} for b in self.baseline.bands],
+            "baseline": [b.as_dict() for b in self.baseline.bands],
             "tracks": [{"id": t.id, "f_hz": t.f_hz, "zeta": t.zeta, "class": t.cls, "confidence": t.confidence,
                         "order": t.order} for t in self.tracker.tracks],
             "status_changes": [{"t_s": e.t_s - t0, "state": e.data["state"], "why": e.message}

@@ -272,10 +272,7 @@ def _stats(x: np.ndarray) -> dict | None:
 
 
 def _band_dict(b: BandStats, min_count: int) -> dict:
-    return {"band_rpm": [float(b.band[0]), float(b.band[1])], "load_nm": _fin(b.load_nm),
-            "f0_hz": _fin(b.mean_f), "f0_std_hz": _fin(b.std_f),
-            "zeta": _fin(b.mean_zeta), "zeta_std": _fin(b.std_zeta), "count": int(b.count),
-            "learned": b.count >= min_count}
+    return b.as_dict() | {"learned": b.count >= min_count}
 
 
 def _alert_dict(a: AlertOut) -> dict:

@@ -85,6 +85,15 @@ class BandStats:
     band: tuple[float, float]
     load_nm: float = 0.0
 
+    def as_dict(self) -> dict[str, Any]:
+        """Plain (JSON-able) form for results and reports; non-finite numbers as None."""
+        def fin(x: float) -> float | None:
+            return float(x) if math.isfinite(x) else None
+
+        return {"band_rpm": [float(self.band[0]), float(self.band[1])], "load_nm": fin(self.load_nm),
+                "f0_hz": fin(self.mean_f), "f0_std_hz": fin(self.std_f), "zeta": fin(self.mean_zeta),
+                "zeta_std": fin(self.std_zeta), "count": int(self.count)}
+
 
 class _Welford:
     """Running statistics of one cell: frequency, damping and the mean load."""
@@ -150,12 +159,9 @@ class Baseline:
         self.load_band_nm = _positive("load_band_nm", load_band_nm)
         self._bands: dict[int, list[_Welford]] = {}
 
-    def _index(self, speed_rpm: float) -> int:
-        return int(math.floor(speed_rpm / self.band_rpm + 0.5))
-
     def key(self, speed_rpm: float) -> int:
         """The index of the band of ``speed_rpm`` (centred on ``key * band_rpm``)."""
-        return self._index(speed_rpm)
+        return int(math.floor(speed_rpm / self.band_rpm + 0.5))
 
     def _edges(self, i: int) -> tuple[float, float]:
         """Speed range of band ``i``: centred on ``i * band_rpm``."""
@@ -182,7 +188,7 @@ class Baseline:
             raise InputDataError(
                 f"Baseline.learn: expected finite speed and load, f0_hz > 0 and zeta > 0, "
                 f"but got speed_rpm={speed_rpm!r}, load_nm={load_nm!r}, f0_hz={f0_hz!r}, zeta={zeta!r}")
-        i = self._index(speed_rpm)
+        i = self.key(speed_rpm)
         cell = self._learning_cell(i, load_nm)
         if cell is None:
             cell = _Welford(load=float(load_nm))
@@ -196,7 +202,7 @@ class Baseline:
         """
         if not (math.isfinite(speed_rpm) and math.isfinite(load_nm)):
             return None
-        i = self._index(speed_rpm)
+        i = self.key(speed_rpm)
         c = self._learning_cell(i, load_nm)
         return self._stats(i, c) if c is not None and c.n >= 2 else None
 
@@ -227,7 +233,7 @@ class Baseline:
         """
         if not (math.isfinite(speed_rpm) and math.isfinite(load_nm)):
             return None
-        i = self._index(speed_rpm)
+        i = self.key(speed_rpm)
         c = self._ready_cell(i, load_nm)
         if c is not None:
             return self._stats(i, c)

@@ -287,7 +287,6 @@ class ChangeDetector:
         self._latched: dict[str, Alarm | None] = {kind: None for kind in KINDS}
         self._armed = {kind: True for kind in KINDS}
         self._pending: list[Alarm] = []
-        self._confirm: Callable[[str], bool] | None = None
         self.withheld = {kind: 0 for kind in KINDS}  # alarms not confirmed (see module notes)
         self._t_last: float | None = None
         self._clear_interval()
@@ -318,7 +317,6 @@ class ChangeDetector:
         ``confirm(kind)`` is asked before a new alarm is raised (see the
         module notes, *confirm*).
         """
-        self._confirm = confirm
         alarm = None
         usable = (
             not suppressed
@@ -331,7 +329,7 @@ class ChangeDetector:
             self._clear_interval()
         else:
             if self._t_open is not None and t_s >= self._t_open + self.update_interval_s * (1.0 - 1e-6):
-                self._close_interval(self._t_last if self._t_last is not None else t_s)
+                self._close_interval(self._t_last if self._t_last is not None else t_s, confirm)
                 self._clear_interval()
             if self._t_open is None:
                 self._t_open = t_s
@@ -349,7 +347,7 @@ class ChangeDetector:
             alarm = self._pending.pop(0)
         return alarm
 
-    def _close_interval(self, t_end: float) -> None:
+    def _close_interval(self, t_end: float, confirm: Callable[[str], bool] | None) -> None:
         n, sdf, sdz, srf, srz, srpm = self._acc
         if n == 0:
             return
@@ -368,9 +366,9 @@ class ChangeDetector:
                     if self._onset[kind][side] is None:
                         self._onset[kind][side] = self._t_open if self._t_open is not None else t_end
                     self._n_since[kind][side] += 1
-            self._decide(kind, t_end, rpm)
+            self._decide(kind, t_end, rpm, confirm)
 
-    def _decide(self, kind: str, t_end: float, rpm: float) -> None:
+    def _decide(self, kind: str, t_end: float, rpm: float, confirm: Callable[[str], bool] | None) -> None:
         S = self._S[kind]
         side = 0 if S[0] >= S[1] else 1
         s = S[side]
@@ -384,7 +382,7 @@ class ChangeDetector:
             return
         if latched is not None and level <= latched.level:
             return
-        if latched is None and self._confirm is not None and not self._confirm(kind):
+        if latched is None and confirm is not None and not confirm(kind):
             self.withheld[kind] += 1
             self._restart(kind)  # the deviation is not in the data: start again from zero, still armed
             return

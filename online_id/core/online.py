@@ -205,7 +205,7 @@ class OnlineDriveline:
         """Run the due window refit (see :class:`~online_id.core.window.SlidingPem`)."""
         self.window.refit()
 
-    def verify(self, starts: list[np.ndarray] = ()) -> bool:
+    def verify(self, starts: tuple = ()) -> bool:
         """Refit the current window from several starts (see :meth:`SlidingPem.verify`)."""
         return self.window.verify(starts)
 

@@ -44,20 +44,26 @@ from online_id.core.rels import RecursiveArmax
 from online_id.errors import EstimationError
 
 
+FIT_ERRORS = (EstimationError, FloatingPointError, ValueError, np.linalg.LinAlgError)
+
+
 def fit_two_starts(y: np.ndarray, u: np.ndarray, orders: ArmaxOrders, recursive_start: bool = True,
-                   theta0: np.ndarray | None = None) -> ArmaxFit:
+                   starts: tuple = ()) -> ArmaxFit:
     """PEM fit from two starts (Hannan-Rissanen, and the recursive estimate); the lower loss wins.
 
     The prediction-error criterion of an over-parametrised ARMAX model has
     local minima: one start alone can settle where the compression oscillator
-    is missing from the model. ``theta0`` (e.g. an earlier solution) is tried
-    as a third start.
+    is missing from the model. ``starts`` (e.g. earlier solutions; None
+    entries are skipped) are tried as further starts; one that fails is
+    left out.
     """
     fits = [fit_armax(y, u, orders)]
-    if theta0 is not None:
+    for theta0 in starts:
+        if theta0 is None:
+            continue
         try:
-            fits.append(fit_armax(y, u, orders, theta0=theta0))
-        except EstimationError:
+            fits.append(fit_armax(y, u, orders, theta0=np.asarray(theta0, dtype=float)))
+        except FIT_ERRORS:
             pass
     if recursive_start:
         est = RecursiveArmax(orders, lam=1.0, p0=1e3)
@@ -68,6 +74,10 @@ def fit_two_starts(y: np.ndarray, u: np.ndarray, orders: ArmaxOrders, recursive_
             except EstimationError:
                 pass
     return min(fits, key=lambda f: f.V)
+
+
+def _finite(fit: ArmaxFit) -> bool:
+    return bool(np.all(np.isfinite(fit.theta)) and np.all(np.isfinite(fit.covariance)))
 
 
 class SlidingPem:
@@ -166,30 +176,34 @@ class SlidingPem:
                  or abs(speed_rpm - self.fit_speed_rpm) > 0.5 * self.max_span_rad_s * 30.0 / np.pi)
         try:
             if self._start is None or moved or not self.current:
-                fit = fit_two_starts(y, u, self.orders, theta0=None if moved else self._start)
+                fit = fit_two_starts(y, u, self.orders, starts=() if moved else (self._start,))
                 self.n_cold += 1
             else:
                 fit = fit_armax(y, u, self.orders, theta0=self._start, max_iter=self.warm_iterations,
                                 start_radius=0.999, tol=self.warm_tol)
-        except (EstimationError, FloatingPointError, ValueError, np.linalg.LinAlgError) as err:
+        except FIT_ERRORS as err:
             self.n_failed += 1
             self.current = False
             self.reason = f"fit failed: {err}"
             return
-        if not (np.all(np.isfinite(fit.theta)) and np.all(np.isfinite(fit.covariance))):
+        if not _finite(fit):
             self.n_failed += 1
             self.current = False
             self.reason = "fit failed: not finite"
             return
-        self.fit = fit
-        self._start = fit.theta
+        self._adopt(fit, load)
         self.fit_speed_rpm = speed_rpm
-        self.fit_load_nm = float(np.mean(load))
-        self.n_fits += 1
         self.current = True
         self.reason = ""
 
-    def verify(self, starts: list[np.ndarray] = ()) -> bool:
+    def _adopt(self, fit: ArmaxFit, load: np.ndarray) -> None:
+        """``fit`` of the window whose raw torque is ``load`` becomes the current solution."""
+        self.fit = fit
+        self._start = fit.theta
+        self.fit_load_nm = float(np.mean(load))
+        self.n_fits += 1
+
+    def verify(self, starts: tuple = ()) -> bool:
         """Refit the current window from several starts; adopt the fit of lowest loss (True if one was made).
 
         The starts: Hannan-Rissanen, the recursive estimate, the current
@@ -202,25 +216,13 @@ class SlidingPem:
         if self._count < self.n_window or not self.current:
             return False
         y, u, _n, load = self.window()
-        fits = []
         try:
-            fits.append(fit_two_starts(y, u, self.orders, theta0=self._start))
-        except (EstimationError, FloatingPointError, ValueError, np.linalg.LinAlgError):
-            pass
-        for theta in starts:
-            if theta is None or np.shape(theta) != (self.orders.n_params,):
-                continue
-            try:
-                fits.append(fit_armax(y, u, self.orders, theta0=np.asarray(theta, dtype=float)))
-            except (EstimationError, FloatingPointError, ValueError, np.linalg.LinAlgError):
-                pass
-        fits = [f for f in fits if np.all(np.isfinite(f.theta)) and np.all(np.isfinite(f.covariance))]
-        if not fits:
+            fit = fit_two_starts(y, u, self.orders, starts=(self._start, *starts))
+        except FIT_ERRORS:
             return False
-        self.fit = min(fits, key=lambda f: f.V)
-        self._start = self.fit.theta
-        self.fit_load_nm = float(np.mean(load))
-        self.n_fits += 1
+        if not _finite(fit):
+            return False
+        self._adopt(fit, load)
         self.n_cold += 1
         return True
 
