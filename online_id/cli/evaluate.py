@@ -87,11 +87,18 @@ def plot(results: list[ev.RunResult], path: Path) -> None:
     ax1.set_ylabel("detection delay [s]")
     ax1.set_title("delay from the fault to the alarm (dotted 20 s, dashed 60 s)")
     if cases:
-        ax1.legend(loc="upper right")
+        ax1.legend(loc="upper left")
     ax1.grid(alpha=0.3)
+    labelled: set[bool] = set()
     for r in results:
         if r.case == "fault-free" and r.f0_err_pct:
-            ax2.plot(np.arange(len(r.f0_err_pct)) / 60.0, r.f0_err_pct, lw=0.5, alpha=0.7)
+            gap = "backlash" in r.effects  # apparent resonance below the linear truth
+            ax2.plot(np.arange(len(r.f0_err_pct)) / 60.0, r.f0_err_pct, lw=0.5, alpha=0.7,
+                     color="tab:red" if gap else "tab:blue",
+                     label=None if gap in labelled else ("with backlash" if gap else "without backlash"))
+            labelled.add(gap)
+    if labelled:
+        ax2.legend(loc="center right")
     ax2.set_xlabel("valid estimates, one per second [min]")
     ax2.set_ylabel("f0 error [%]")
     ax2.set_title("fault-free runs: f0 error of the valid estimates")
