@@ -1,14 +1,27 @@
-"""``online-id convert IN.csv OUT.{log,asc,blf}``: a bench CSV as CAN input frames."""
+"""``online-id convert``: a bench CSV as CAN input frames, or a CAN log as a bench CSV.
+
+``IN.csv OUT.{log,asc,blf}`` encodes the samples as the DBC's input frames;
+``IN.{log,asc,blf} OUT.csv`` decodes and assembles a recording as the service
+would (see :mod:`online_id.benchlog`) and writes the default bench columns
+(``time_s, dyno_speed_rpm, engine_speed_rpm, dyno_torque_nm``, torque
+positive = braking), which every offline command reads without a config.
+"""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import sys
 from pathlib import Path
 
+import numpy as np
+
+from online_id.benchlog import is_can_log, read_bench_log
 from online_id.config import load_config
 from online_id.errors import ConfigError
 from online_id.io.canlog import SUFFIXES, write_log
 from online_id.io.dbc import default_dbc_path, encode_inputs, load_dbc
+from online_id.io.table_csv import write_csv_columns
 from online_id.records import ROLES
 from online_id.signals import read_bench_csv
 
@@ -17,15 +30,18 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     """Register the ``convert`` subcommand."""
     p = subparsers.add_parser(
         "convert",
-        help="convert a bench CSV into a CAN log of input frames",
+        help="convert a bench CSV into a CAN log of input frames, or a CAN log into a bench CSV",
         description="Encode a bench CSV (time, dyno speed, engine speed, dyno torque) into the input "
                     "frames of the DBC (DynoSpeed 0x101, EngineSpeed 0x102, DynoTorque 0x103 with "
                     "alive counters) and write a CAN log; the format follows the suffix: "
-                    f"{', '.join(SUFFIXES)}.",
+                    f"{', '.join(SUFFIXES)}. Or the other way: decode a CAN log with the config's DBC "
+                    "and mapping, assemble the samples as the service does, and write the longest "
+                    "gap-free stretch as a bench CSV (time_s, dyno_speed_rpm, engine_speed_rpm, "
+                    "dyno_torque_nm).",
     )
-    p.add_argument("path", metavar="IN.csv", help="bench CSV file")
-    p.add_argument("out", metavar="OUT.{log,asc,blf}", help="CAN log to write")
-    p.add_argument("--config", metavar="FILE", help="YAML config (CSV columns and units)")
+    p.add_argument("path", metavar="IN", help="bench CSV file, or CAN log (.log, .asc, .blf)")
+    p.add_argument("out", metavar="OUT", help="CAN log to write (from a CSV), or CSV to write (from a log)")
+    p.add_argument("--config", metavar="FILE", help="YAML config (CSV columns and units; DBC and mapping of a log)")
     p.add_argument("--dbc", metavar="FILE", help=f"DBC with the input frames (default: {default_dbc_path().name})")
     add_frame_options(p)
     p.set_defaults(func=run)
@@ -63,8 +79,38 @@ def jitter_from_args(jitter_us: float) -> float:
     return jitter_us * 1e-6
 
 
+def log_to_csv(args: argparse.Namespace) -> int:
+    """``IN.{log,asc,blf} OUT.csv``."""
+    if Path(args.out).suffix.lower() != ".csv":
+        raise ConfigError(f"{args.out}: a CAN log converts to a bench CSV; expected OUT with suffix .csv")
+    if args.decimate or args.jitter_us:
+        raise ConfigError("--decimate and --jitter-us apply to writing frames (IN.csv OUT.log), not to reading a log")
+    settings = load_config(args.config)
+    if args.dbc is not None:
+        settings = dataclasses.replace(settings, dbc=args.dbc)
+    log = read_bench_log(args.path, settings,
+                         lambda frames, t_s: print(f"\rconvert: {frames} frames, t = {t_s:.1f} s",
+                                                   end="", file=sys.stderr, flush=True))
+    d = log.data
+    rpm = 30.0 / np.pi
+    write_csv_columns(args.out, {"time_s": d.time_s, "dyno_speed_rpm": d.dyno_speed_rad_s * rpm,
+                                 "engine_speed_rpm": d.engine_speed_rad_s * rpm, "dyno_torque_nm": d.dyno_torque_nm},
+                      {"time_s": "%.6f", "dyno_speed_rpm": "%.4f", "engine_speed_rpm": "%.4f",
+                       "dyno_torque_nm": "%.4f"})
+    if log.frames >= 100_000:
+        print(file=sys.stderr)
+    note = log.note()
+    if note:
+        print(note, file=sys.stderr)
+    print(f"Wrote {len(d)} samples ({d.time_s[-1] - d.time_s[0]:.3f} s) from {log.frames} frames of {args.path} "
+          f"to {args.out}; {log.bad_frames} frames unusable, {log.unknown_frames} of other IDs.")
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the subcommand; returns the exit status."""
+    if is_can_log(args.path):
+        return log_to_csv(args)
     settings = load_config(args.config)
     decimation = decimation_from_args(args.decimate)
     jitter_s = jitter_from_args(args.jitter_us)

@@ -1,8 +1,9 @@
 """``online-id diagnose PATH``: residual diagnosis, effect tracing, error before and after.
 
-Inputs: a bench CSV (default: input = dyno torque, output = dyno speed, both
-shaft speeds for order spectra, torsion proxy = integral of dyno minus engine
-speed), a generic CSV (``--input-col U --output-col Y [--time-col T | --fs HZ]``)
+Inputs: a bench CSV or a CAN log of the bench (``.log``, ``.asc``, ``.blf``,
+decoded with the config's DBC and mapping; default: input = dyno torque,
+output = dyno speed, both shaft speeds for order spectra, torsion proxy =
+integral of dyno minus engine speed), a generic CSV (``--input-col U --output-col Y [--time-col T | --fs HZ]``)
 or a MATLAB ``.mat`` file (``--input-var U --output-var Y [--time-var T | --fs HZ]``).
 """
 
@@ -15,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from online_id.benchlog import read_bench
 from online_id.config import load_config
 from online_id.core.preprocess import check_uniform, decimate, decimation_factor
 from online_id.diagnose import DiagnoseData, Diagnosis, diagnose
@@ -22,7 +24,6 @@ from online_id.diagnose.effects import shaft_angle
 from online_id.errors import ConfigError, InputDataError
 from online_id.io.table_csv import read_csv_columns
 from online_id.report import TerminalProgress
-from online_id.signals import read_bench_csv
 
 BENCH_ORDERS = (8, 8, 8, 0)
 GENERIC_ORDERS = (2, 2, 2, 1)
@@ -35,7 +36,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
         "residual (whiteness, input correlation, spectrum, order spectra, speed, torsion, "
         "velocity sign, lag), add the most explanatory effect, refit and repeat while the "
         "held-out error improves significantly.")
-    p.add_argument("path", metavar="PATH", help="bench CSV, generic CSV, or .mat file")
+    p.add_argument("path", metavar="PATH", help="bench CSV, CAN log (.log, .asc, .blf), generic CSV, or .mat file")
     p.add_argument("--config", metavar="FILE", help="YAML config (bench columns and units)")
     p.add_argument("--json", action="store_true", help="print one JSON document")
     p.add_argument("--report", metavar="DIR", help="write summary.md, diagnosis.json and PNG plots here")
@@ -120,7 +121,7 @@ def load_data(args: argparse.Namespace) -> tuple[DiagnoseData, bool]:
     else:
         bench = True
         s = load_config(args.config)
-        d = read_bench_csv(path, s.columns, s.units)
+        d = read_bench(path, s, lambda text: print(text, file=sys.stderr))
         fs = 1.0 / float(np.mean(np.diff(d.time_s)))
         u, y = d.dyno_torque_nm, d.dyno_speed_rad_s
         names = ("dyno_torque", "dyno_speed")

@@ -7,22 +7,23 @@ import dataclasses
 import json
 import sys
 
+from online_id.benchlog import read_bench
 from online_id.config import Settings, load_config
 from online_id.core.identification import IdentificationResult, identify
 from online_id.errors import ConfigError
 from online_id.report import TerminalProgress, fmt, identification_table, plot_identification
-from online_id.signals import read_bench_csv
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "identify",
-        help="identify the driveline from a bench CSV file",
+        help="identify the driveline from a bench CSV file or a CAN log",
         description="Identify the driveline (resonance, damping, c_s, d_s, inertias) from a bench "
         "CSV with columns time_s, dyno_speed_rpm, engine_speed_rpm, dyno_torque_nm "
-        "(torque positive = braking). Prints the poles per operating point with their class.",
+        "(torque positive = braking), or from a CAN log (.log, .asc, .blf) decoded with the "
+        "config's DBC and mapping. Prints the poles per operating point with their class.",
     )
-    p.add_argument("path", metavar="PATH", help="bench CSV file")
+    p.add_argument("path", metavar="PATH", help="bench CSV file, or CAN log (.log, .asc, .blf)")
     p.add_argument("--config", metavar="FILE", help="YAML config (columns, units, inertias, identification)")
     p.add_argument("--json", action="store_true", help="print one JSON document instead of the table")
     p.add_argument("--plot", metavar="FILE.png", help="plot pole frequency and damping against engine speed")
@@ -91,8 +92,12 @@ def settings_from_args(args: argparse.Namespace) -> Settings:
     )
 
 
+def _note(text: str) -> None:
+    print(text, file=sys.stderr)
+
+
 def run_identification(path: str, s: Settings, label: str = "identify") -> IdentificationResult:
-    data = read_bench_csv(path, s.columns, s.units)
+    data = read_bench(path, s, _note)
     progress = TerminalProgress(label)
     try:
         return identify(data, s.identification, s.inertias, progress=progress)
@@ -103,7 +108,7 @@ def run_identification(path: str, s: Settings, label: str = "identify") -> Ident
 def run_recursive(args: argparse.Namespace, s: Settings) -> int:
     from online_id.pipeline import run_bench_data
 
-    data = read_bench_csv(args.path, s.columns, s.units)
+    data = read_bench(args.path, s, _note)
     progress = TerminalProgress("identify --recursive")
     try:
         pipe = run_bench_data(data, s, progress)

@@ -1,0 +1,119 @@
+"""A recorded CAN log as bench data: what ``identify``, ``diagnose`` and ``convert`` read.
+
+A bench engineer's recording is a candump ``.log``, ``.asc`` or ``.blf`` of
+the bus, not a CSV.  This decodes it with the same DBC codec and sample
+assembler as the service (the config's ``dbc``, ``mapping`` and ``input``
+sections), so the samples are those the service would have estimated from.
+
+The offline methods need one uniform grid.  A log with gaps (a role silent
+for longer than ``input.timeout_s``, a restarted recording) gives several
+stretches; the longest one is used and :class:`LogBench` says what was left
+out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from online_id.assembly import AssembledSample, SampleAssembler
+from online_id.config import Settings
+from online_id.errors import InputDataError
+from online_id.io.canlog import SUFFIXES, read_log
+from online_id.io.dbc import CommandSample, InputDecoder, load_dbc
+from online_id.records import ROLES, BenchData, FrameFault
+from online_id.runtime import role_mapping
+from online_id.signals import MIN_SAMPLES, read_bench_csv
+
+
+@dataclass
+class LogBench:
+    """The longest gap-free stretch of a CAN log, and what the rest held."""
+
+    data: BenchData
+    stretches: int  # gap-free stretches in the log
+    samples_total: int  # samples in all stretches
+    frames: int  # frames read
+    bad_frames: int  # frames of the input messages that could not be used
+    unknown_frames: int  # frames of other IDs (ignored)
+
+    def note(self) -> str | None:
+        """One line for the user when not all of the log is used, else None."""
+        if self.stretches <= 1:
+            return None
+        t = self.data.time_s
+        return (f"{self.data.source}: {self.stretches} gap-free stretches; using the longest, "
+                f"t = {t[0]:.3f}-{t[-1]:.3f} s ({len(t)} of {self.samples_total} samples)")
+
+
+def is_can_log(path: str | Path) -> bool:
+    """True when the suffix is that of a CAN log python-can reads."""
+    return Path(path).suffix.lower() in SUFFIXES
+
+
+def read_bench_log(path: str | Path, s: Settings,
+                   progress: Callable[[int, float], None] | None = None) -> LogBench:
+    """Decode and assemble a CAN log (see module notes).
+
+    ``progress(frames, t_s)`` is called every 100 000 frames.
+
+    Raises
+    ------
+    InputDataError
+        Unreadable log (names the file and line), or no stretch of at least
+        ``MIN_SAMPLES`` samples (names the file, and the input frames found).
+    """
+    path = Path(path)
+    source = s.dbc or "online_id.dbc"
+    decoder = InputDecoder(load_dbc(s.dbc), role_mapping(s.mapping), source=source)
+    assembler = SampleAssembler(s.input.sample_rate_hz, s.input.timeout_s, s.input.slow_roles)
+    stretches: list[list[AssembledSample]] = []
+    frames = bad = unknown = 0
+    for t_s, ident, data, is_ext, is_err in read_log(path):
+        frames += 1
+        if progress is not None and frames % 100_000 == 0:
+            progress(frames, t_s)
+        if is_err:
+            bad += 1
+            continue
+        res = decoder.decode(ident, data, t_s, is_ext)
+        if isinstance(res, FrameFault):
+            if res is FrameFault.UNKNOWN_ID:
+                unknown += 1
+            else:
+                bad += 1
+            continue
+        if isinstance(res, CommandSample):
+            continue
+        for sample in res:
+            for a in assembler.push(sample):
+                if a.discontinuity or not stretches:
+                    stretches.append([])
+                stretches[-1].append(a)
+    total = sum(len(x) for x in stretches)
+    best = max(stretches, key=len) if stretches else []
+    if len(best) < MIN_SAMPLES:
+        roles = ", ".join(f"{r} ({decoder.mapping.role(r).message})" for r in ROLES)
+        raise InputDataError(
+            f"{path}: only {len(best)} samples in its longest gap-free stretch ({frames} frames read, "
+            f"{unknown} of other IDs, {bad} unusable); at least {MIN_SAMPLES} are needed, with every "
+            f"role present: {roles} at {s.input.sample_rate_hz:g} Hz ({source}, config keys dbc, "
+            f"mapping, input)")
+    data = BenchData(np.array([a.t_s for a in best]), np.array([a.dyno_speed for a in best]),
+                     np.array([a.engine_speed for a in best]), np.array([a.dyno_torque for a in best]),
+                     str(path))
+    return LogBench(data, len(stretches), total, frames, bad, unknown)
+
+
+def read_bench(path: str | Path, s: Settings, notify: Callable[[str], None] | None = None) -> BenchData:
+    """A bench CSV or a CAN log (by the suffix) as bench data; ``notify`` gets the log's note."""
+    if not is_can_log(path):
+        return read_bench_csv(path, s.columns, s.units)
+    log = read_bench_log(path, s)
+    note = log.note()
+    if note and notify is not None:
+        notify(note)
+    return log.data
