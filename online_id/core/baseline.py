@@ -167,13 +167,14 @@ class Baseline:
         """Speed range of band ``i``: centred on ``i * band_rpm``."""
         return ((i - 0.5) * self.band_rpm, (i + 0.5) * self.band_rpm)
 
+    def _nearest(self, i: int, load_nm: float, within: float, min_n: int = 0) -> _Welford | None:
+        """The cell of band ``i`` with at least ``min_n`` estimates nearest ``load_nm`` within ``within``, or None."""
+        cells = [c for c in self._bands.get(i, ()) if c.n >= min_n and c.distance(load_nm) <= within]
+        return min(cells, key=lambda c: c.distance(load_nm)) if cells else None
+
     def _learning_cell(self, i: int, load_nm: float) -> _Welford | None:
         """The cell of band ``i`` an estimate at ``load_nm`` is learned into (None: a new one)."""
-        cells = self._bands.get(i, [])
-        if not cells:
-            return None
-        near = min(cells, key=lambda c: c.distance(load_nm))
-        return near if near.distance(load_nm) <= 0.5 * self.load_band_nm else None
+        return self._nearest(i, load_nm, 0.5 * self.load_band_nm)
 
     def learn(self, *, speed_rpm: float, f0_hz: float, zeta: float, load_nm: float = 0.0) -> None:
         """Add one estimate to the cell of ``speed_rpm`` and ``load_nm`` (a new cell if none is near).
@@ -221,8 +222,7 @@ class Baseline:
 
     def _ready_cell(self, i: int, load_nm: float) -> _Welford | None:
         """The learned cell of band ``i`` nearest ``load_nm`` within ``load_band_nm``, or None."""
-        cells = [c for c in self._bands.get(i, []) if c.n >= self.min_count and c.distance(load_nm) <= self.load_band_nm]
-        return min(cells, key=lambda c: c.distance(load_nm)) if cells else None
+        return self._nearest(i, load_nm, self.load_band_nm, self.min_count)
 
     def lookup(self, speed_rpm: float, load_nm: float = 0.0) -> BandStats | None:
         """Statistics to compare an estimate at ``speed_rpm`` and ``load_nm`` with, or None.
