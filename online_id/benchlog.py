@@ -19,13 +19,13 @@ from typing import Callable
 
 import numpy as np
 
-from online_id.assembly import AssembledSample, SampleAssembler
+from online_id.assembly import AssembledSample, AssemblyCounters, SampleAssembler
 from online_id.config import Settings
 from online_id.errors import InputDataError
 from online_id.io.canlog import SUFFIXES, read_log
-from online_id.io.dbc import CommandSample, InputDecoder, load_dbc
+from online_id.io.dbc import CommandSample
 from online_id.records import ROLES, BenchData, FrameFault
-from online_id.runtime import role_mapping
+from online_id.runtime import input_decoder
 from online_id.signals import MIN_SAMPLES, read_bench_csv
 
 
@@ -37,8 +37,12 @@ class LogBench:
     stretches: int  # gap-free stretches in the log
     samples_total: int  # samples in all stretches
     frames: int  # frames read
-    bad_frames: int  # frames of the input messages that could not be used
-    unknown_frames: int  # frames of other IDs (ignored)
+    counters: AssemblyCounters  # unusable frames by kind, as the service counts them
+
+    @property
+    def unknown_frames(self) -> int:
+        """Frames of IDs the mapping does not use (ignored)."""
+        return self.counters.faults[FrameFault.UNKNOWN_ID]
 
     def note(self) -> str | None:
         """One line for the user when not all of the log is used, else None."""
@@ -55,10 +59,11 @@ def is_can_log(path: str | Path) -> bool:
 
 
 def read_bench_log(path: str | Path, s: Settings,
-                   progress: Callable[[int, float], None] | None = None) -> LogBench:
+                   progress: Callable[[float, str], None] | None = None) -> LogBench:
     """Decode and assemble a CAN log (see module notes).
 
-    ``progress(frames, t_s)`` is called every 100 000 frames.
+    ``progress(0.0, message)`` (a :class:`~online_id.report.TerminalProgress`)
+    is called every 5000 frames, as ``replay`` does.
 
     Raises
     ------
@@ -67,24 +72,18 @@ def read_bench_log(path: str | Path, s: Settings,
         ``MIN_SAMPLES`` samples (names the file, and the input frames found).
     """
     path = Path(path)
-    source = s.dbc or "online_id.dbc"
-    decoder = InputDecoder(load_dbc(s.dbc), role_mapping(s.mapping), source=source)
+    decoder = input_decoder(s)
     assembler = SampleAssembler(s.input.sample_rate_hz, s.input.timeout_s, s.input.slow_roles)
+    counters = assembler.counters
     stretches: list[list[AssembledSample]] = []
-    frames = bad = unknown = 0
+    frames = 0
     for t_s, ident, data, is_ext, is_err in read_log(path):
+        if progress is not None and frames % 5000 == 0:
+            progress(0.0, f"{frames} frames, t = {t_s:.1f} s")
         frames += 1
-        if progress is not None and frames % 100_000 == 0:
-            progress(frames, t_s)
-        if is_err:
-            bad += 1
-            continue
-        res = decoder.decode(ident, data, t_s, is_ext)
+        res = FrameFault.MALFORMED if is_err else decoder.decode(ident, data, t_s, is_ext)
         if isinstance(res, FrameFault):
-            if res is FrameFault.UNKNOWN_ID:
-                unknown += 1
-            else:
-                bad += 1
+            counters.count(res)
             continue
         if isinstance(res, CommandSample):
             continue
@@ -97,15 +96,16 @@ def read_bench_log(path: str | Path, s: Settings,
     best = max(stretches, key=len) if stretches else []
     if len(best) < MIN_SAMPLES:
         roles = ", ".join(f"{r} ({decoder.mapping.role(r).message})" for r in ROLES)
+        unknown = counters.faults[FrameFault.UNKNOWN_ID]
         raise InputDataError(
             f"{path}: only {len(best)} samples in its longest gap-free stretch ({frames} frames read, "
-            f"{unknown} of other IDs, {bad} unusable); at least {MIN_SAMPLES} are needed, with every "
-            f"role present: {roles} at {s.input.sample_rate_hz:g} Hz ({source}, config keys dbc, "
-            f"mapping, input)")
+            f"{unknown} of other IDs, {counters.bad_frames} unusable); at least {MIN_SAMPLES} are needed, "
+            f"with every role present: {roles} at {s.input.sample_rate_hz:g} Hz ({decoder.source}, "
+            f"config keys dbc, mapping, input)")
     data = BenchData(np.array([a.t_s for a in best]), np.array([a.dyno_speed for a in best]),
                      np.array([a.engine_speed for a in best]), np.array([a.dyno_torque for a in best]),
                      str(path))
-    return LogBench(data, len(stretches), total, frames, bad, unknown)
+    return LogBench(data, len(stretches), total, frames, counters)
 
 
 def read_bench(path: str | Path, s: Settings, notify: Callable[[str], None] | None = None) -> BenchData:

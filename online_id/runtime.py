@@ -8,6 +8,7 @@ byte of a published frame.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 from online_id.config import MappingSettings, RoleSettings, Settings
 from online_id.io.dbc import CommandSample, CommandSignal, InputDecoder, OutputEncoder, RoleMapping, RoleSignal, load_dbc
@@ -33,6 +34,12 @@ def role_mapping(m: MappingSettings) -> RoleMapping:
                        CommandSignal(m.command_message, m.command_signal, None))
 
 
+def input_decoder(s: Settings, db: Any = None) -> InputDecoder:
+    """The input side of the codec as the config maps it (``db``: the loaded ``s.dbc``, if at hand)."""
+    return InputDecoder(db if db is not None else load_dbc(s.dbc), role_mapping(s.mapping),
+                        source=s.dbc or "online_id.dbc")
+
+
 @dataclass
 class Runtime:
     """Decoder + pipeline + encoder (see module notes)."""
@@ -44,10 +51,9 @@ class Runtime:
 
     def __post_init__(self) -> None:
         s = self.settings
-        source = s.dbc or "online_id.dbc"
         db = load_dbc(s.dbc)
-        self.decoder = InputDecoder(db, role_mapping(s.mapping), source=source)
-        self.encoder = OutputEncoder(db, source=source)
+        self.decoder = input_decoder(s, db)
+        self.encoder = OutputEncoder(db, source=self.decoder.source)
         self.pipeline = Pipeline(s)
         ids = {}
         for key, name in self.encoder.names.items():

@@ -80,7 +80,7 @@ def test_foreign_and_bad_frames_are_counted_not_fatal(tmp_path):
     log = tmp_path / "mixed.asc"
     write_log(log, frames)
     got = read_bench_log(log, Settings())
-    assert got.unknown_frames == 20 and got.bad_frames == 5
+    assert got.unknown_frames == 20 and got.counters.bad_frames == 5
     assert len(got.data) >= 790
 
 

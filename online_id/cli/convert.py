@@ -14,15 +14,15 @@ import dataclasses
 import sys
 from pathlib import Path
 
-import numpy as np
-
+from online_id.bench.simulate import RPM_PER_RAD_S, BenchRecord
 from online_id.benchlog import is_can_log, read_bench_log
+from online_id.cli.simulate import write_csv
 from online_id.config import load_config
 from online_id.errors import ConfigError
 from online_id.io.canlog import SUFFIXES, write_log
 from online_id.io.dbc import default_dbc_path, encode_inputs, load_dbc
-from online_id.io.table_csv import write_csv_columns
 from online_id.records import ROLES
+from online_id.report import TerminalProgress
 from online_id.signals import read_bench_csv
 
 
@@ -88,22 +88,19 @@ def log_to_csv(args: argparse.Namespace) -> int:
     settings = load_config(args.config)
     if args.dbc is not None:
         settings = dataclasses.replace(settings, dbc=args.dbc)
-    log = read_bench_log(args.path, settings,
-                         lambda frames, t_s: print(f"\rconvert: {frames} frames, t = {t_s:.1f} s",
-                                                   end="", file=sys.stderr, flush=True))
+    progress = TerminalProgress("convert")
+    try:
+        log = read_bench_log(args.path, settings, progress)
+    finally:
+        progress.close()
     d = log.data
-    rpm = 30.0 / np.pi
-    write_csv_columns(args.out, {"time_s": d.time_s, "dyno_speed_rpm": d.dyno_speed_rad_s * rpm,
-                                 "engine_speed_rpm": d.engine_speed_rad_s * rpm, "dyno_torque_nm": d.dyno_torque_nm},
-                      {"time_s": "%.6f", "dyno_speed_rpm": "%.4f", "engine_speed_rpm": "%.4f",
-                       "dyno_torque_nm": "%.4f"})
-    if log.frames >= 100_000:
-        print(file=sys.stderr)
+    write_csv(BenchRecord(d.time_s, d.dyno_speed_rad_s * RPM_PER_RAD_S, d.engine_speed_rad_s * RPM_PER_RAD_S,
+                          d.dyno_torque_nm), Path(args.out))
     note = log.note()
     if note:
         print(note, file=sys.stderr)
     print(f"Wrote {len(d)} samples ({d.time_s[-1] - d.time_s[0]:.3f} s) from {log.frames} frames of {args.path} "
-          f"to {args.out}; {log.bad_frames} frames unusable, {log.unknown_frames} of other IDs.")
+          f"to {args.out}; {log.counters.bad_frames} frames unusable, {log.unknown_frames} of other IDs.")
     return 0
 
 

@@ -8,11 +8,10 @@ import json
 import sys
 from pathlib import Path
 
-import numpy as np
-
 from online_id.bench.scenario import BenchScenario, load_scenario
 from online_id.bench.simulate import BenchRecord, simulate_bench
 from online_id.errors import ConfigError, OnlineIdError
+from online_id.io.table_csv import write_csv_columns
 
 CSV_FORMATS = ("%.6f", "%.4f", "%.4f", "%.4f")
 
@@ -41,9 +40,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
 def write_csv(record: BenchRecord, path: Path) -> None:
     """Write the record's columns with a header line."""
     columns = record.columns()
-    data = np.column_stack(list(columns.values()))
-    np.savetxt(path, data, fmt=list(CSV_FORMATS), delimiter=",",
-               header=",".join(columns), comments="")
+    write_csv_columns(path, columns, dict(zip(columns, CSV_FORMATS)))
 
 
 def write_can_log(record: BenchRecord, path: Path) -> int:
