@@ -30,9 +30,9 @@ import numba
 import numpy as np
 import scipy.signal as sig
 
-from online_id.core.kalman import KalmanArmax
-from online_id.core.model import ArmaxOrders
-from online_id.core.rels import RecursiveArmax
+from online_id.estimation.kalman import KalmanArmax
+from online_id.estimation.model import ArmaxOrders
+from online_id.estimation.rels import RecursiveArmax
 
 
 class NumpyRels:

@@ -18,7 +18,7 @@ from typing import Any, Literal
 
 import yaml
 
-from online_id.core.settings import IdentificationSettings, InertiaSettings
+from online_id.estimation.settings import IdentificationSettings, InertiaSettings
 from online_id.errors import ConfigError
 
 __all__ = [

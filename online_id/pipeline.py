@@ -27,15 +27,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from online_id.assembly import AssembledSample, SampleAssembler
-from online_id.bench.prbs import mls
 from online_id.config import Settings
-from online_id.core.baseline import Baseline, BandStats
-from online_id.core.detection import FREQUENCY, Alarm, ChangeDetector, correlation_for_window
-from online_id.core.model import ArmaxOrders
-from online_id.core.online import OnlineDriveline, OnlineEstimate
-from online_id.core.physical import DrivelineParameters
-from online_id.core.tracks import PoleTracker
+from online_id.monitoring.baseline import Baseline, BandStats
+from online_id.monitoring.detection import FREQUENCY, Alarm, ChangeDetector, correlation_for_window
+from online_id.estimation.model import ArmaxOrders
+from online_id.estimation.online import OnlineDriveline, OnlineEstimate
+from online_id.analysis.physical import DrivelineParameters
+from online_id.monitoring.tracks import PoleTracker
 from online_id.errors import EstimationError
+from online_id.excitation import Excitation
 from online_id.records import (
     AlertKind,
     AlertOut,
@@ -64,50 +64,6 @@ class Event:
     kind: str
     message: str = ""
     data: dict = field(default_factory=dict)
-
-
-class Excitation:
-    """The paper's discrete binary test signal as a torque-offset request."""
-
-    def __init__(self, settings: Settings) -> None:
-        e = settings.excitation
-        self.enabled = e.enabled
-        self.amplitude = min(e.amplitude_nm, e.max_amplitude_nm)
-        self.window = e.speed_window_rpm
-        seq = mls(e.n_bits)
-        hold = max(1, int(round(e.period_s * settings.input.sample_rate_hz / seq.size)))
-        self.seq = seq
-        self.hold = hold
-        self.k = 0
-        self.active = False
-        self.level = 0.0
-
-    def step(self, t_s: float, healthy: bool, speed_rpm: float) -> ExcitationOut | None:
-        """Advance one input sample; returns a request when the output changes."""
-        if not self.enabled:
-            return None
-        ok = healthy and self.window[0] <= speed_rpm <= self.window[1]
-        if not ok:
-            if self.active:
-                self.active = False
-                self.level = 0.0
-                return ExcitationOut(t_s, 0.0, False)
-            return None
-        level = self.amplitude * float(self.seq[(self.k // self.hold) % self.seq.size])
-        self.k += 1
-        if not self.active or level != self.level:
-            self.active = True
-            self.level = level
-            return ExcitationOut(t_s, level, True)
-        return None
-
-    def stop(self, t_s: float) -> ExcitationOut | None:
-        """Stop at once (fault, timeout, shutdown)."""
-        if self.active:
-            self.active = False
-            self.level = 0.0
-            return ExcitationOut(t_s, 0.0, False)
-        return None
 
 
 class Pipeline:
@@ -382,7 +338,7 @@ class Pipeline:
         """Before a new drift alarm: does a refit of the window from several starts still deviate?
 
         The starts include the solution the band's baseline was learned from
-        (see :class:`~online_id.core.detection.ChangeDetector`, *confirm*).
+        (see :class:`~online_id.monitoring.detection.ChangeDetector`, *confirm*).
         """
         ref = self._references.get(self.baseline.key(0.5 * (stats.band[0] + stats.band[1])))
         self.estimator.verify((ref,))

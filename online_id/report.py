@@ -11,9 +11,9 @@ from typing import TextIO
 
 import numpy as np
 
-from online_id.core.baseline import BandStats
-from online_id.core.identification import IdentificationResult
-from online_id.core.poles import DRIVELINE, INVARIANT, OTHER, REAL, SPEED_DEPENDENT
+from online_id.monitoring.baseline import BandStats
+from online_id.estimation.identification import IdentificationResult
+from online_id.analysis.poles import DRIVELINE, INVARIANT, OTHER, REAL, SPEED_DEPENDENT
 
 CLASS_LABEL = {
     DRIVELINE: "driveline",

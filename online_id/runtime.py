@@ -11,7 +11,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from online_id.config import MappingSettings, RoleSettings, Settings
-from online_id.io.dbc import CommandSample, CommandSignal, InputDecoder, OutputEncoder, RoleMapping, RoleSignal, load_dbc
+from online_id.io.dbc import CommandSample, CommandSignal, InputDecoder, RoleMapping, RoleSignal, load_dbc
+from online_id.io.dbc_output import OutputEncoder
 from online_id.pipeline import Pipeline
 from online_id.records import FrameFault, Publication
 

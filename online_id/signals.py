@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from online_id.config import ColumnSettings, UnitSettings
-from online_id.core.preprocess import angle_to_speed, check_uniform
+from online_id.estimation.preprocess import angle_to_speed, check_uniform
 from online_id.errors import InputDataError
 from online_id.io.table_csv import LINE_KEY, read_csv_columns
 from online_id.records import BenchData

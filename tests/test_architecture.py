@@ -1,14 +1,116 @@
-"""The numerical core stays free of I/O libraries."""
+"""The layering of the package, enforced: the numerical rooms stay free of I/O, dependencies point one way."""
 
+import ast
 import subprocess
 import sys
+from pathlib import Path
+
+PACKAGE = Path(__file__).resolve().parent.parent / "online_id"
+
+# what each room may import of the project (besides itself); imports under `if TYPE_CHECKING:` do not count
+ALLOWED = {
+    "analysis": {"errors", "records"},
+    "estimation": {"errors", "records", "analysis"},
+    "monitoring": {"errors", "records", "analysis"},
+    "excitation": {"errors", "records"},
+    "io": {"errors", "records"},
+    "assembly": {"errors", "records"},
+    "diagnose": {"errors", "records", "analysis", "estimation"},
+    "bench": {"errors", "records", "excitation", "config", "bench", "pipeline"},
+    "pipeline": {"errors", "records", "analysis", "estimation", "monitoring", "excitation", "assembly", "config"},
+}
 
 
-def test_core_does_not_import_can_or_cantools():
+def _module_name(path: Path) -> str:
+    rel = path.relative_to(PACKAGE.parent).with_suffix("")
+    parts = list(rel.parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def _imports(path: Path, top_level_only: bool) -> set[str]:
+    """Project modules imported by ``path`` (module-level only, if asked; TYPE_CHECKING blocks skipped)."""
+    tree = ast.parse(path.read_text(), str(path))
+    found: set[str] = set()
+
+    def visit(node: ast.AST, depth: int) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, ast.If) and "TYPE_CHECKING" in ast.unparse(child.test):
+                continue
+            nested = isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef))
+            if nested and top_level_only:
+                continue
+            if isinstance(child, ast.ImportFrom) and child.module and child.module.startswith("online_id"):
+                found.add(child.module)
+                for alias in child.names:
+                    found.add(f"{child.module}.{alias.name}")
+            elif isinstance(child, ast.Import):
+                found.update(a.name for a in child.names if a.name.startswith("online_id"))
+            visit(child, depth + 1)
+
+    visit(tree, 0)
+    return found
+
+
+def _modules() -> dict[str, Path]:
+    return {_module_name(p): p for p in PACKAGE.rglob("*.py")}
+
+
+def _room(module: str) -> str:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else ""
+
+
+def test_rooms_import_only_what_lies_below_them():
+    mods = _modules()
+    bad = []
+    for name, path in mods.items():
+        room = _room(name)
+        if room not in ALLOWED:
+            continue
+        for imp in _imports(path, top_level_only=False):
+            target = _room(imp)
+            if target and target != room and target not in ALLOWED[room]:
+                bad.append(f"{name} imports {imp}")
+    assert not bad, "layering broken:\n" + "\n".join(sorted(set(bad)))
+
+
+def test_no_import_cycles_between_modules():
+    mods = _modules()
+    graph = {}
+    for name, path in mods.items():
+        deps = set()
+        for imp in _imports(path, top_level_only=True):
+            while imp and imp not in mods:
+                imp = imp.rsplit(".", 1)[0] if "." in imp else ""
+            if imp and imp != name and not name.startswith(imp + ".") and not mods[imp].name == "__init__.py":
+                deps.add(imp)
+        graph[name] = deps
+    state: dict[str, int] = {}
+    cycles = []
+
+    def walk(node: str, stack: list[str]) -> None:
+        state[node] = 1
+        for dep in graph.get(node, ()):
+            if state.get(dep) == 1:
+                cycles.append(" -> ".join(stack[stack.index(dep):] + [dep]) if dep in stack else f"{node} -> {dep}")
+            elif dep not in state:
+                walk(dep, stack + [dep])
+        state[node] = 2
+
+    for n in graph:
+        if n not in state:
+            walk(n, [n])
+    assert not cycles, "import cycles:\n" + "\n".join(cycles)
+
+
+def test_numerical_rooms_do_not_load_io_libraries():
     code = (
-        "import sys, online_id.core.identification, online_id.core.rels, online_id.core.pem, "
-        "online_id.core.poles, online_id.core.kalman, online_id.bench.simulate; "
-        "bad = [m for m in ('can', 'cantools', 'matplotlib', 'online_id.config', 'online_id.io') if m in sys.modules]; "
+        "import sys, online_id.estimation.identification, online_id.estimation.online, online_id.estimation.kalman, "
+        "online_id.analysis.poles, online_id.monitoring.detection, online_id.monitoring.tracks, "
+        "online_id.monitoring.baseline, online_id.pipeline, online_id.bench.simulate; "
+        "bad = [m for m in ('can', 'cantools', 'matplotlib', 'online_id.io') if m in sys.modules]; "
         "print(','.join(bad))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

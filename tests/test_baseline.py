@@ -1,4 +1,4 @@
-"""Tests of the per speed band baseline (online_id.core.baseline)."""
+"""Tests of the per speed band baseline (online_id.monitoring.baseline)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from online_id.core.baseline import Baseline
+from online_id.monitoring.baseline import Baseline
 from online_id.errors import ConfigError, InputDataError
 
 

@@ -11,18 +11,8 @@ from crccheck.crc import Crc8SaeJ1850
 
 from online_id.errors import ConfigError, DbcError, InputDataError
 from online_id.io.crc import CHECK, crc8_j1850
-from online_id.io.dbc import (
-    OUTPUT_MESSAGES,
-    BenchCommand,
-    CommandSample,
-    InputDecoder,
-    OutputEncoder,
-    RoleMapping,
-    RoleSignal,
-    default_dbc_path,
-    encode_inputs,
-    load_dbc,
-)
+from online_id.io.dbc import BenchCommand, CommandSample, InputDecoder, RoleMapping, RoleSignal, default_dbc_path, encode_inputs, load_dbc
+from online_id.io.dbc_output import OUTPUT_MESSAGES, OutputEncoder
 from online_id.records import (
     ROLES,
     AlertKind,

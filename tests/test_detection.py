@@ -1,4 +1,4 @@
-"""Tests of the sequential change detector (online_id.core.detection)."""
+"""Tests of the sequential change detector (online_id.monitoring.detection)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.signal import lfilter
 
-from online_id.core.baseline import BandStats
-from online_id.core.detection import Alarm, ChangeDetector
+from online_id.monitoring.baseline import BandStats
+from online_id.monitoring.detection import Alarm, ChangeDetector
 from online_id.errors import ConfigError
 
 TAU_S = 5.0  # correlation time of the estimation error (10 s windows refitted every second)

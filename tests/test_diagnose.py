@@ -11,7 +11,7 @@ from online_id.bench import simulate_bench
 from online_id.bench.scenario import (Backlash, BenchScenario, Effects, OperatingPoint, SensorDelay,
                                       SinusoidalDisturbance, TorqueRipple)
 from online_id.cli import diagnose as diagnose_cli
-from online_id.core.preprocess import decimate
+from online_id.estimation.preprocess import decimate
 from online_id.diagnose import DiagnoseData, diagnose
 from online_id.diagnose.effects import shaft_angle
 from online_id.errors import InputDataError

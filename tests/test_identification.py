@@ -12,9 +12,9 @@ import pytest
 
 from online_id.bench.scenario import BenchScenario, OperatingPoint
 from online_id.bench.simulate import simulate_bench
-from online_id.core.identification import identify
-from online_id.core.poles import DRIVELINE, SPEED_DEPENDENT
-from online_id.core.settings import IdentificationSettings, InertiaSettings
+from online_id.estimation.identification import identify
+from online_id.analysis.poles import DRIVELINE, SPEED_DEPENDENT
+from online_id.estimation.settings import IdentificationSettings, InertiaSettings
 
 pytestmark = pytest.mark.slow
 

@@ -1,4 +1,4 @@
-"""Tests of the filterpy Kalman ARMAX estimator (online_id.core.kalman)."""
+"""Tests of the filterpy Kalman ARMAX estimator (online_id.estimation.kalman)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import scipy.signal as sig
 
-from online_id.core.kalman import KalmanArmax
-from online_id.core.model import ArmaxOrders
-from online_id.core.rels import RecursiveArmax, RecursiveEstimator
+from online_id.estimation.kalman import KalmanArmax
+from online_id.estimation.model import ArmaxOrders
+from online_id.estimation.rels import RecursiveArmax, RecursiveEstimator
 from online_id.errors import ConfigError
 
 

@@ -1,4 +1,4 @@
-"""Tests of the batch ARMAX estimator (online_id.core.pem)."""
+"""Tests of the batch ARMAX estimator (online_id.estimation.pem)."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.signal import lfilter
 
-from online_id.core.model import ArmaxOrders
-from online_id.core.pem import (
+from online_id.estimation.model import ArmaxOrders
+from online_id.estimation.pem import (
     ArmaxFit,
     fit_armax,
     fit_arx,
@@ -104,7 +104,7 @@ def test_predict_errors_on_truth_return_noise():
 
 
 def test_jacobian_matches_finite_differences():
-    from online_id.core.pem import _PemProblem
+    from online_id.estimation.pem import _PemProblem
 
     orders = ArmaxOrders(2, 2, 2, nk=1, offset=True)
     y, u, _, theta = simulate(13, orders, n=400, offset=0.3)

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from online_id.core.physical import fit_response, frequency_response, parameters
+from online_id.analysis.physical import fit_response, frequency_response, parameters
 
 TRUTHS = [(0.8, 0.35, 6000.0, 4.0), (1.2, 0.25, 12000.0, 9.0), (0.4, 0.3, 2500.0, 1.5)]
 

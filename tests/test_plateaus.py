@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from online_id.core.plateaus import find_plateaus, plateaus_from_times
+from online_id.analysis.plateaus import find_plateaus, plateaus_from_times
 
 
 def profile(levels, dwell_s, ramp_s, fs=200.0, noise=2.0, seed=0):

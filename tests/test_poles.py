@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from online_id.core.poles import (
+from online_id.analysis.poles import (
     DRIVELINE,
     INVARIANT,
     REAL,
@@ -96,7 +96,7 @@ def test_second_invariant_mode_is_reported_but_first_mode_is_driveline():
 
 
 def test_pole_std_matches_monte_carlo():
-    from online_id.core.poles import pole_std
+    from online_id.analysis.poles import pole_std
 
     dt = 0.002
     w = 2 * np.pi * 25.0

@@ -1,11 +1,11 @@
-"""Tests of the signal preprocessing (online_id.core.preprocess)."""
+"""Tests of the signal preprocessing (online_id.estimation.preprocess)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from online_id.core.preprocess import (
+from online_id.estimation.preprocess import (
     angle_to_speed,
     check_uniform,
     decimate,

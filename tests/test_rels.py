@@ -1,4 +1,4 @@
-"""Tests of the RELS ARMAX estimator (online_id.core.rels)."""
+"""Tests of the RELS ARMAX estimator (online_id.estimation.rels)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import scipy.signal as sig
 
-from online_id.core.model import ArmaxOrders
-from online_id.core.rels import RecursiveArmax, RecursiveEstimator
+from online_id.estimation.model import ArmaxOrders
+from online_id.estimation.rels import RecursiveArmax, RecursiveEstimator
 from online_id.errors import ConfigError, InputDataError
 
 

@@ -8,7 +8,7 @@ import pytest
 
 from online_id.cli import main
 from online_id.config import Settings
-from online_id.core.poles import Pole
+from online_id.analysis.poles import Pole
 from online_id.io.statefile import save_state
 from online_id.pipeline import Pipeline
 from online_id.records import AlertKind, AlertOut

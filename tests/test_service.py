@@ -20,7 +20,8 @@ from online_id.cli import main
 from online_id.config import BusSettings, ExcitationSettings, Settings, StateSettings
 from online_id.errors import BusError
 from online_id.io.bus import CanBus
-from online_id.io.dbc import OutputEncoder, encode_inputs, load_dbc
+from online_id.io.dbc import encode_inputs, load_dbc
+from online_id.io.dbc_output import OutputEncoder
 from online_id.records import FrameFault, ServiceState
 from online_id.runtime import Runtime
 from online_id.service import Service

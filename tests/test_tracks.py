@@ -1,4 +1,4 @@
-"""Tests of the pole tracker (online_id.core.tracks)."""
+"""Tests of the pole tracker (online_id.monitoring.tracks)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from online_id.core.poles import Pole
-from online_id.core.tracks import DRIVELINE, SPEED_DEPENDENT, PoleTracker
+from online_id.analysis.poles import Pole
+from online_id.monitoring.tracks import DRIVELINE, SPEED_DEPENDENT, PoleTracker
 from online_id.errors import ConfigError
 
 DT_MODEL = 0.005  # 200 Hz model rate

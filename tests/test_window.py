@@ -7,9 +7,9 @@ import pytest
 
 from online_id.bench.scenario import BenchScenario, Fault, OperatingPoint, PrbsSettings
 from online_id.bench.simulate import simulate_bench
-from online_id.core.model import ArmaxOrders
-from online_id.core.online import OnlineDriveline
-from online_id.core.window import SlidingPem
+from online_id.estimation.model import ArmaxOrders
+from online_id.estimation.online import OnlineDriveline
+from online_id.estimation.window import SlidingPem
 from online_id.errors import EstimationError
 
 ORDERS = ArmaxOrders(10, 10, 10, 1)

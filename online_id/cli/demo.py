@@ -21,7 +21,7 @@ from pathlib import Path
 from online_id.bench.scenario import BenchScenario
 from online_id.bench.simulate import simulate_bench
 from online_id.config import IdentificationSettings, InertiaSettings
-from online_id.core.identification import identify
+from online_id.estimation.identification import identify
 from online_id.report import TerminalProgress, identification_table, plot_identification
 
 

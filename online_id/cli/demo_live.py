@@ -16,7 +16,8 @@ from online_id.bench.simulate import simulate_bench
 from online_id.config import BusSettings, InertiaSettings, ModelSettings, Settings
 from online_id.errors import BusError, DbcError
 from online_id.io.bus import CanBus
-from online_id.io.dbc import OutputEncoder, encode_inputs, load_dbc
+from online_id.io.dbc import encode_inputs, load_dbc
+from online_id.io.dbc_output import OutputEncoder
 from online_id.records import ServiceState
 from online_id.service import Service
 

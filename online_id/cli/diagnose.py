@@ -18,7 +18,7 @@ import numpy as np
 
 from online_id.benchlog import read_bench
 from online_id.config import load_config
-from online_id.core.preprocess import check_uniform, decimate, decimation_factor
+from online_id.estimation.preprocess import check_uniform, decimate, decimation_factor
 from online_id.diagnose import DiagnoseData, Diagnosis, diagnose
 from online_id.diagnose.effects import shaft_angle
 from online_id.errors import ConfigError, InputDataError

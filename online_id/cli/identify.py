@@ -9,7 +9,7 @@ import sys
 
 from online_id.benchlog import read_bench
 from online_id.config import Settings, load_config
-from online_id.core.identification import IdentificationResult, identify
+from online_id.estimation.identification import IdentificationResult, identify
 from online_id.errors import ConfigError
 from online_id.report import TerminalProgress, fmt, identification_table, plot_identification
 

@@ -30,9 +30,9 @@ import numpy as np
 
 from online_id.cli.replay import replay
 from online_id.config import Settings, load_config
-from online_id.core.baseline import Baseline, BandStats
-from online_id.core.detection import ChangeDetector
-from online_id.core.tracks import PoleTracker
+from online_id.monitoring.baseline import Baseline, BandStats
+from online_id.monitoring.detection import ChangeDetector
+from online_id.monitoring.tracks import PoleTracker
 from online_id.errors import InputDataError, OnlineIdError
 from online_id.io.canlog import SUFFIXES as LOG_SUFFIXES
 from online_id.io.statefile import load_state

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from online_id.core.pem import fit_percent
+from online_id.estimation.pem import fit_percent
 from online_id.diagnose import effects as fx
 from online_id.diagnose.data import DiagnoseData
 from online_id.diagnose.model import AugmentedFit, Structure, fit_structure

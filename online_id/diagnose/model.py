@@ -21,7 +21,7 @@ one-step prediction error is :math:`\\varepsilon = v / C` and its gradient is
     \\partial \\varepsilon / \\partial \\eta = -\\varphi / C, \\qquad
     \\partial \\varepsilon / \\partial c_k = -\\varepsilon(t - k) / C,
 
-so prediction-error minimisation runs as in :mod:`online_id.core.pem`
+so prediction-error minimisation runs as in :mod:`online_id.estimation.pem`
 (trust-region Gauss-Newton, ``C`` kept minimum phase) starting from the
 least-squares (``C = 1``) estimate.  Columns that depend on the output
 (Coulomb friction on the output speed) use the measured output in the
@@ -37,7 +37,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.signal import lfilter, lfiltic
 
-from online_id.core.pem import reflect_unstable_roots
+from online_id.estimation.pem import reflect_unstable_roots
 from online_id.diagnose.data import DiagnoseData
 from online_id.errors import EstimationError
 

@@ -1,7 +1,7 @@
 """DBC codec: input frames -> :class:`~online_id.records.SignalSample`, publications -> frames.
 
-The default database is ``online_id/data/online_id.dbc`` (a copy of the
-repository's canonical ``dbc/online_id.dbc``).  A bench with its own DBC maps
+The default database is ``online_id/data/online_id.dbc`` (the repository's
+``dbc/online_id.dbc`` is a link to it: one file).  A bench with its own DBC maps
 its messages and signals onto the three input roles with a :class:`RoleMapping`.
 
 Every input frame given to :meth:`InputDecoder.decode` ends in exactly one of
@@ -10,7 +10,8 @@ Every input frame given to :meth:`InputDecoder.decode` ends in exactly one of
 * a :class:`CommandSample` (the ``OidCommand`` frame),
 * a :class:`~online_id.records.FrameFault` (the frame is not used).
 
-Output frames: :class:`OutputEncoder` (in :mod:`online_id.io.dbc_output`, importable from here).
+Output frames: :class:`~online_id.io.dbc_output.OutputEncoder` (that module imports this one, never
+the reverse).
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ _UNIT_ALIASES = {
 
 
 def default_dbc_path() -> Path:
-    """The DBC shipped inside the package (same bytes as the repository's ``dbc/online_id.dbc``)."""
+    """The DBC shipped inside the package (``dbc/online_id.dbc`` in the repository links to it)."""
     return Path(__file__).resolve().parent.parent / "data" / "online_id.dbc"
 
 
@@ -440,16 +441,6 @@ def encode_inputs(
             frames.append((tj, fid, bytes(encode(values, scaling=True, padding=False, strict=False))))
     frames.sort(key=lambda f: f[0])
     return frames
-
-
-def __getattr__(name: str) -> Any:
-    """``OutputEncoder`` and ``OUTPUT_MESSAGES`` live in :mod:`online_id.io.dbc_output`."""
-    if name in ("OutputEncoder", "OUTPUT_MESSAGES"):
-        from online_id.io import dbc_output
-
-        return getattr(dbc_output, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
 
 
 def encode_command(db: Any, message: str, signal: str, command: int, counter: int = 0) -> tuple[int, bytes]:

@@ -1,6 +1,4 @@
 """Output frames: publications -> ``(arbitration_id, data)`` with alive counter and CRC-8.
-
-Importable as ``online_id.io.dbc.OutputEncoder`` too.
 """
 
 from __future__ import annotations

@@ -19,7 +19,8 @@ from pathlib import Path
 from online_id.bench.scenario import BenchScenario, OperatingPoint
 from online_id.bench.simulate import simulate_bench
 from online_id.io.canlog import write_log
-from online_id.io.dbc import OutputEncoder, default_dbc_path, encode_inputs, load_dbc
+from online_id.io.dbc import default_dbc_path, encode_inputs, load_dbc
+from online_id.io.dbc_output import OutputEncoder
 
 TIMEOUT_S = 240
 CANDUMP_LINE = re.compile(r"^\((?P<t>[\d.]+)\)\s+\S+\s+(?P<id>[0-9A-Fa-f]+)#(?P<data>[0-9A-Fa-f]*)")

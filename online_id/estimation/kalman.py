@@ -1,7 +1,7 @@
 """ARMAX estimated with filterpy's Kalman filter (parameters as a random walk).
 
 The parameter vector :math:`\\theta` is the Kalman state, the regressor
-:math:`\\varphi(t)` (same layout as :class:`online_id.core.model.ArmaxOrders`,
+:math:`\\varphi(t)` (same layout as :class:`online_id.estimation.model.ArmaxOrders`,
 a posteriori residuals in the C-part) is the measurement row.
 
 Notes
@@ -24,7 +24,7 @@ filterpy's ``predict`` with fading memory :math:`\\alpha` gives
       = \\frac{P \\varphi}{\\varphi^T P \\varphi + r \\lambda}
 
 so the filter equals RELS with forgetting :math:`\\lambda`
-(:class:`online_id.core.rels.RecursiveArmax`) when ``r = 1`` and both start
+(:class:`online_id.estimation.rels.RecursiveArmax`) when ``r = 1`` and both start
 from the same ``p0``.  More generally, the parameter estimates are unchanged
 when ``r`` and ``p0`` are scaled together (``r = c``, ``p0 -> c p0``; the
 covariance is then ``c`` times the RELS one).
@@ -38,8 +38,8 @@ import math
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
-from online_id.core.model import ArmaxOrders
-from online_id.core.rels import check_block, check_lam, check_positive, check_theta0
+from online_id.estimation.model import ArmaxOrders
+from online_id.estimation.rels import check_block, check_lam, check_positive, check_theta0
 from online_id.errors import ConfigError
 
 

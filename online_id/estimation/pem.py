@@ -2,7 +2,7 @@
 
 Notes
 -----
-For the model of :mod:`online_id.core.model`, :math:`A y = B u + C e` (plus a
+For the model of :mod:`online_id.estimation.model`, :math:`A y = B u + C e` (plus a
 constant ``k`` when ``orders.offset``), the one-step prediction error is
 
 .. math::
@@ -41,7 +41,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.signal import lfilter, lfiltic
 
-from online_id.core.model import ArmaxOrders
+from online_id.estimation.model import ArmaxOrders
 from online_id.errors import EstimationError
 
 

@@ -17,10 +17,10 @@ from typing import Callable
 
 import numpy as np
 
-from online_id.core.settings import IdentificationSettings, InertiaSettings
-from online_id.core.model import ArmaxOrders
-from online_id.core.pem import ArmaxFit
-from online_id.core.physical import (
+from online_id.estimation.settings import IdentificationSettings, InertiaSettings
+from online_id.estimation.model import ArmaxOrders
+from online_id.estimation.pem import ArmaxFit
+from online_id.analysis.physical import (
     DrivelineParameters,
     ResponseFit,
     fit_response,
@@ -28,10 +28,10 @@ from online_id.core.physical import (
     parameters,
     response_grid,
 )
-from online_id.core.plateaus import Plateau, find_plateaus, plateaus_from_times
-from online_id.core.poles import DRIVELINE, Pole, PoleSorting, poles_of, sort_poles
-from online_id.core.preprocess import decimate, decimation_factor
-from online_id.core.window import fit_two_starts
+from online_id.analysis.plateaus import Plateau, find_plateaus, plateaus_from_times
+from online_id.analysis.poles import DRIVELINE, Pole, PoleSorting, poles_of, sort_poles
+from online_id.estimation.preprocess import decimate, decimation_factor
+from online_id.estimation.window import fit_two_starts
 from online_id.errors import EstimationError, InputDataError
 from online_id.records import BenchData
 

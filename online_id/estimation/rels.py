@@ -1,7 +1,7 @@
 """Recursive extended least squares (RELS / RPLR) ARMAX estimator.
 
 The model, the parameter vector :math:`\\theta` and the regressor
-:math:`\\varphi(t)` follow :class:`online_id.core.model.ArmaxOrders` exactly.
+:math:`\\varphi(t)` follow :class:`online_id.estimation.model.ArmaxOrders` exactly.
 The C-part of the regressor holds the *a posteriori* residuals
 :math:`\\varepsilon(t-k)` (pseudo-linear regression).
 
@@ -56,7 +56,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 from numba import njit
 
-from online_id.core.model import ArmaxOrders
+from online_id.estimation.model import ArmaxOrders
 from online_id.errors import ConfigError, InputDataError
 
 # Layout of the state vector: a header of scalars, then the arrays.

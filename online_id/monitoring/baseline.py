@@ -54,7 +54,7 @@ import math
 from dataclasses import dataclass
 from typing import Any, Mapping
 
-from online_id.core.checks import integer, number
+from online_id.monitoring.checks import integer, number
 from online_id.errors import ConfigError, InputDataError
 
 

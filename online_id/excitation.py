@@ -1,4 +1,8 @@
-"""Binary test signals: maximal-length sequences and the held PRBS torque.
+"""Binary test signals: maximal-length sequences, the held PRBS torque, and the service's request.
+
+Below both the simulator (:mod:`online_id.bench`) and the pipeline: the
+bench adds the PRBS to its dyno torque, the service asks the bench for it
+(:class:`Excitation`, published as ``OidExcitation``).
 
 Notes
 -----
@@ -12,9 +16,15 @@ period is :math:`h (2^n - 1)` samples, flat spectrum up to about
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from online_id.errors import ConfigError
+from online_id.records import ExcitationOut
+
+if TYPE_CHECKING:
+    from online_id.config import Settings
 
 # Feedback taps (polynomial exponents) of primitive polynomials, Fibonacci form.
 _TAPS: dict[int, tuple[int, ...]] = {
@@ -133,3 +143,47 @@ def prbs_signal(
     held = np.repeat(seq, prbs_hold_samples(fs_hz, period_s, n_bits))
     n_rep = -(-n_samples // held.size) if n_samples else 0
     return amplitude * np.tile(held, n_rep)[:n_samples]
+
+
+class Excitation:
+    """The paper's discrete binary test signal as a torque-offset request."""
+
+    def __init__(self, settings: Settings) -> None:
+        e = settings.excitation
+        self.enabled = e.enabled
+        self.amplitude = min(e.amplitude_nm, e.max_amplitude_nm)
+        self.window = e.speed_window_rpm
+        seq = mls(e.n_bits)
+        hold = max(1, int(round(e.period_s * settings.input.sample_rate_hz / seq.size)))
+        self.seq = seq
+        self.hold = hold
+        self.k = 0
+        self.active = False
+        self.level = 0.0
+
+    def step(self, t_s: float, healthy: bool, speed_rpm: float) -> ExcitationOut | None:
+        """Advance one input sample; returns a request when the output changes."""
+        if not self.enabled:
+            return None
+        ok = healthy and self.window[0] <= speed_rpm <= self.window[1]
+        if not ok:
+            if self.active:
+                self.active = False
+                self.level = 0.0
+                return ExcitationOut(t_s, 0.0, False)
+            return None
+        level = self.amplitude * float(self.seq[(self.k // self.hold) % self.seq.size])
+        self.k += 1
+        if not self.active or level != self.level:
+            self.active = True
+            self.level = level
+            return ExcitationOut(t_s, level, True)
+        return None
+
+    def stop(self, t_s: float) -> ExcitationOut | None:
+        """Stop at once (fault, timeout, shutdown)."""
+        if self.active:
+            self.active = False
+            self.level = 0.0
+            return ExcitationOut(t_s, 0.0, False)
+        return None

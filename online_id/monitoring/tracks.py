@@ -59,8 +59,8 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from online_id.core.poles import Pole
-from online_id.core.checks import integer, number
+from online_id.analysis.poles import Pole
+from online_id.monitoring.checks import integer, number
 from online_id.errors import ConfigError
 
 DRIVELINE = "driveline"

@@ -12,7 +12,7 @@ default simulated bench, where a batch fit of 20 s is within 0.05 %).
 The seed paper starts its prediction-error fit from the recursive estimate.
 :class:`SlidingPem` does the same, continuously: every ``refit_s`` seconds it
 fits the ARMAX model by prediction-error minimisation
-(:func:`~online_id.core.pem.fit_armax`) to the last ``window_s`` seconds,
+(:func:`~online_id.estimation.pem.fit_armax`) to the last ``window_s`` seconds,
 started from its previous solution (a few Gauss-Newton steps to a relative
 tolerance of 1e-3, about 15 ms for 10 s at 500 Hz). A *cold* fit -- two starts, Hannan-Rissanen and the
 recursive estimate, the lower loss wins (:func:`fit_two_starts`) -- runs
@@ -38,9 +38,9 @@ import math
 
 import numpy as np
 
-from online_id.core.model import ArmaxOrders
-from online_id.core.pem import ArmaxFit, fit_armax
-from online_id.core.rels import RecursiveArmax
+from online_id.estimation.model import ArmaxOrders
+from online_id.estimation.pem import ArmaxFit, fit_armax
+from online_id.estimation.rels import RecursiveArmax
 from online_id.errors import EstimationError
 
 
@@ -209,7 +209,7 @@ class SlidingPem:
         The starts: Hannan-Rissanen, the recursive estimate, the current
         solution and ``starts`` (e.g. the solution the baseline was learned
         with). Used before an alarm is raised (see
-        :class:`~online_id.core.detection.ChangeDetector`, *confirm*); about
+        :class:`~online_id.monitoring.detection.ChangeDetector`, *confirm*); about
         0.5 s, rare. A window that is not full, not steady or not excited is
         left as it is.
         """

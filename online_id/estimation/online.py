@@ -13,12 +13,12 @@ Per input sample (dyno speed :math:`y`, dyno torque :math:`u`, engine speed
    offsets (friction torque, set speed) vanish as in the seed paper, also
    when the operating point moves;
 3. one step of recursive extended least squares ARMAX with forgetting
-   (:class:`~online_id.core.rels.RecursiveArmax`); adaptation freezes while
+   (:class:`~online_id.estimation.rels.RecursiveArmax`); adaptation freezes while
    the exponentially weighted torque variance is below
    ``min_excitation_nm**2``;
 4. the sample enters a sliding window; every ``refit_s`` seconds the ARMAX
    model is refitted to the window by prediction-error minimisation, started
-   from the previous solution (:class:`~online_id.core.window.SlidingPem`:
+   from the previous solution (:class:`~online_id.estimation.window.SlidingPem`:
    the seed paper's recursive-start-then-PEM, run continuously). The
    recursive estimate alone wanders by about +-2 % in :math:`f_0` on a bench
    (see that module's notes); the refit is within about 0.05 %.
@@ -30,7 +30,7 @@ drops the ones on an engine order line at the current engine speed, and
 picks the driveline pair: of the pairs within 15 % of the previous pick
 (else of the lowest-frequency lightly damped pair in the band), the one
 with the largest residue in :math:`B/A`
-(:func:`~online_id.core.poles.modal_residue`). It is valid when the refit is
+(:func:`~online_id.analysis.poles.modal_residue`). It is valid when the refit is
 current (steady speed, enough torque excitation), the pole's own standard
 deviations (from the fit's covariance) are small and no second pair lies
 within 5 % of it (a split mode, seen with backlash: neither pole is the
@@ -44,18 +44,18 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import firwin
 
-from online_id.core.model import ArmaxOrders
-from online_id.core.pem import fpe_criterion
-from online_id.core.physical import (
+from online_id.estimation.model import ArmaxOrders
+from online_id.estimation.pem import fpe_criterion
+from online_id.analysis.physical import (
     DrivelineParameters,
     fit_response,
     frequency_response,
     parameters,
     response_grid,
 )
-from online_id.core.poles import Pole, modal_residue, order_of, pole_std, poles_of
-from online_id.core.rels import RecursiveArmax
-from online_id.core.window import SlidingPem
+from online_id.analysis.poles import Pole, modal_residue, order_of, pole_std, poles_of
+from online_id.estimation.rels import RecursiveArmax
+from online_id.estimation.window import SlidingPem
 from online_id.errors import EstimationError
 
 
@@ -202,7 +202,7 @@ class OnlineDriveline:
         return self.window.due
 
     def refit(self) -> None:
-        """Run the due window refit (see :class:`~online_id.core.window.SlidingPem`)."""
+        """Run the due window refit (see :class:`~online_id.estimation.window.SlidingPem`)."""
         self.window.refit()
 
     def verify(self, starts: tuple = ()) -> bool:

@@ -4,7 +4,7 @@ Notes
 -----
 Input: the driveline estimate at the publish rate (about 10 Hz), its model
 uncertainty and the learned baseline of the current speed band
-(:class:`~online_id.core.baseline.BandStats`).
+(:class:`~online_id.monitoring.baseline.BandStats`).
 
 **Normalised deviation** of each sample (frequency shown; damping alike):
 
@@ -24,7 +24,7 @@ momentarily poor estimate weighs less) and :math:`\\delta_f` =
 over hours the apparent resonance of a healthy bench also moves a little
 with things the baseline does not see (rubber couplings stiffen with
 temperature; the baselines are kept per load, see
-:mod:`~online_id.core.baseline`, but within a load cell the load still
+:mod:`~online_id.monitoring.baseline`, but within a load cell the load still
 moves a little). A CUSUM normalised by the short-term spread alone reports
 such shifts as wear. The dead band is the CUSUM's minimum shift of interest
 in physical units. The default for the frequency, 0.5 % in :math:`f_0` (1 %
@@ -125,11 +125,11 @@ from dataclasses import asdict, dataclass
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Any, Callable, Mapping
 
-from online_id.core.checks import number
+from online_id.monitoring.checks import number
 from online_id.errors import ConfigError
 
 if TYPE_CHECKING:  # pragma: no cover
-    from online_id.core.baseline import BandStats
+    from online_id.monitoring.baseline import BandStats
 
 FREQUENCY = "frequency"
 DAMPING = "damping"
