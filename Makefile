@@ -12,7 +12,8 @@ PYTEST_ARGS ?=
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test]'
+	# PYTHONWARNINGS: setuptools' notice that an editable install links to this checkout (not a packaging fault)
+	PYTHONWARNINGS=ignore $(PY) -m pip install --quiet -e '.[test]'
 	touch $(STAMP)
 
 ## Run the main job on the embedded default bench (no hardware needed).
