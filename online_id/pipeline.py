@@ -31,11 +31,13 @@ from online_id.config import Settings
 from online_id.monitoring.baseline import Baseline, BandStats
 from online_id.monitoring.detection import FREQUENCY, Alarm, ChangeDetector, correlation_for_window
 from online_id.estimation.model import ArmaxOrders
-from online_id.estimation.online import OnlineDriveline, OnlineEstimate
+from online_id.estimation.online import OnlineDriveline, OnlineEstimate, physical_parameters
+from online_id.estimation.window import solve
 from online_id.analysis.physical import DrivelineParameters
 from online_id.monitoring.tracks import PoleTracker
 from online_id.errors import EstimationError
 from online_id.excitation import Excitation
+from online_id.offload import InlineWorker
 from online_id.records import (
     AlertKind,
     AlertOut,
@@ -54,6 +56,10 @@ COMMAND_ACK = 1
 COMMAND_RELEARN = 2
 COMMAND_RESET = 3
 STATE_VERSION = 1
+WINDOW = "window"  # worker lane of the window refits and multi-start checks
+PHYSICAL = "physical"  # worker lane of the physical-parameter fit
+PENDING = None  # a multi-start check is running in the worker: decide later
+VERIFY_FRESH_S = 5.0  # a multi-start check older than this is not used for a decision
 
 
 @dataclass
@@ -69,9 +75,14 @@ class Event:
 class Pipeline:
     """The streaming pipeline (see module notes)."""
 
-    def __init__(self, settings: Settings) -> None:
+    def __init__(self, settings: Settings, worker=None) -> None:
         self.settings = settings
         s = settings
+        # slow work (window refits, multi-start checks, physical fits): at once in replay, in a worker process
+        # in the live service (see online_id.offload)
+        self.worker = worker if worker is not None else InlineWorker()
+        self._verify_results: dict = {}  # purpose -> (t_s submitted, adopted) of finished multi-start checks
+        self._verify_running: set = set()
         self.assembler = SampleAssembler(s.input.sample_rate_hz, s.input.timeout_s, s.input.slow_roles)
         self.estimator = self._new_estimator()
         self.excitation = Excitation(s)
@@ -180,6 +191,8 @@ class Pipeline:
     def _consume(self, samples: list[AssembledSample], now_s: float) -> list[Publication]:
         out: list[Publication] = []
         self.t_s = now_s
+        if self.worker.asynchronous:
+            self.worker.poll()  # adopt finished slow work before the samples use the model
         if self.assembler.timed_out:
             stop = self.excitation.stop(now_s)
             if stop:
@@ -208,23 +221,62 @@ class Pipeline:
                 if self._next_publish <= a.t_s:  # after a gap: no burst of publications
                     self._next_publish = a.t_s + 1.0 / self.settings.publish.rate_hz
                 out.extend(self._publish(a.t_s))
-            elif self.estimator.refit_due:
-                self.estimator.refit()  # the window refit (10-20 ms) never delays a publication
-            elif self._refit_pending:
-                self._refit()
+            # slow work starts on a sample that publishes nothing, so it never delays an estimate; with the
+            # process worker it runs beside the stream and is adopted when it is back (``worker.poll``)
+            elif self.estimator.refit_due and not self.worker.busy(WINDOW):
+                self._submit_refit()
+            elif self._refit_pending and not self.worker.busy(PHYSICAL):
+                self._submit_physical()
         return out
 
-    def _refit(self) -> None:
-        """Physical parameters of the latest estimate (deferred work, see ``_publish``)."""
+    def _submit_refit(self) -> None:
+        """The due window refit (10-20 ms, a cold one about 0.5 s) to the worker."""
+        estimator = self.estimator
+        job = estimator.refit_job()
+        if job is not None:
+            self.worker.submit(WINDOW, solve, (job,), lambda fit, err: estimator.complete(job, fit, err))
+
+    def _submit_physical(self) -> None:
+        """Physical parameters of the latest estimate (a least-squares fit, ~10 ms) to the worker."""
         self._refit_pending = False
         est = self._estimate
         if est is None or not est.valid:
             return
         inert = self.settings.inertias
-        try:
-            self._physical = self.estimator.physical(est, inert.J1, inert.J2, inert.J_total)
-        except (EstimationError, FloatingPointError, ValueError):
+        args = self.estimator.physical_job(est, inert.J1, inert.J2, inert.J_total)
+        if args is None:
             self._physical = None
+            return
+        self.worker.submit(PHYSICAL, physical_parameters, args, self._physical_done)
+
+    def _physical_done(self, phys: DrivelineParameters | None, error: str | None) -> None:
+        self._physical = phys if error is None else None
+
+    def _verify(self, purpose, t_s: float, starts: tuple = ()) -> bool | None:
+        """A multi-start refit of the window for ``purpose``: True/False (a fit adopted or not), or PENDING.
+
+        With the inline worker the check runs at once; with the process
+        worker the first call starts it and returns PENDING, and a later call
+        (within ``VERIFY_FRESH_S``) gets its outcome.
+        """
+        done = self._verify_results.pop(purpose, None)
+        if done is not None and 0.0 <= t_s - done[0] <= VERIFY_FRESH_S:
+            return done[1]
+        if purpose in self._verify_running or self.worker.busy(WINDOW):
+            return PENDING
+        estimator = self.estimator
+        job = estimator.verify_job(starts)
+        if job is None:
+            return False
+
+        def finished(fit, error: str | None) -> None:
+            self._verify_running.discard(purpose)
+            self._verify_results[purpose] = (t_s, estimator.complete(job, fit, error))
+
+        self._verify_running.add(purpose)
+        self.worker.submit(WINDOW, solve, (job,), finished)
+        done = self._verify_results.pop(purpose, None)
+        return PENDING if done is None else done[1]
 
     # -- outputs ---------------------------------------------------------------------------------
     def _alert(self, out: list[Publication], t_s: float, kind: AlertKind, severity: int, value_pct: float,
@@ -308,13 +360,14 @@ class Pipeline:
         if healthy and self.detector.active is None and t_s >= self._next_learn:
             self._next_learn = t_s + 1.0  # about one independent-ish estimate per second
             cell = self.baseline.cell(speed, load)
-            if cell is None and self.estimator.verify():
-                # a new cell is learned from the best of several starts, not from whichever of the nearly equal
-                # minima of a mismatched model (backlash) the warm-started refits happen to follow
+            # a new cell is learned from the best of several starts, not from whichever of the nearly equal
+            # minima of a mismatched model (backlash) the warm-started refits happen to follow
+            verified = self._verify("learn", t_s) if cell is None else False
+            if verified:
                 est = self.estimator.estimate()
                 self._estimate = est
                 load = est.load_nm
-            if ((cell is None or cell.count < d.min_count) and est.valid and math.isfinite(load)
+            if verified is not PENDING and ((cell is None or cell.count < d.min_count) and est.valid and math.isfinite(load)
                     and math.isfinite(est.f0_hz)):  # a learned cell stays fixed until re-learned
                 self.baseline.learn(speed_rpm=speed, f0_hz=est.f0_hz, zeta=est.zeta, load_nm=load)
                 solution = self.estimator.solution
@@ -334,14 +387,16 @@ class Pipeline:
             self._next_alarm_repeat = t_s + 1.0
             out.append(self._alert_out(self.detector.active, t_s))
 
-    def _confirm(self, kind: str, stats: BandStats, t_s: float) -> bool:
+    def _confirm(self, kind: str, stats: BandStats, t_s: float) -> bool | None:
         """Before a new drift alarm: does a refit of the window from several starts still deviate?
 
         The starts include the solution the band's baseline was learned from
         (see :class:`~online_id.monitoring.detection.ChangeDetector`, *confirm*).
+        None while the refit runs in the worker (the detector asks again).
         """
         ref = self._references.get(self.baseline.key(0.5 * (stats.band[0] + stats.band[1])))
-        self.estimator.verify((ref,))
+        if self._verify(("confirm", kind), t_s, (ref,)) is PENDING:
+            return None
         est = self.estimator.estimate()
         if kind == FREQUENCY:
             value, mean, width = est.f0_hz, stats.mean_f, self.detector.min_change_f

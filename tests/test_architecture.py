@@ -17,7 +17,9 @@ ALLOWED = {
     "assembly": {"errors", "records"},
     "diagnose": {"errors", "records", "analysis", "estimation"},
     "bench": {"errors", "records", "excitation", "config", "bench", "pipeline"},
-    "pipeline": {"errors", "records", "analysis", "estimation", "monitoring", "excitation", "assembly", "config"},
+    "pipeline": {"errors", "records", "analysis", "estimation", "monitoring", "excitation", "assembly", "config",
+                 "offload"},
+    "offload": set(),
 }
 
 

@@ -55,7 +55,7 @@ from online_id.analysis.physical import (
 )
 from online_id.analysis.poles import Pole, modal_residue, order_of, pole_std, poles_of
 from online_id.estimation.rels import RecursiveArmax
-from online_id.estimation.window import SlidingPem
+from online_id.estimation.window import RefitJob, SlidingPem
 from online_id.errors import EstimationError
 
 
@@ -198,15 +198,27 @@ class OnlineDriveline:
 
     @property
     def refit_due(self) -> bool:
-        """A window refit is due (only without ``auto_refit``; run it with :meth:`refit`)."""
+        """A window refit is due (only without ``auto_refit``; see :meth:`refit_job`)."""
         return self.window.due
 
     def refit(self) -> None:
-        """Run the due window refit (see :class:`~online_id.estimation.window.SlidingPem`)."""
+        """Run the due window refit here and now (see :class:`~online_id.estimation.window.SlidingPem`)."""
         self.window.refit()
 
+    def refit_job(self) -> RefitJob | None:
+        """The due window refit as a job for :func:`~online_id.estimation.window.solve` (None: nothing to fit)."""
+        return self.window.prepare()
+
+    def verify_job(self, starts: tuple = ()) -> RefitJob | None:
+        """A multi-start refit of the current window as a job (None: the window is not full or not current)."""
+        return self.window.prepare_verify(starts)
+
+    def complete(self, job: RefitJob, fit, error: str | None = None) -> bool:
+        """Adopt the result of a refit or verify job; True when a fit was adopted."""
+        return self.window.complete(job, fit, error)
+
     def verify(self, starts: tuple = ()) -> bool:
-        """Refit the current window from several starts (see :meth:`SlidingPem.verify`)."""
+        """Refit the current window from several starts, here and now (see :meth:`SlidingPem.verify`)."""
         return self.window.verify(starts)
 
     @property
@@ -306,20 +318,20 @@ class OnlineDriveline:
             self.window.fit_load_nm if source == "window" else float(self._mean[1]),
         )
 
-    def physical(self, est: OnlineEstimate, J1: float | None, J2: float | None,
-                 J_total: float | None) -> DrivelineParameters | None:
-        """Physical parameters of the current estimate (fits the anti-resonance unless J1 and J2 are given)."""
+    def physical_job(self, est: OnlineEstimate, J1: float | None, J2: float | None,
+                     J_total: float | None) -> tuple | None:
+        """Arguments of :func:`physical_parameters` for the current estimate (None without a resonance)."""
         if not np.isfinite(est.f0_hz):
             return None
-        if J1 is not None and J2 is not None:
-            return parameters(est.f0_hz, est.zeta, None, None, J1=J1, J2=J2)
         a, b = self.polynomials()[:2]
-        f = response_grid(est.f0_hz, 0.5 / self.dt, [p for p in est.poles if abs(p.f_hz - est.f0_hz) > 1e-9])
-        try:
-            fit = fit_response(f, frequency_response(b, a, f, self.dt), est.f0_hz, est.zeta)
-        except EstimationError:
-            return None
-        return parameters(est.f0_hz, est.zeta, fit.fa_hz, fit.gain, J1=J1, J2=J2, J_total=J_total)
+        others = tuple(p for p in est.poles if abs(p.f_hz - est.f0_hz) > 1e-9)
+        return (np.array(a), np.array(b), self.dt, est.f0_hz, est.zeta, others, J1, J2, J_total)
+
+    def physical(self, est: OnlineEstimate, J1: float | None, J2: float | None,
+                 J_total: float | None) -> DrivelineParameters | None:
+        """Physical parameters of the current estimate, here and now (see :func:`physical_parameters`)."""
+        job = self.physical_job(est, J1, J2, J_total)
+        return None if job is None else physical_parameters(*job)
 
     # -- persistence ----------------------------------------------------------------------------
     def get_state(self) -> dict:
@@ -346,3 +358,23 @@ class OnlineDriveline:
         self.window.load_state(state.get("window", {}))
         self.decimator.reset()
         self._mean_ready = False
+
+
+def physical_parameters(a: np.ndarray, b: np.ndarray, dt: float, f0_hz: float, zeta: float,
+                        other_poles: tuple[Pole, ...], J1: float | None, J2: float | None,
+                        J_total: float | None) -> DrivelineParameters | None:
+    """Physical parameters from the resonance and the model ``B/A`` (pure: runs in a worker process too).
+
+    With ``J1`` and ``J2`` given, only the resonance is used; otherwise the
+    anti-resonance and gain are fitted to the model's frequency response
+    around the resonance (``other_poles`` are kept off the fitted grid).
+    None when the fit fails.
+    """
+    if J1 is not None and J2 is not None:
+        return parameters(f0_hz, zeta, None, None, J1=J1, J2=J2)
+    f = response_grid(f0_hz, 0.5 / dt, list(other_poles))
+    try:
+        fit = fit_response(f, frequency_response(b, a, f, dt), f0_hz, zeta)
+    except EstimationError:
+        return None
+    return parameters(f0_hz, zeta, fit.fa_hz, fit.gain, J1=J1, J2=J2, J_total=J_total)

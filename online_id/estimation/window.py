@@ -25,16 +25,21 @@ blocks, and the RMS of the (DC-blocked) torque is at least
 ``min_excitation_nm``. Otherwise the last fit is marked stale.
 
 Refits fall due at fixed sample counts. With ``auto`` they run inside
-:meth:`SlidingPem.push`; the service pipeline instead runs a due refit on the
-next sample that publishes nothing, so a refit (10-20 ms, a cold one about
-0.5 s) never delays an estimate frame. Either way the schedule depends only
-on the samples, so a replay gives the same results as the live stream,
-whatever the machine's speed.
+:meth:`SlidingPem.push`. The pipeline instead splits a refit in three:
+:meth:`SlidingPem.prepare` checks the window and copies it into a
+:class:`RefitJob` (no fitting), :func:`solve` fits it (a pure function: the
+live service runs it in a worker process, off the receive path, see
+:mod:`online_id.offload`) and :meth:`SlidingPem.complete` adopts the result.
+A result for a window that was cleared meanwhile (a gap) is discarded. With
+the inline worker of replay the three run back to back, so the schedule
+depends only on the samples and a replay is reproducible whatever the
+machine's speed.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -80,6 +85,35 @@ def _finite(fit: ArmaxFit) -> bool:
     return bool(np.all(np.isfinite(fit.theta)) and np.all(np.isfinite(fit.covariance)))
 
 
+@dataclass(frozen=True)
+class RefitJob:
+    """A window to fit, copied out of the stream (see module notes).
+
+    ``mode``: ``"warm"`` (a few Gauss-Newton steps from ``starts[0]``),
+    ``"cold"`` (:func:`fit_two_starts` with ``starts`` as further starts) or
+    ``"verify"`` (as cold, for :meth:`SlidingPem.verify`).
+    """
+
+    y: np.ndarray
+    u: np.ndarray
+    orders: ArmaxOrders
+    mode: str
+    starts: tuple
+    load_nm: float
+    speed_rpm: float
+    generation: int
+    warm_iterations: int = 40
+    warm_tol: float = 1e-3
+
+
+def solve(job: RefitJob) -> ArmaxFit:
+    """Fit the window of ``job`` (pure: runs in the pipeline or in a worker process)."""
+    if job.mode == "warm":
+        return fit_armax(job.y, job.u, job.orders, theta0=job.starts[0], max_iter=job.warm_iterations,
+                         start_radius=0.999, tol=job.warm_tol)
+    return fit_two_starts(job.y, job.u, job.orders, starts=job.starts)
+
+
 class SlidingPem:
     """Periodic prediction-error fits over the last ``window_s`` seconds (see module notes)."""
 
@@ -110,6 +144,7 @@ class SlidingPem:
         self.n_fits = 0
         self.n_cold = 0
         self.n_failed = 0
+        self._generation = 0  # counts clear(): a job prepared before a clear is stale
 
     # -- per sample ---------------------------------------------------------------------------
     def push(self, y: float, u: float, speed_rad_s: float, load_nm: float = 0.0) -> bool:
@@ -136,16 +171,15 @@ class SlidingPem:
         return True
 
     def refit(self) -> None:
-        """Run the refit that is due (a no-op when none is)."""
-        if self.due:
-            self.due = False
-            self._refit()
+        """Run the refit that is due, here and now (a no-op when none is)."""
+        self._run(self.prepare())
 
     def clear(self) -> None:
         """Forget the window (after a gap): the next fit needs a full window of new samples."""
         self._count = 0
         self._since = 0
         self._pos = 0
+        self._generation += 1
         self.due = False
         self.current = False
         self.reason = "window filling"
@@ -155,11 +189,14 @@ class SlidingPem:
         """The window, oldest sample first: rows y, u, engine speed [rad/s], load [Nm]."""
         return np.roll(self._buf, -self._pos, axis=1)
 
-    def _refit(self) -> None:
+    def prepare(self) -> RefitJob | None:
+        """The due refit as a job (None when none is due or the window is not steady and excited)."""
+        if not self.due:
+            return None
+        self.due = False
         if self._count < self.n_window:
-            return
-        w = self.window()
-        y, u, n, load = w
+            return None
+        y, u, n, load = self.window()
         nb = self.n_window // self.n_block
         means = n[: nb * self.n_block].reshape(nb, self.n_block).mean(axis=1)
         span = float(means.max() - means.min()) if nb else 0.0
@@ -167,64 +204,84 @@ class SlidingPem:
         if span > self.max_span_rad_s:
             self.current = False
             self.reason = f"speed not steady ({span * 30 / np.pi:.0f} rpm in the window)"
-            return
+            return None
         if float(np.std(u)) < self.min_excitation_nm:
             self.current = False
             self.reason = "torque excitation too low"
-            return
+            return None
         moved = (not np.isfinite(self.fit_speed_rpm)
                  or abs(speed_rpm - self.fit_speed_rpm) > 0.5 * self.max_span_rad_s * 30.0 / np.pi)
-        try:
-            if self._start is None or moved or not self.current:
-                fit = fit_two_starts(y, u, self.orders, starts=() if moved else (self._start,))
-                self.n_cold += 1
-            else:
-                fit = fit_armax(y, u, self.orders, theta0=self._start, max_iter=self.warm_iterations,
-                                start_radius=0.999, tol=self.warm_tol)
-        except FIT_ERRORS as err:
+        if self._start is None or moved or not self.current:
+            mode, starts = "cold", (() if moved else (self._start,))
+        else:
+            mode, starts = "warm", (self._start,)
+        return RefitJob(y, u, self.orders, mode, starts, float(np.mean(load)), speed_rpm, self._generation,
+                        self.warm_iterations, self.warm_tol)
+
+    def prepare_verify(self, starts: tuple = ()) -> RefitJob | None:
+        """A multi-start refit of the current window as a job (None if the window is not full or not current)."""
+        if self._count < self.n_window or not self.current:
+            return None
+        y, u, n, load = self.window()
+        return RefitJob(y, u, self.orders, "verify", (self._start, *starts), float(np.mean(load)),
+                        float(np.mean(n)) * 30.0 / np.pi, self._generation)
+
+    def complete(self, job: RefitJob, fit: ArmaxFit | None, error: str | None = None) -> bool:
+        """Adopt the result of ``job`` (from :func:`solve`); returns True when a fit was adopted.
+
+        ``error`` is the description of a failed fit.  A job of a window that
+        was cleared since it was prepared is discarded.
+        """
+        if job.generation != self._generation:
+            return False
+        failed = error if error is not None else (None if fit is not None and _finite(fit) else "not finite")
+        if job.mode == "verify":
+            if failed is not None:
+                return False
+            self._adopt(fit, job.load_nm)
+            self.n_cold += 1
+            return True
+        if failed is not None:
             self.n_failed += 1
             self.current = False
-            self.reason = f"fit failed: {err}"
-            return
-        if not _finite(fit):
-            self.n_failed += 1
-            self.current = False
-            self.reason = "fit failed: not finite"
-            return
-        self._adopt(fit, load)
-        self.fit_speed_rpm = speed_rpm
+            self.reason = f"fit failed: {failed}"
+            return False
+        if job.mode == "cold":
+            self.n_cold += 1
+        self._adopt(fit, job.load_nm)
+        self.fit_speed_rpm = job.speed_rpm
         self.current = True
         self.reason = ""
+        return True
 
-    def _adopt(self, fit: ArmaxFit, load: np.ndarray) -> None:
-        """``fit`` of the window whose raw torque is ``load`` becomes the current solution."""
+    def _run(self, job: RefitJob | None) -> bool:
+        """Solve and complete ``job`` here and now."""
+        if job is None:
+            return False
+        try:
+            fit, error = solve(job), None
+        except FIT_ERRORS as err:
+            fit, error = None, str(err)
+        return self.complete(job, fit, error)
+
+    def _adopt(self, fit: ArmaxFit, load_nm: float) -> None:
+        """``fit`` of the window whose mean raw torque is ``load_nm`` becomes the current solution."""
         self.fit = fit
         self._start = fit.theta
-        self.fit_load_nm = float(np.mean(load))
+        self.fit_load_nm = float(load_nm)
         self.n_fits += 1
 
     def verify(self, starts: tuple = ()) -> bool:
-        """Refit the current window from several starts; adopt the fit of lowest loss (True if one was made).
+        """Refit the current window from several starts, here and now; adopt the fit of lowest loss.
 
         The starts: Hannan-Rissanen, the recursive estimate, the current
         solution and ``starts`` (e.g. the solution the baseline was learned
         with). Used before an alarm is raised (see
-        :class:`~online_id.monitoring.detection.ChangeDetector`, *confirm*); about
-        0.5 s, rare. A window that is not full, not steady or not excited is
-        left as it is.
+        :class:`~online_id.monitoring.detection.ChangeDetector`, *confirm*);
+        about 0.5 s, rare. A window that is not full, not steady or not
+        excited is left as it is. Returns True if a fit was adopted.
         """
-        if self._count < self.n_window or not self.current:
-            return False
-        y, u, _n, load = self.window()
-        try:
-            fit = fit_two_starts(y, u, self.orders, starts=(self._start, *starts))
-        except FIT_ERRORS:
-            return False
-        if not _finite(fit):
-            return False
-        self._adopt(fit, load)
-        self.n_cold += 1
-        return True
+        return self._run(self.prepare_verify(starts))
 
     # -- persistence --------------------------------------------------------------------------------
     def get_state(self) -> dict:

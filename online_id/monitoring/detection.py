@@ -307,7 +307,7 @@ class ChangeDetector:
         zeta_std: float,
         baseline: BandStats | None,
         suppressed: bool,
-        confirm: Callable[[str], bool] | None = None,
+        confirm: Callable[[str], bool | None] | None = None,
     ) -> Alarm | None:
         """One estimate in; a new or escalated alarm out (None otherwise).
 
@@ -347,7 +347,7 @@ class ChangeDetector:
             alarm = self._pending.pop(0)
         return alarm
 
-    def _close_interval(self, t_end: float, confirm: Callable[[str], bool] | None) -> None:
+    def _close_interval(self, t_end: float, confirm: Callable[[str], bool | None] | None) -> None:
         n, sdf, sdz, srf, srz, srpm = self._acc
         if n == 0:
             return
@@ -368,7 +368,7 @@ class ChangeDetector:
                     self._n_since[kind][side] += 1
             self._decide(kind, t_end, rpm, confirm)
 
-    def _decide(self, kind: str, t_end: float, rpm: float, confirm: Callable[[str], bool] | None) -> None:
+    def _decide(self, kind: str, t_end: float, rpm: float, confirm: Callable[[str], bool | None] | None) -> None:
         S = self._S[kind]
         side = 0 if S[0] >= S[1] else 1
         s = S[side]
@@ -382,10 +382,14 @@ class ChangeDetector:
             return
         if latched is not None and level <= latched.level:
             return
-        if latched is None and confirm is not None and not confirm(kind):
-            self.withheld[kind] += 1
-            self._restart(kind)  # the deviation is not in the data: start again from zero, still armed
-            return
+        if latched is None and confirm is not None:
+            verdict = confirm(kind)
+            if verdict is None:
+                return  # the check runs elsewhere (a worker): decide at the next interval
+            if not verdict:
+                self.withheld[kind] += 1
+                self._restart(kind)  # the deviation is not in the data: start again from zero, still armed
+                return
         n = max(1, min(self._n_since[kind][side], len(self._recent[kind])))
         recent = list(self._recent[kind])[-n:]
         r = sum(recent) / len(recent)

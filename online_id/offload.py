@@ -1,0 +1,203 @@
+"""Slow work off the receive path: the window refits, multi-start checks and physical fits.
+
+The pipeline hands a job (a module-level function and its arguments) to a
+*worker* and is called back with the result.  Two workers, one contract:
+
+* :class:`InlineWorker` runs the job at once, inside :meth:`submit`, and
+  calls back before returning.  Replay, the offline commands and the tests
+  use it: results depend only on the samples, never on the machine's speed.
+* :class:`ProcessWorker` runs jobs in one child process at the lowest CPU
+  priority (``SCHED_IDLE``, else ``nice 19``), so a refit never holds the
+  receive loop: on a single core the kernel runs the receive loop first
+  whenever a frame is waiting.  The pipeline calls :meth:`poll` between
+  frames; results are applied then.  The live service uses it.
+
+Bounds.  At most one job per *lane* is in flight (lanes: ``"window"`` for
+the refits and multi-start checks of the sliding window, ``"physical"`` for
+the physical-parameter fit).  While a lane is busy the pipeline does not
+submit: a refit that falls due meanwhile waits and is then run on the newest
+window; nothing queues up.  A job that raises calls back with its error; a
+child that dies (killed, out of memory) is restarted, its job calls back
+with an error, and :attr:`restarts` counts it.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+Callback = Callable[[Any, "str | None"], None]
+"""``callback(result, error)``: ``error`` is None on success, else a one-line description."""
+
+
+@dataclass
+class WorkerStats:
+    """What a worker did (reported in the service's counters)."""
+
+    submitted: dict[str, int] = field(default_factory=dict)
+    failed: dict[str, int] = field(default_factory=dict)
+    restarts: int = 0
+
+    def count(self, table: dict[str, int], lane: str) -> None:
+        table[lane] = table.get(lane, 0) + 1
+
+
+class InlineWorker:
+    """Runs every job at once (see module notes)."""
+
+    asynchronous = False
+
+    def __init__(self) -> None:
+        self.stats = WorkerStats()
+
+    def busy(self, lane: str) -> bool:
+        return False
+
+    def submit(self, lane: str, fn: Callable[..., Any], args: tuple, callback: Callback) -> None:
+        self.stats.count(self.stats.submitted, lane)
+        try:
+            result = fn(*args)
+        except Exception as err:  # noqa: BLE001 - reported to the caller, as the process worker does
+            self.stats.count(self.stats.failed, lane)
+            callback(None, f"{type(err).__name__}: {err}")
+            return
+        callback(result, None)
+
+    def poll(self) -> int:
+        return 0
+
+    def close(self) -> None:
+        pass
+
+
+def _lower_priority() -> None:
+    """This process runs only when nothing else wants the CPU (SCHED_IDLE), else at nice 19."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+        return
+    except (AttributeError, OSError, PermissionError):
+        pass
+    try:
+        os.nice(19)
+    except OSError:
+        pass
+
+
+def _serve(conn: Any) -> None:
+    """The child's loop: receive ``(job_id, fn, args)``, send ``(job_id, result, error)``."""
+    _lower_priority()
+    while True:
+        try:
+            job = conn.recv()
+        except (EOFError, OSError, KeyboardInterrupt):
+            return
+        if job is None:
+            return
+        job_id, fn, args = job
+        try:
+            reply = (job_id, fn(*args), None)
+        except Exception as err:  # noqa: BLE001 - every failure goes back to the parent
+            last = traceback.extract_tb(err.__traceback__)[-1:]
+            where = f" ({last[0].filename.rsplit('/', 1)[-1]}:{last[0].lineno})" if last else ""
+            reply = (job_id, None, f"{type(err).__name__}: {err}{where}")
+        try:
+            conn.send(reply)
+        except (OSError, EOFError, KeyboardInterrupt):
+            return
+
+
+class ProcessWorker:
+    """Runs jobs in one low-priority child process (see module notes).
+
+    The child is started with the ``spawn`` method (no copy of the parent's
+    threads or sockets) when the worker is built; it imports what the jobs
+    need on first use.
+    """
+
+    asynchronous = True
+
+    def __init__(self) -> None:
+        self.stats = WorkerStats()
+        self._ctx = mp.get_context("spawn")
+        self._next_id = 0
+        self._pending: dict[int, tuple[str, Callback]] = {}
+        self._lanes: set[str] = set()
+        self._start()
+
+    def _start(self) -> None:
+        parent, child = self._ctx.Pipe(duplex=True)
+        self._conn = parent
+        self._proc = self._ctx.Process(target=_serve, args=(child,), name="online-id-worker", daemon=True)
+        self._proc.start()
+        child.close()
+
+    def busy(self, lane: str) -> bool:
+        return lane in self._lanes
+
+    def submit(self, lane: str, fn: Callable[..., Any], args: tuple, callback: Callback) -> None:
+        if lane in self._lanes:
+            raise RuntimeError(f"ProcessWorker: lane {lane!r} is busy (check busy() before submit)")
+        self._next_id += 1
+        self.stats.count(self.stats.submitted, lane)
+        self._pending[self._next_id] = (lane, callback)
+        self._lanes.add(lane)
+        try:
+            self._conn.send((self._next_id, fn, args))
+        except (OSError, EOFError, BrokenPipeError):
+            self._restart("the worker process is gone")
+
+    def poll(self) -> int:
+        """Call back every finished job; returns how many finished."""
+        done = 0
+        try:
+            while self._pending and self._conn.poll(0):
+                job_id, result, error = self._conn.recv()
+                done += self._finish(job_id, result, error)
+        except (OSError, EOFError):
+            self._restart("the worker process ended")
+            return done
+        if self._pending and not self._proc.is_alive():
+            self._restart(f"the worker process died (exit code {self._proc.exitcode})")
+        return done
+
+    def _finish(self, job_id: int, result: Any, error: str | None) -> int:
+        entry = self._pending.pop(job_id, None)
+        if entry is None:
+            return 0
+        lane, callback = entry
+        self._lanes.discard(lane)
+        if error is not None:
+            self.stats.count(self.stats.failed, lane)
+        callback(result, error)
+        return 1
+
+    def _restart(self, why: str) -> None:
+        self.stats.restarts += 1
+        pending, self._pending = self._pending, {}
+        self._lanes.clear()
+        self._close_child(wait_s=0.1)
+        self._start()
+        for lane, callback in pending.values():
+            self.stats.count(self.stats.failed, lane)
+            callback(None, f"{why}; restarted it")
+
+    def _close_child(self, wait_s: float) -> None:
+        try:
+            self._conn.send(None)
+        except (OSError, EOFError, BrokenPipeError):
+            pass
+        self._proc.join(wait_s)
+        if self._proc.is_alive():
+            self._proc.kill()
+            self._proc.join(1.0)
+        self._conn.close()
+
+    def close(self) -> None:
+        """Stop the child (a job in flight is abandoned)."""
+        self._pending.clear()
+        self._lanes.clear()
+        self._close_child(wait_s=2.0)
