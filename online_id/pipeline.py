@@ -112,6 +112,7 @@ class Pipeline:
         self.alerts: list[AlertOut] = []
         self.alerts_total = 0  # alerts raised since start (the list keeps the last MAX_EVENTS)
         self.commands = 0
+        self.dropped_frames = 0  # frames the kernel dropped (full receive buffer), reported by the service
 
     def _new_estimator(self) -> OnlineDriveline:
         m = self.settings.model
@@ -131,6 +132,20 @@ class Pipeline:
             auto_refit=False,  # run by _consume on a sample that publishes nothing
         )
 
+    def warm_up(self) -> None:
+        """Load the compiled code (numba) and the estimator's code paths before the first frame.
+
+        A scratch estimator of the same orders runs a few seconds of noise and
+        one estimate; the live service calls this before it opens the bus, so
+        the first frames do not wait for compilation or cache loading.
+        """
+        scratch = self._new_estimator()
+        rng = np.random.default_rng(0)
+        n = int(2.0 * self.settings.input.sample_rate_hz)
+        for y, u in zip(100.0 + rng.standard_normal(n), rng.standard_normal(n)):
+            scratch.update(float(y), 150.0, float(u))
+        scratch.estimate()
+
     @property
     def last_estimate(self) -> OnlineEstimate | None:
         """The estimate of the latest publication (None before the first)."""
@@ -145,6 +160,11 @@ class Pipeline:
     def estimate(self) -> OnlineEstimate | None:
         """The estimate of the last publication (None before the first)."""
         return self._estimate
+
+    def on_dropped(self, n: int) -> None:
+        """``n`` frames the kernel dropped before they reached us (receive buffer full)."""
+        self.dropped_frames += n
+        self.events.append(Event(self.t_s, "dropped", f"{n} frames dropped by the kernel", {"n": n}))
 
     def on_fault(self, fault: FrameFault) -> None:
         """A frame that could not be used (counted, reported in the status frame)."""
@@ -228,6 +248,10 @@ class Pipeline:
             elif self._refit_pending and not self.worker.busy(PHYSICAL):
                 self._submit_physical()
         return out
+
+    def poll_worker(self) -> int:
+        """Adopt the results of finished slow work (also done before every sample)."""
+        return self.worker.poll()
 
     def _submit_refit(self) -> None:
         """The due window refit (10-20 ms, a cold one about 0.5 s) to the worker."""
@@ -419,7 +443,7 @@ class Pipeline:
 
     def status(self, t_s: float) -> StatusOut:
         c = self.counters
-        return StatusOut(t_s, self.state, c.bad_frames, c.missing_frames)
+        return StatusOut(t_s, self.state, c.bad_frames, c.missing_frames + self.dropped_frames)
 
     # -- results ---------------------------------------------------------------------------------
     def result(self) -> dict:
@@ -463,6 +487,7 @@ class Pipeline:
             "counters": {
                 "samples": c.samples, "gaps": c.gaps, "timeouts": c.timeouts,
                 "bad_frames": c.bad_frames, "missing_frames": c.missing_frames,
+                "dropped_frames": self.dropped_frames,
                 **{f"frames_{k.name.lower()}": v for k, v in c.faults.items()},
             },
         }

@@ -46,6 +46,7 @@ class Runtime:
     """Decoder + pipeline + encoder (see module notes)."""
 
     settings: Settings
+    worker: Any = None  # where slow work runs (see online_id.offload); None: inline
     pipeline: Pipeline = field(init=False)
     decoder: InputDecoder = field(init=False)
     encoder: OutputEncoder = field(init=False)
@@ -55,7 +56,7 @@ class Runtime:
         db = load_dbc(s.dbc)
         self.decoder = input_decoder(s, db)
         self.encoder = OutputEncoder(db, source=self.decoder.source)
-        self.pipeline = Pipeline(s)
+        self.pipeline = Pipeline(s, worker=self.worker)
         ids = {}
         for key, name in self.encoder.names.items():
             if name in s.publish.frame_ids:
@@ -89,6 +90,11 @@ class Runtime:
         for sample in res:
             pubs.extend(self.pipeline.on_signal(sample))
         return self.frames(pubs) if pubs else []
+
+    def tick_worker(self) -> list[OutFrame]:
+        """No stream clock yet: only adopt finished slow work."""
+        self.pipeline.poll_worker()
+        return []
 
     def tick(self, now_s: float) -> list[OutFrame]:
         """The stream clock moved without a frame."""

@@ -6,9 +6,20 @@ send what it publishes, and between frames advance the stream clock so that
 silence is detected.  SIGTERM and SIGINT end the loop cleanly: the excitation
 request is withdrawn, the state is saved, the bus closed, exit status 0.
 
+Nothing slow runs in the receive loop: the window refits, multi-start
+checks and physical fits go to a worker process at the lowest CPU priority
+(:class:`~online_id.offload.ProcessWorker`) and are adopted between frames,
+so a refit never stops the loop from reading the socket. The kernel's count
+of frames dropped on a full receive buffer is read once a second, counted
+(``MissingFrames`` in the status frame, ``dropped_frames`` in the counters)
+and logged.
+
 A bus that fails is reopened with exponential back-off (0.1 s doubling to
 5 s); if it stays down for longer than ``bus.reopen_max_s`` the process ends
-with status 1, so that systemd restarts it (``Restart=on-failure``).
+with status 1, so that systemd restarts it (``Restart=on-failure``). A bus
+that cannot open for a reason retrying cannot heal (no CAN in the kernel, an
+unknown interface, a missing package) ends the process at once with status
+2 and a one-line error saying what to fix (``RestartPreventExitStatus=2``).
 
 The watchdog (``WatchdogSec=`` in the unit) is pinged only while the loop
 runs and input frames flow; status text goes to systemd (``STATUS=``) and
@@ -32,10 +43,14 @@ from online_id.io.bus import CanBus
 from online_id.io.statefile import load_state, save_state
 from online_id.io.journal import Journal
 from online_id.io.systemd import Notifier
+from online_id.offload import ProcessWorker
 from online_id.records import AlertKind, AlertOut, FrameFault
 from online_id.runtime import Runtime
 
 STATE_FILE = "online-id-state.json"
+RECV_TIMEOUT_S = 0.05  # the loop wakes at least this often on a silent bus (timeouts, worker results)
+CHORES_S = 0.02  # state report, drop count, watchdog and save: checked at most this often
+DRAIN_MAX_S = 5.0  # on stop, frames already in the kernel's receive buffer are processed for at most this long
 
 
 def state_path(settings: Settings) -> Path | None:
@@ -48,10 +63,12 @@ class Service:
     """The live service around a :class:`Runtime` (see module notes)."""
 
     def __init__(self, settings: Settings, log: TextIO | None = None,
-                 bus_factory: Callable[[], CanBus] | None = None, clock: Callable[[], float] = time.monotonic) -> None:
+                 bus_factory: Callable[[], CanBus] | None = None, clock: Callable[[], float] = time.monotonic,
+                 worker=None) -> None:
         self.settings = settings
         self.log = log or sys.stderr
-        self.runtime = Runtime(settings)
+        # the slow work in a low-priority child process (tests may pass an InlineWorker for determinism)
+        self.runtime = Runtime(settings, worker=worker if worker is not None else ProcessWorker())
         self.notifier = Notifier()
         self.journal = Journal()
         self._hooks: list = []
@@ -65,6 +82,7 @@ class Service:
         self._last_state = None
         self._restore()
         self._n_alerts = self.runtime.pipeline.alerts_total
+        self.runtime.pipeline.warm_up()  # compiled code loaded before the bus opens, not on the first frames
 
     # -- state ---------------------------------------------------------------------------------------
     def say(self, text: str) -> None:
@@ -93,14 +111,20 @@ class Service:
     def request_stop(self, *_args) -> None:
         self.stop_requested = True
 
-    def _open(self) -> CanBus:
+    def _open(self, deadline: float | None = None) -> CanBus:
+        """Open the bus, retrying with back-off while it may come up (see module notes)."""
         delay, down_since = 0.1, self.clock()
         while True:
             try:
                 return self.bus_factory()
             except BusError as err:
+                if getattr(err, "permanent", False):
+                    raise
                 if self.clock() - down_since > self.settings.bus.reopen_max_s:
-                    raise BusError(f"{err}; gave up after {self.settings.bus.reopen_max_s:g} s") from err
+                    raise BusError(f"{err}; gave up after {self.settings.bus.reopen_max_s:g} s "
+                                   f"(bus.reopen_max_s)") from err
+                if deadline is not None and time.monotonic() + delay > deadline:
+                    raise BusError(f"{err}; stopped retrying at the time limit") from err
                 self.say(f"{err}; retrying in {delay:.1f} s")
                 self.notifier.status(f"bus down: {err}")
                 end = time.monotonic() + delay
@@ -165,48 +189,82 @@ class Service:
             self.say(f"state {text}")
             self.notifier.status(text)
 
+    def _check_drops(self, bus: CanBus) -> None:
+        """Add the kernel's new drops (full receive buffer) to the counters, and say so."""
+        total = bus.dropped()
+        if total is None:
+            return
+        if self._drops_base is None or total < self._drops_base:
+            self._drops_base = total  # a new socket: count from here
+            return
+        new = total - self._drops_base
+        self._drops_base = total
+        if new > 0:
+            self.runtime.pipeline.on_dropped(new)
+            self.say(f"the kernel dropped {new} frames (receive buffer full; "
+                     f"{self.runtime.pipeline.dropped_frames} since start)")
+
     def run(self, max_s: float | None = None) -> int:
         """The receive loop; returns the exit status."""
         s = self.settings
+        t_start = time.monotonic()
+        self._drops_base: int | None = None
         try:
-            bus = self._open()
+            bus = self._open(None if max_s is None else t_start + max_s)
         except BusError as err:
             self.say(f"bus down: {err}")
-            return 1
+            self.runtime.pipeline.worker.close()
+            return 2 if getattr(err, "permanent", False) else 1
         rcvbuf = getattr(bus, "receive_buffer_bytes", None)
         self.say(f"listening on {s.bus.interface}:{s.bus.channel}"
                  + (f" (kernel receive buffer {rcvbuf} bytes)" if rcvbuf else ""))
         self.notifier.ready(f"listening on {s.bus.interface}:{s.bus.channel}")
-        t_start = time.monotonic()
+        next_drops = time.monotonic() + 1.0
         next_save = time.monotonic() + s.state.save_interval_s
         next_ping = 0.0
         ping_every = (self.notifier.watchdog_s or 10.0) / 3
+        draining_until = None
+        next_chores = 0.0
+        runtime, monotonic = self.runtime, time.monotonic
         try:
-            while not self.stop_requested:
-                if max_s is not None and time.monotonic() - t_start > max_s:
-                    break
+            while True:
+                # the hot path: one frame in, its outputs out; everything else at most every CHORES_S
                 try:
-                    frame = bus.recv(0.05)
-                    if frame is None:
+                    frame = bus.recv(RECV_TIMEOUT_S if draining_until is None else 0.0)
+                    now = monotonic()
+                    if frame is not None:
+                        self.last_frame_wall = now
+                        self.last_frame_ts = frame.t_s
+                        out = runtime.on_frame(frame.t_s, frame.arbitration_id, frame.data, frame.is_extended,
+                                               frame.is_error)
+                    elif draining_until is not None:
+                        break
+                    elif self.last_frame_ts is not None:
                         # the stream's clock: the last frame's timestamp plus the wall time since it came
                         # (frame timestamps may be kernel time, a replayed log's or a simulator's)
-                        if self.last_frame_ts is not None:
-                            out = self.runtime.tick(self.last_frame_ts + time.monotonic() - self.last_frame_wall)
-                        else:
-                            out = []
+                        out = runtime.tick(self.last_frame_ts + now - self.last_frame_wall)
                     else:
-                        self.last_frame_wall = time.monotonic()
-                        self.last_frame_ts = frame.t_s
-                        out = self.runtime.on_frame(frame.t_s, frame.arbitration_id, frame.data,
-                                                    frame.is_extended, frame.is_error)
+                        out = runtime.tick_worker()
                     for ident, data in out:
                         bus.send(ident, data)
                 except BusError as err:
                     self.say(f"bus failed: {err}; reopening")
                     bus.close()
-                    bus = self._open()
+                    self._drops_base = None
+                    bus = self._open(None if max_s is None else t_start + max_s)
                     continue
-                now = time.monotonic()
+                if now < next_chores:
+                    continue
+                next_chores = now + CHORES_S
+                if draining_until is None and (self.stop_requested or (max_s is not None and now - t_start > max_s)):
+                    # stop: first take what the kernel already holds for us (bounded), then end
+                    draining_until = now + DRAIN_MAX_S
+                elif draining_until is not None and now > draining_until:
+                    self.say(f"stopped draining the receive buffer after {DRAIN_MAX_S:g} s")
+                    break
+                if now >= next_drops:
+                    self._check_drops(bus)
+                    next_drops = now + 1.0
                 self._report_state()
                 flowing = now - self.last_frame_wall < s.input.timeout_s
                 if flowing and now >= next_ping:
@@ -218,8 +276,9 @@ class Service:
         except BusError as err:
             self.say(f"bus down: {err}")
             self.save()
-            return 1
+            return 2 if getattr(err, "permanent", False) else 1
         finally:
+            self._check_drops(bus)
             stop = self.runtime.pipeline.excitation.stop(self.runtime.pipeline.t_s)
             if stop is not None:
                 try:
@@ -229,10 +288,12 @@ class Service:
                     pass
             self.notifier.stopping()
             bus.close()
+            self.runtime.pipeline.worker.close()
         self.save()
         c = self.runtime.pipeline.counters
         self.say(f"stopped: {self.runtime.frames_in} frames in, {self.runtime.frames_out} frames out, "
                  f"{c.samples} samples, {c.bad_frames} bad frames, {c.missing_frames} missing frames, "
+                 f"{self.runtime.pipeline.dropped_frames} dropped by the kernel, "
                  f"{c.faults[FrameFault.UNKNOWN_ID]} foreign frames, state {self.runtime.pipeline.state.name}")
         return 0
 

@@ -1,32 +1,94 @@
-"""The CAN bus adapter: python-can behind one small interface, errors wrapped."""
+"""The CAN bus adapter: python-can behind one small interface, errors wrapped.
+
+Two things python-can does not give, added here for kernel sockets
+(SocketCAN, and the ``udp_multicast`` interface used to test between
+processes):
+
+* a receive buffer large enough for a second of traffic (``SO_RCVBUF``,
+  or ``SO_RCVBUFFORCE`` as root), so a short stall of the process loses
+  nothing;
+* the kernel's count of frames dropped because that buffer was full
+  (``SO_MEMINFO``: the socket's ``sk_drops``, the counter that SocketCAN's
+  ``SO_RXQ_OVFL`` reports per frame), read with :meth:`CanBus.dropped`.
+
+An open that fails is classified: :class:`BusError` with ``permanent``
+set means retrying cannot help (no CAN in the kernel, an interface python-can
+does not know, a missing optional package); otherwise the bus may come up
+later (an adapter unplugged, ``can0`` down) and the service retries.
+"""
 
 from __future__ import annotations
 
+import errno
 import socket
-from dataclasses import dataclass
+import struct
 
 import can
 
 from online_id.errors import BusError
 
 
-@dataclass(frozen=True)
 class Frame:
-    """A received or sent CAN frame (python-can's Message, reduced to what we use)."""
+    """A received or sent CAN frame (python-can's Message, reduced to what we use).
 
-    t_s: float
-    arbitration_id: int
-    data: bytes
-    is_extended: bool = False
-    is_error: bool = False
-    is_remote: bool = False
+    A plain class with slots, not a dataclass: one is made per received frame.
+    """
+
+    __slots__ = ("t_s", "arbitration_id", "data", "is_extended", "is_error", "is_remote")
+
+    def __init__(self, t_s: float, arbitration_id: int, data: bytes, is_extended: bool = False,
+                 is_error: bool = False, is_remote: bool = False) -> None:
+        self.t_s = t_s
+        self.arbitration_id = arbitration_id
+        self.data = data
+        self.is_extended = is_extended
+        self.is_error = is_error
+        self.is_remote = is_remote
+
+    def __repr__(self) -> str:
+        return f"Frame(t_s={self.t_s!r}, arbitration_id=0x{self.arbitration_id:X}, data={self.data.hex()})"
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Frame) and all(getattr(self, k) == getattr(other, k) for k in self.__slots__)
+
+
+SO_MEMINFO = getattr(socket, "SO_MEMINFO", 55)  # Linux >= 4.13; Python does not name it
+SK_MEMINFO_DROPS = 8  # index of sk_drops in the u32 array SO_MEMINFO returns
+_PERMANENT_ERRNOS = {errno.EAFNOSUPPORT, errno.EPROTONOSUPPORT, errno.ESOCKTNOSUPPORT, errno.EACCES, errno.EPERM}
+
+
+def _open_error(interface: str, channel: str, err: BaseException) -> BusError:
+    """A one-line BusError for a failed open, with ``permanent`` set when retrying cannot help, and the fix."""
+    text = f"cannot open CAN bus {interface}:{channel}: {err}"
+    permanent, hint = False, ""
+    if isinstance(err, (ImportError, NotImplementedError)):
+        permanent = True
+        if "msgpack" in str(err):
+            hint = "install the Python package msgpack (pip install msgpack), which this interface needs"
+        else:
+            hint = f"check bus.interface (python-can interfaces: {', '.join(sorted(can.VALID_INTERFACES))})"
+    elif isinstance(err, ValueError):
+        permanent, hint = True, "check bus.channel and bus.bitrate"
+    elif isinstance(err, OSError) and err.errno in _PERMANENT_ERRNOS:
+        permanent = True
+        hint = ("this kernel has no SocketCAN (AF_CAN): load the can and can-raw modules "
+                "(modprobe can-raw), or use another interface" if err.errno == errno.EAFNOSUPPORT
+                else "the process may not open this interface: check its permissions")
+    error = BusError(f"{text}; {hint}" if hint else text)
+    error.permanent = permanent
+    return error
 
 
 class CanBus:
-    """A python-can bus opened with ``ignore_config=True`` (no ~/can.conf, no CAN_* variables)."""
+    """A python-can bus opened with ``ignore_config=True`` (no ~/can.conf, no CAN_* variables).
+
+    ``receive_buffer_bytes``: the kernel receive buffer asked for on socket
+    interfaces (8 MiB, which the kernel doubles: about two seconds of a full
+    1 Mbit/s bus at ~1 KiB of kernel memory per frame).
+    """
 
     def __init__(self, interface: str, channel: str, bitrate: int | None = None,
-                 receive_own_messages: bool = False, receive_buffer_bytes: int = 4 << 20, **kwargs) -> None:
+                 receive_own_messages: bool = False, receive_buffer_bytes: int = 8 << 20, **kwargs) -> None:
         self.interface = interface
         self.channel = channel
         opts = dict(kwargs)
@@ -36,8 +98,36 @@ class CanBus:
             self._bus = can.Bus(interface=interface, channel=channel, ignore_config=True,
                                 receive_own_messages=receive_own_messages, **opts)
         except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as err:
-            raise BusError(f"cannot open CAN bus {interface}:{channel}: {err}") from err
+            raise _open_error(interface, channel, err) from err
         self.receive_buffer_bytes = self._grow_receive_buffer(receive_buffer_bytes)
+        self._recv = getattr(self._bus, "_recv_internal", None) or self._recv_generic
+
+    def _recv_generic(self, timeout: float):
+        return self._bus.recv(timeout), False
+
+    def _socket(self) -> socket.socket | None:
+        """The kernel socket under python-can's bus (SocketCAN, udp_multicast), else None."""
+        sock = getattr(self._bus, "socket", None)
+        if sock is None:
+            sock = getattr(getattr(self._bus, "_multicast", None), "_socket", None)
+        return sock if isinstance(sock, socket.socket) else None
+
+    def dropped(self) -> int | None:
+        """Frames the kernel dropped since the socket opened because its receive buffer was full.
+
+        None where there is no kernel socket (python-can's ``virtual`` bus,
+        whose queue is unbounded) or the kernel cannot tell.
+        """
+        sock = self._socket()
+        if sock is None:
+            return None
+        try:
+            raw = sock.getsockopt(socket.SOL_SOCKET, SO_MEMINFO, 4 * (SK_MEMINFO_DROPS + 1))
+        except OSError:
+            return None
+        if len(raw) < 4 * (SK_MEMINFO_DROPS + 1):
+            return None
+        return int(struct.unpack_from(f"{SK_MEMINFO_DROPS + 1}I", raw)[SK_MEMINFO_DROPS])
 
     def _grow_receive_buffer(self, size: int) -> int | None:
         """Ask for a large kernel receive buffer on SocketCAN, so a short stall loses no frames.
@@ -46,7 +136,7 @@ class CanBus:
         ``net.core.rmem_max`` (raise that sysctl on a busy bench).  Returns the
         size the kernel granted, or None for interfaces without a socket.
         """
-        sock = getattr(self._bus, "socket", None)
+        sock = self._socket()
         if sock is None or not size:
             return None
         for option in (getattr(socket, "SO_RCVBUFFORCE", None), socket.SO_RCVBUF):
@@ -63,9 +153,15 @@ class CanBus:
             return None
 
     def recv(self, timeout: float) -> Frame | None:
-        """The next frame, or None after ``timeout`` seconds."""
+        """The next frame, or None after ``timeout`` seconds.
+
+        Calls the backend's ``_recv_internal`` (the one method every
+        python-can backend implements) rather than ``BusABC.recv``: this bus
+        sets no filters, and the generic wrapper's bookkeeping and debug
+        logging cost about a tenth of the service's time per frame.
+        """
         try:
-            msg = self._bus.recv(timeout)
+            msg, _filtered = self._recv(timeout)
         except (can.CanError, OSError, ValueError) as err:
             raise BusError(f"CAN bus {self.interface}:{self.channel}: receive failed: {err}") from err
         if msg is None:

@@ -1,0 +1,6 @@
+"""The live tier imports its harness as a plain module."""
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).parent))

@@ -1,0 +1,144 @@
+"""Run ``online-id run`` as its own process on a kernel socket bus and feed it a bench from another process.
+
+Shared by the live test tier (``tests/live``) and the live benchmark
+(``benchmarks/bench_live.py``).  The bus is python-can's ``udp_multicast``
+interface: kernel UDP sockets with a finite receive buffer between
+processes, which loses frames the way SocketCAN does when a reader falls
+behind (and reports them the same way, see :meth:`online_id.io.bus.CanBus.dropped`).
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from online_id.io.bus import CanBus
+from online_id.io.dbc import load_dbc
+from online_id.io.dbc_output import OutputEncoder
+
+STOPPED = re.compile(r"stopped: (?P<frames_in>\d+) frames in, (?P<frames_out>\d+) frames out, (?P<samples>\d+) samples, "
+                     r"(?P<bad>\d+) bad frames, (?P<missing>\d+) missing frames, (?P<dropped>\d+) dropped by the kernel")
+
+
+def _send(group: str, frames: list, speed: float, marks: list[int], out) -> None:
+    """The bench: a separate process sending at ``speed`` x real time; reports the send times of ``marks``."""
+    from online_id.io.player import send_paced
+
+    wanted = set(marks)
+    stamps: dict[int, float] = {}
+
+    def on_sent(i: int, t: float) -> None:
+        if i in wanted:
+            stamps[i] = t
+
+    bus = CanBus("udp_multicast", group)
+    try:
+        out.put(("start", time.time(), time.perf_counter()))
+        sent = send_paced(bus, frames, speed=speed, on_sent=on_sent)
+        out.put(("done", sent, stamps))
+    finally:
+        bus.close()
+
+
+@dataclass
+class LiveRun:
+    """What one run of the service as a process showed."""
+
+    returncode: int
+    log: list[str]
+    counts: dict[str, int]
+    t_bench0: float  # time.time() when the sender started
+    estimates: list[tuple[float, float, dict]] = field(default_factory=list)  # (time.time, perf_counter, signals)
+    send_stamps: dict[int, float] = field(default_factory=dict)  # frame index -> sender's perf_counter
+    sent: int = 0
+    cpu_s: float = float("nan")  # CPU time of the service's receive process (its worker excluded)
+
+    @property
+    def text(self) -> str:
+        return "\n".join(self.log)
+
+
+def run_live(frames: list, config_text: str, workdir: Path, group: str, speed: float = 1.0,
+             marks: list[int] = (), cpu: int | None = None, start_timeout_s: float = 120.0) -> LiveRun:
+    """Start the service with ``config_text`` (its bus set to ``group``), send ``frames``, stop it, collect.
+
+    ``cpu``: pin the service (and its worker) to this core.  The service is
+    stopped with SIGTERM after the sender ends; it first takes what its
+    socket still holds.
+    """
+    workdir.mkdir(parents=True, exist_ok=True)
+    config = workdir / "config.yaml"
+    config.write_text(f"bus: {{interface: udp_multicast, channel: '{group}'}}\n" + config_text)
+    argv = [sys.executable, "-m", "online_id", "run", "--config", str(config), "--max-seconds", "3600"]
+    if cpu is not None:
+        argv = ["taskset", "-c", str(cpu), *argv]
+    service = subprocess.Popen(argv, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True,
+                               env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    lines: list[str] = []
+    threading.Thread(target=lambda: lines.extend(ln.rstrip() for ln in service.stderr), daemon=True).start()
+    db = load_dbc(None)
+    encoder = OutputEncoder(db)
+    estimate_id = int(db.get_message_by_name("OidEstimate").frame_id)
+    estimates: list[tuple[float, float, dict]] = []
+    stop = threading.Event()
+
+    def consume() -> None:
+        bus = CanBus("udp_multicast", group)
+        try:
+            while not stop.is_set():
+                frame = bus.recv(0.1)
+                if frame is not None and frame.arbitration_id == estimate_id:
+                    estimates.append((time.time(), time.perf_counter(),
+                                      encoder.decode(frame.arbitration_id, frame.data)))
+        finally:
+            bus.close()
+
+    consumer = threading.Thread(target=consume, daemon=True)
+    t_bench0, sent, stamps, cpu_s = float("nan"), 0, {}, float("nan")
+    try:
+        deadline = time.monotonic() + start_timeout_s
+        while not any("listening on" in ln for ln in lines):
+            if service.poll() is not None or time.monotonic() > deadline:
+                raise AssertionError("the service did not start:\n" + "\n".join(lines))
+            time.sleep(0.1)
+        consumer.start()
+        time.sleep(0.5)
+        ctx = mp.get_context("spawn")
+        out = ctx.Queue()
+        sender = ctx.Process(target=_send, args=(group, frames, speed, list(marks), out), daemon=True)
+        sender.start()
+        _, t_bench0, _ = out.get(timeout=start_timeout_s)
+        duration = (frames[-1][0] - frames[0][0]) / speed
+        _, sent, stamps = out.get(timeout=duration + start_timeout_s)
+        sender.join(timeout=30)
+        time.sleep(0.5)
+        cpu_s = _cpu_seconds(service.pid)
+        service.send_signal(signal.SIGTERM)  # the service takes what its socket still holds, then stops
+        rc = service.wait(timeout=120)
+    finally:
+        stop.set()
+        if service.poll() is None:
+            service.kill()
+            service.wait()
+    consumer.join(timeout=5)
+    time.sleep(0.2)
+    match = next((m for m in map(STOPPED.search, lines) if m), None)
+    counts = {k: int(v) for k, v in match.groupdict().items()} if match else {}
+    return LiveRun(rc, lines, counts, t_bench0, estimates, stamps, sent, cpu_s)
+
+
+def _cpu_seconds(pid: int) -> float:
+    """CPU time (user + system) the process itself used so far (not its worker), from /proc."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return float("nan")
