@@ -25,23 +25,26 @@ demo: $(STAMP)
 system-deps:
 	scripts/install-system-deps
 
-## Run the whole test suite: everything but the vcan tier natively, then the
-## vcan tier on a real SocketCAN vcan0 (natively, or inside User-Mode Linux
-## when this kernel has no vcan). Fails if either part fails.
+## Run the whole test suite: everything but the live and vcan tiers natively on both cores (pytest-xdist),
+## then the live tier (the service as its own process over kernel sockets, at real time: run alone,
+## so the suite's own load does not compete with it), then the vcan tier on a real SocketCAN vcan0
+## (natively, or inside User-Mode Linux when this kernel has no vcan). Fails if any part fails.
 test: system-deps $(STAMP)
-	@native=0; vcan=0; \
-	echo '$(PY) -m pytest -m "not vcan" $(PYTEST_ARGS)'; \
-	$(PY) -m pytest -m "not vcan" $(PYTEST_ARGS) || native=$$?; \
+	@native=0; live=0; vcan=0; \
+	echo '$(PY) -m pytest -n 2 -m "not vcan and not live" $(PYTEST_ARGS)'; \
+	$(PY) -m pytest -n 2 -m "not vcan and not live" $(PYTEST_ARGS) || native=$$?; \
+	echo '$(PY) -m pytest -m live tests/live $(PYTEST_ARGS)'; \
+	$(PY) -m pytest -m live tests/live $(PYTEST_ARGS) || live=$$?; \
 	echo 'scripts/test-vcan $(PY) $(PYTEST_ARGS)'; \
 	scripts/test-vcan $(PY) $(PYTEST_ARGS) || vcan=$$?; \
-	if [ $$native -ne 0 ] || [ $$vcan -ne 0 ]; then \
-	    echo "make test: FAILED (pytest exit: $$native without vcan, $$vcan vcan tier)" >&2; \
+	if [ $$native -ne 0 ] || [ $$live -ne 0 ] || [ $$vcan -ne 0 ]; then \
+	    echo "make test: FAILED (pytest exit: $$native native, $$live live tier, $$vcan vcan tier)" >&2; \
 	    exit 1; \
 	fi
 
 ## Only the fast tier (no slow identification runs).
 test-fast: $(STAMP)
-	$(PY) -m pytest -m "not slow and not vcan" $(PYTEST_ARGS)
+	$(PY) -m pytest -n 2 -m "not slow and not vcan and not live" $(PYTEST_ARGS)
 
 ## Benchmarks (run by hand; figures go into the README).
 bench: $(STAMP)

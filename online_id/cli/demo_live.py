@@ -18,8 +18,12 @@ from online_id.errors import BusError, DbcError
 from online_id.io.bus import CanBus
 from online_id.io.dbc import encode_inputs, load_dbc
 from online_id.io.dbc_output import OutputEncoder
+from online_id.io.player import send_paced
 from online_id.records import ServiceState
 from online_id.service import Service
+
+
+STALL_S = 120.0  # the demo gives up when its service takes no frame for this long (however slow the machine)
 
 
 class _Quiet:
@@ -36,17 +40,11 @@ class _Quiet:
         pass
 
 
-def _send_paced(bus: CanBus, frames: list, speed: float, done: threading.Event) -> None:
-    t_first = frames[0][0]
-    wall0 = time.monotonic()
+def _send(bus: CanBus, frames: list, speed: float, done: threading.Event, failed: list[str]) -> None:
     try:
-        for t_s, ident, data in frames:
-            delay = (t_s - t_first) / speed - (time.monotonic() - wall0)
-            if delay > 0.002:
-                time.sleep(delay)
-            bus.send(ident, data, t_s=t_s)
-    except BusError:
-        pass
+        send_paced(bus, frames, speed=speed)
+    except BusError as err:
+        failed.append(str(err))
     finally:
         done.set()
 
@@ -80,31 +78,39 @@ def run_live(args: argparse.Namespace) -> int:
     sender = CanBus("virtual", channel, preserve_timestamps=True)
     encoder = OutputEncoder(db)
     done = threading.Event()
+    send_failed: list[str] = []
     svc_thread = threading.Thread(target=service.run, name="service", daemon=True)
     svc_thread.start()
     time.sleep(0.2)
-    send_thread = threading.Thread(target=_send_paced, args=(sender, frames, args.speed, done), daemon=True)
+    send_thread = threading.Thread(target=_send, args=(sender, frames, args.speed, done, send_failed), daemon=True)
     send_thread.start()
 
     latest: dict[str, float] = {}
     bad_crc = 0
     published = 0
-    print(f"{'bench time':>10}  {'state':<14} {'f0 [Hz]':>8} {'zeta':>7} {'c_s [Nm/rad]':>12} "
+    print(f"{'service t':>10}  {'state':<14} {'f0 [Hz]':>8} {'zeta':>7} {'c_s [Nm/rad]':>12} "
           f"{'d_s':>6} {'frames out':>10}")
     next_row = time.monotonic() + 1.0
-    t_sim = 0.0
     shown = 0
-    finished_at = None
+    progress = (0, time.monotonic())  # frames the service had taken, and when that count last grew
+    stalled = ""
+    pipeline = service.runtime.pipeline
     while True:
-        if done.is_set() and finished_at is None:
-            finished_at = time.monotonic()
-        if finished_at is not None and (service.runtime.frames_in >= len(frames)
-                                        or time.monotonic() > finished_at + 30.0):
-            break  # the bench ended and the service has seen every frame: stop it (as SIGTERM would)
+        taken = service.runtime.frames_in
+        if taken > progress[0]:
+            progress = (taken, time.monotonic())
+        if done.is_set() and taken >= len(frames):
+            break  # the bench ended and the service has taken every frame: stop it (as SIGTERM would)
+        if not svc_thread.is_alive():
+            stalled = "the service ended before it had taken every frame"
+            break
+        if time.monotonic() - progress[1] > STALL_S:
+            stalled = f"the service took no frame for {STALL_S:g} s"
+            break
         frame = monitor.recv(0.02)
         if frame is not None:
             if frame.arbitration_id in (0x101, 0x102, 0x103):
-                t_sim = frame.t_s
+                pass
             elif encoder.verify(frame.arbitration_id, frame.data):
                 published += 1
                 try:
@@ -123,10 +129,11 @@ def run_live(args: argparse.Namespace) -> int:
             f0 = f"{latest.get('ResonanceFreq', math.nan):8.3f}" if valid else f"{'-':>8}"
             zeta = f"{latest.get('DampingRatio', math.nan):7.4f}" if valid else f"{'-':>7}"
             cs = latest.get("ShaftStiffness", 0.0)
-            print(f"{t_sim:9.1f}s  {state:<14} {f0} {zeta} {cs if cs else float('nan'):12.0f} "
+            t_service = pipeline.t_s - pipeline.t_first if pipeline.t_first is not None else 0.0
+            print(f"{t_service:9.1f}s  {state:<14} {f0} {zeta} {cs if cs else float('nan'):12.0f} "
                   f"{latest.get('ShaftDamping', math.nan):6.2f} {published:10d}", flush=True)
     service.request_stop()
-    svc_thread.join(timeout=10)
+    svc_thread.join(timeout=60)
     for bus in (monitor, sender):
         bus.close()
     result = service.runtime.pipeline.result()
@@ -145,4 +152,15 @@ def run_live(args: argparse.Namespace) -> int:
         err = f"{100 * (est - truth[key]) / truth[key]:+7.2f}%" if est is not None else "-"
         print(f"  {name:14} {truth[key]:10.4g} {est if est is not None else float('nan'):10.4g} {err:>8}")
     print(f"\nFiles: {out_dir}/service-result.json, bench.truth.json")
-    return 0 if d.get("valid") else 1
+    why = []
+    if send_failed:
+        why.append(f"the bench could not send: {send_failed[0]}")
+    if stalled:
+        why.append(f"{stalled} ({service.runtime.frames_in} of {len(frames)} frames)")
+    if not d.get("valid"):
+        why.append(f"the service ended in {result['state']} without a valid estimate "
+                   f"(last reason: {pipeline.last_estimate.why if pipeline.last_estimate else 'no estimate yet'})")
+    if why:
+        print("\ndemo FAILED: " + "; ".join(why))
+        return 1
+    return 0

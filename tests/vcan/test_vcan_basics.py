@@ -108,3 +108,24 @@ def test_online_id_cli_runs_here(vcan0: str, run_process: Callable, online_id_ar
     out, err = proc.communicate(timeout=TIMEOUT_S * 4)
     assert proc.returncode == 0, f"online-id --version failed:\n{out}\n{err}"
     assert out.startswith("online-id "), out
+
+
+def test_kernel_drops_are_counted_on_a_full_receive_buffer(vcan0: str) -> None:
+    """A reader that does not read: its small buffer fills, and CanBus.dropped() counts what the kernel threw away."""
+    from online_id.io.bus import CanBus
+
+    reader = CanBus("socketcan", vcan0, receive_buffer_bytes=4096)  # a few frames' worth
+    try:
+        assert reader.dropped() == 0
+        n = 500
+        with can.Bus(interface="socketcan", channel=vcan0, ignore_config=True) as sender:
+            for i in range(n):
+                sender.send(can.Message(arbitration_id=0x200, data=bytes([i % 256]), is_extended_id=False))
+        got = 0
+        while reader.recv(0.2) is not None:
+            got += 1
+        dropped = reader.dropped()
+        assert dropped is not None and dropped > 0
+        assert got + dropped == n
+    finally:
+        reader.close()

@@ -1,0 +1,173 @@
+"""The live service as a bench runs it: latency and the highest lossless input rate, service on one core.
+
+Usage::
+
+    python benchmarks/bench_live.py [--latency-s 60] [--rate-s 30] [--speeds 1,2,3,4] [--cpu 0] [--out DIR]
+
+``online-id run`` runs as its own process, pinned to one core (``taskset -c
+CPU``; its worker process inherits the pin and runs there at SCHED_IDLE),
+on python-can's ``udp_multicast`` bus: kernel UDP sockets between processes
+with a finite receive buffer, which drop frames when the reader falls behind
+(counted with SO_MEMINFO, as on SocketCAN).  A sender process (pinned to
+another core, with this process) sends a simulated bench, 1 kHz samples and
+3 frames per sample, at ``speed`` x real time; this process listens to the
+service's OidEstimate frames.  Refits run every (stream) second, the state is
+saved every 5 s.
+
+* **Latency**: from the sender's ``perf_counter()`` just before the send of
+  the frame that completes the sample triggering an OidEstimate, to this
+  process's ``perf_counter()`` when ``recv`` returns that OidEstimate
+  (CLOCK_MONOTONIC: one clock for all processes).  Which frame triggers
+  which estimate comes from an in-process run of the same frames (the
+  publish schedule depends only on the samples); the counts must agree, or
+  no latency is reported.  The path includes two kernel UDP hops and
+  python-can's msgpack framing, which SocketCAN does not have.
+* **Highest lossless rate**: the bench at ``--speeds`` multiples of real
+  time (3,000 frames/s each), ``--rate-s`` seconds of stream each; a rate is
+  lossless when the kernel dropped nothing, no frame was missing and every
+  sample was made.
+
+Writes ``bench-live.json`` into ``--out`` and prints a table.  Timing is
+noisy on a shared machine: say what else ran.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "tests" / "live"))
+
+from harness import run_live  # noqa: E402
+
+from online_id.bench.scenario import BenchScenario, OperatingPoint  # noqa: E402
+from online_id.bench.simulate import simulate_bench  # noqa: E402
+from online_id.config import InertiaSettings, ModelSettings, Settings  # noqa: E402
+from online_id.io.dbc import encode_inputs, load_dbc  # noqa: E402
+from online_id.offload import InlineWorker  # noqa: E402
+from online_id.runtime import Runtime  # noqa: E402
+
+GROUP = "239.74.163.51"
+
+
+def _bench(seconds: float, seed: int = 3):
+    half = max(seconds / 2.0, 5.0)
+    scenario = dataclasses.replace(BenchScenario(), seed=seed, ramp_s=2.0,
+                                   operating_points=(OperatingPoint(1500.0, half), OperatingPoint(2100.0, half)))
+    record = simulate_bench(scenario)
+    frames = encode_inputs(record.time_s, record.dyno_speed_rpm, record.engine_speed_rpm, record.dyno_torque_nm,
+                           db=load_dbc(None))
+    return record, frames
+
+
+def _config(truth: dict, state_dir: Path) -> str:
+    return (f"inertias: {{J1: {truth['J1']!r}}}\n"
+            f"model: {{pulses_per_rev: {truth['pulses_per_rev']!r}}}\n"
+            f"state: {{directory: '{state_dir}', save_interval_s: 5}}\n")
+
+
+def _triggers(frames: list, truth: dict) -> list[int]:
+    """Indices of the frames whose processing publishes an OidEstimate (in-process, same code)."""
+    settings = Settings(inertias=InertiaSettings(J1=truth["J1"]),
+                        model=dataclasses.replace(ModelSettings(), pulses_per_rev=truth["pulses_per_rev"]))
+    rt = Runtime(settings, worker=InlineWorker())
+    est_id = int(load_dbc(None).get_message_by_name("OidEstimate").frame_id)
+    return [i for i, (t, ident, data) in enumerate(frames)
+            if any(fid == est_id for fid, _d in rt.on_frame(t, ident, data))]
+
+
+def _pct(x: np.ndarray, q: float) -> float:
+    return float(np.percentile(x, q)) if x.size else float("nan")
+
+
+def latency(args, work: Path) -> dict:
+    record, frames = _bench(args.latency_s)
+    marks = _triggers(frames, record.truth)
+    run = run_live(frames, _config(record.truth, work / "state-lat"), work / "lat", GROUP, speed=1.0, marks=marks,
+                   cpu=args.cpu)
+    got = run.estimates
+    out = {"frames": len(frames), "estimates_expected": len(marks), "estimates_received": len(got),
+           "counts": run.counts, "service_cpu_s": run.cpu_s}
+    if len(got) != len(marks):
+        out["note"] = "estimate count differs from the in-process run: latency not computed"
+        return out
+    lat_ms = np.array([1e3 * (p - run.send_stamps[i]) for (_t, p, _d), i in zip(got, marks) if i in run.send_stamps])
+    valid = np.array([bool(d.get("Valid")) for _t, _p, d in got])
+    out.update({"latency_ms": {"n": int(lat_ms.size), "p50": _pct(lat_ms, 50), "p90": _pct(lat_ms, 90),
+                               "p99": _pct(lat_ms, 99), "max": float(lat_ms.max()) if lat_ms.size else None},
+                "latency_valid_ms": {"n": int(valid.sum()), "p50": _pct(lat_ms[valid], 50),
+                                     "p99": _pct(lat_ms[valid], 99),
+                                     "max": float(lat_ms[valid].max()) if valid.any() else None}})
+    return out
+
+
+def rates(args, work: Path) -> list[dict]:
+    rows = []
+    for speed in args.speeds:
+        record, frames = _bench(args.rate_s * speed)
+        t0 = time.perf_counter()
+        run = run_live(frames, _config(record.truth, work / f"state-{speed:g}"), work / f"rate-{speed:g}", GROUP,
+                       speed=speed, cpu=args.cpu)
+        n = run.counts
+        lossless = (bool(n) and n["dropped"] == 0 and n["missing"] == 0
+                    and n["samples"] >= len(record.time_s) - 2)  # the last sample waits for a next frame
+        rows.append({"speed": speed, "frames_per_s": 3000.0 * speed, "frames": len(frames), "counts": n,
+                     "lossless": lossless, "wall_s": time.perf_counter() - t0,
+                     "service_cpu_us_per_frame": 1e6 * run.cpu_s / max(n.get("frames_in", 0), 1)})
+        print(f"  {3000 * speed:7.0f} frames/s: {'lossless' if lossless else 'LOST'} "
+              f"(kernel dropped {n.get('dropped')}, missing {n.get('missing')}, samples {n.get('samples')} of "
+              f"{len(record.time_s)})", flush=True)
+    return rows
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--latency-s", type=float, default=60.0)
+    ap.add_argument("--rate-s", type=float, default=30.0)
+    ap.add_argument("--speeds", type=lambda s: [float(x) for x in s.split(",")], default=[1.0, 2.0, 3.0, 4.0])
+    ap.add_argument("--cpu", type=int, default=0)
+    ap.add_argument("--skip-latency", action="store_true")
+    ap.add_argument("--out", default="bench-live-out")
+    args = ap.parse_args()
+    others = [c for c in range(os.cpu_count() or 1) if c != args.cpu]
+    if others:
+        os.sched_setaffinity(0, others)  # sender and consumer off the service's core
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    result = {"machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
+                          "load_avg_start": os.getloadavg()}, "service_cpu": args.cpu}
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        if not args.skip_latency:
+            print(f"latency: {args.latency_s:g} s at real time (3,000 frames/s), service on core {args.cpu}",
+                  flush=True)
+            result["latency"] = latency(args, work)
+            lat = result["latency"].get("latency_ms")
+            if lat:
+                print(f"  trigger frame -> OidEstimate: p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms, "
+                      f"max {lat['max']:.2f} ms over {lat['n']} estimates; counts {result['latency']['counts']}")
+            else:
+                print(f"  {result['latency']}")
+        print(f"highest lossless rate: {args.rate_s:g} s of stream per rate", flush=True)
+        result["rates"] = rates(args, work)
+    ok = [r["frames_per_s"] for r in result["rates"] if r["lossless"]]
+    result["highest_lossless_frames_per_s"] = max(ok) if ok else 0.0
+    result["machine"]["load_avg_end"] = os.getloadavg()
+    (out_dir / "bench-live.json").write_text(json.dumps(result, indent=2))
+    print(f"highest lossless input rate: {result['highest_lossless_frames_per_s']:.0f} frames/s "
+          f"(load average {result['machine']['load_avg_start'][0]:.1f} at start); {out_dir / 'bench-live.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
