@@ -520,7 +520,7 @@ class Pipeline:
         self._healthy_rpm = float(rpm) if isinstance(rpm, (int, float)) else None
 
 
-def run_bench_data(data, settings: Settings, progress=None, on_output=None) -> Pipeline:
+def run_bench_data(data, settings: Settings, progress=None, on_output=None, worker=None) -> Pipeline:
     """Feed bench data (a :class:`~online_id.records.BenchData`) through the pipeline, sample by sample.
 
     The values go through the same assembler and estimator as decoded frames
@@ -528,13 +528,14 @@ def run_bench_data(data, settings: Settings, progress=None, on_output=None) -> P
     so a replay of the same data as CAN frames gives the same result.
     ``on_output(pipeline, t_s, publications)`` is called with every non-empty
     list of publications (e.g. to acknowledge alerts as an operator would).
+    ``worker``: where slow work runs (default: inline, see :mod:`online_id.offload`).
     """
     import dataclasses
 
     fs = 1.0 / float(np.median(np.diff(data.time_s)))
     if abs(fs - settings.input.sample_rate_hz) > 1e-6 * fs:
         settings = dataclasses.replace(settings, input=dataclasses.replace(settings.input, sample_rate_hz=fs))
-    pipe = Pipeline(settings)
+    pipe = Pipeline(settings, worker=worker)
     t = data.time_s
     cols = (("dyno_speed", data.dyno_speed_rad_s), ("engine_speed", data.engine_speed_rad_s),
             ("dyno_torque", data.dyno_torque_nm))

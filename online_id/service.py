@@ -99,13 +99,24 @@ class Service:
         except (InputDataError, EstimationError, KeyError, TypeError, ValueError) as err:
             self.say(f"ignoring saved state {self.state_file}: {err}")
 
-    def save(self) -> None:
+    def save(self, final: bool = False) -> None:
+        """Save the state: in the worker process while running (the write and fsync take tens of ms),
+        here and now at the end (``final``)."""
         if self.state_file is None:
             return
-        try:
-            save_state(self.state_file, self.runtime.pipeline.get_state())
-        except OSError as err:
-            self.say(f"cannot save state to {self.state_file}: {err}")
+        state = self.runtime.pipeline.get_state()  # a snapshot (about 0.5 ms)
+        worker = self.runtime.pipeline.worker
+        if final or not worker.asynchronous:
+            try:
+                save_state(self.state_file, state)
+            except OSError as err:
+                self.say(f"cannot save state to {self.state_file}: {err}")
+        elif not worker.busy("state"):
+            worker.submit("state", save_state, (self.state_file, state), self._saved)
+
+    def _saved(self, _result, error: str | None) -> None:
+        if error is not None:
+            self.say(f"cannot save state to {self.state_file}: {error}")
 
     # -- loop ----------------------------------------------------------------------------------------
     def request_stop(self, *_args) -> None:
@@ -275,7 +286,7 @@ class Service:
                     next_save = now + s.state.save_interval_s
         except BusError as err:
             self.say(f"bus down: {err}")
-            self.save()
+            self.save(final=True)
             return 2 if getattr(err, "permanent", False) else 1
         finally:
             self._check_drops(bus)
@@ -289,7 +300,7 @@ class Service:
             self.notifier.stopping()
             bus.close()
             self.runtime.pipeline.worker.close()
-        self.save()
+        self.save(final=True)
         c = self.runtime.pipeline.counters
         self.say(f"stopped: {self.runtime.frames_in} frames in, {self.runtime.frames_out} frames out, "
                  f"{c.samples} samples, {c.bad_frames} bad frames, {c.missing_frames} missing frames, "

@@ -1,0 +1,137 @@
+"""The workers that take slow work off the receive path: same contract inline and in a process."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import signal
+import time
+
+import numpy as np
+import pytest
+
+from online_id.bench.scenario import BenchScenario, OperatingPoint
+from online_id.bench.simulate import simulate_bench
+from online_id.config import InertiaSettings, ModelSettings, Settings
+from online_id.offload import InlineWorker, ProcessWorker
+from online_id.pipeline import Pipeline, run_bench_data
+
+
+def _square(x: float) -> float:
+    return x * x
+
+
+def _fail(x: float) -> float:
+    raise ValueError(f"no square for {x}")
+
+
+def _sleep(s: float) -> float:
+    time.sleep(s)
+    return s
+
+
+def _wait(worker, results: list, n: int, timeout_s: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while len(results) < n and time.monotonic() < deadline:
+        worker.poll()
+        time.sleep(0.005)
+    assert len(results) == n, results
+
+
+@pytest.fixture(params=["inline", "process"])
+def worker(request):
+    w = InlineWorker() if request.param == "inline" else ProcessWorker()
+    yield w
+    w.close()
+
+
+def test_results_and_errors_come_back_through_the_callback(worker) -> None:
+    results: list = []
+    for x in (2.0, 3.0):
+        worker.submit("a", _square, (x,), lambda r, e: results.append((r, e)))
+        _wait(worker, results, len(results) + 1 if worker.asynchronous else len(results))
+    worker.submit("a", _fail, (7.0,), lambda r, e: results.append((r, e)))
+    _wait(worker, results, 3)
+    assert results[:2] == [(4.0, None), (9.0, None)]
+    assert results[2][0] is None and "ValueError: no square for 7.0" in results[2][1] and "\n" not in results[2][1]
+    assert worker.stats.submitted["a"] == 3 and worker.stats.failed["a"] == 1
+
+
+def test_one_job_per_lane_and_lanes_are_independent() -> None:
+    worker = ProcessWorker()
+    try:
+        results: list = []
+        worker.submit("slow", _sleep, (0.3,), lambda r, e: results.append(("slow", r)))
+        assert worker.busy("slow") and not worker.busy("fast")
+        with pytest.raises(RuntimeError, match="busy"):
+            worker.submit("slow", _sleep, (0.0,), lambda r, e: None)
+        worker.submit("fast", _square, (4.0,), lambda r, e: results.append(("fast", r)))
+        _wait(worker, results, 2)
+        assert results == [("slow", 0.3), ("fast", 16.0)]  # one child: first in, first out
+        assert not worker.busy("slow") and not worker.busy("fast")
+    finally:
+        worker.close()
+
+
+def test_a_killed_worker_is_restarted_and_its_job_reported() -> None:
+    worker = ProcessWorker()
+    try:
+        results: list = []
+        worker.submit("a", _sleep, (30.0,), lambda r, e: results.append((r, e)))
+        time.sleep(0.5)
+        os.kill(worker._proc.pid, signal.SIGKILL)
+        _wait(worker, results, 1)
+        assert results[0][0] is None and "died" in results[0][1] or "ended" in results[0][1]
+        assert worker.stats.restarts == 1
+        worker.submit("a", _square, (5.0,), lambda r, e: results.append((r, e)))
+        _wait(worker, results, 2)
+        assert results[1] == (25.0, None)
+    finally:
+        worker.close()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed,f_rpm", [(2, 1600.0), (5, 2200.0)])
+def test_pipeline_with_the_process_worker_matches_the_inline_pipeline(seed: int, f_rpm: float) -> None:
+    """The same stream through both workers: the same estimate (results arrive later, not different)."""
+    rng = np.random.default_rng(seed)
+    scenario = dataclasses.replace(BenchScenario(), c_s=float(rng.uniform(3000, 9000)), seed=seed,
+                                   operating_points=(OperatingPoint(f_rpm, 50.0),))
+    record = simulate_bench(scenario)
+    truth = record.truth
+    settings = Settings(inertias=InertiaSettings(J1=truth["J1"]),
+                        model=dataclasses.replace(ModelSettings(), pulses_per_rev=truth["pulses_per_rev"]))
+    finals = {}
+    for name, worker in (("inline", InlineWorker()), ("process", ProcessWorker())):
+        f0: list[float] = []
+
+        def progress(_frac: float, _text: str) -> None:
+            if worker.asynchronous:
+                time.sleep(0.05)  # a stream at about 20x real time: results come back while it runs
+            est = pipe_ref[0].last_estimate if pipe_ref else None
+            if est is not None and est.valid:
+                f0.append(est.f0_hz)
+
+        pipe_ref: list[Pipeline] = []
+        try:
+            import online_id.pipeline as pl
+
+            original = pl.Pipeline
+
+            class Capture(original):  # keep a handle on the pipeline run_bench_data builds
+                def __init__(self, *a, **k):
+                    super().__init__(*a, **k)
+                    pipe_ref.append(self)
+
+            pl.Pipeline = Capture
+            try:
+                run_bench_data(record.to_data("sim"), settings, progress=progress, worker=worker)
+            finally:
+                pl.Pipeline = original
+        finally:
+            worker.close()
+        assert worker.stats.submitted.get("window", 0) > 5
+        assert len(f0) > 20, name
+        finals[name] = float(np.median(f0[-20:]))
+    assert abs(finals["process"] / finals["inline"] - 1) < 0.002
+    assert abs(finals["process"] / truth["f0_hz"] - 1) < 0.01
