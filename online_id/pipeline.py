@@ -443,7 +443,9 @@ class Pipeline:
 
     def status(self, t_s: float) -> StatusOut:
         c = self.counters
-        return StatusOut(t_s, self.state, c.bad_frames, c.missing_frames + self.dropped_frames)
+        # both counts are lower bounds of the frames lost (alive counters see losses anywhere upstream, the kernel
+        # its own drops, which the counters see too): the status frame carries the larger
+        return StatusOut(t_s, self.state, c.bad_frames, max(c.missing_frames, self.dropped_frames))
 
     # -- results ---------------------------------------------------------------------------------
     def result(self) -> dict:
