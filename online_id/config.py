@@ -93,6 +93,7 @@ class InputSettings:
     sample_rate_hz: float = 1000.0
     timeout_s: float = 0.2
     slow_roles: tuple[str, ...] = ()
+    max_time_jump_s: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -329,7 +330,10 @@ def _check_service(s: Settings, file: str) -> None:
             if not 0 <= value < float("inf"):
                 raise ConfigError(f"{file}: {section}.{name}: expected a number >= 0, got {value!r}")
 
-    positive("input", s.input, "sample_rate_hz", "timeout_s")
+    positive("input", s.input, "sample_rate_hz", "timeout_s", "max_time_jump_s")
+    if s.input.max_time_jump_s <= s.input.timeout_s:
+        raise ConfigError(f"{file}: input.max_time_jump_s: expected a number > input.timeout_s "
+                          f"({s.input.timeout_s:g} s), got {s.input.max_time_jump_s!r}")
     for role in s.input.slow_roles:
         if role not in ("dyno_speed", "engine_speed", "dyno_torque"):
             raise ConfigError(f"{file}: input.slow_roles: unknown role {role!r} "
