@@ -10,6 +10,7 @@ name the key path, the value and the file, e.g.::
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
 from dataclasses import dataclass, field
@@ -20,6 +21,9 @@ import yaml
 
 from online_id.estimation.settings import IdentificationSettings, InertiaSettings
 from online_id.errors import ConfigError
+
+OUTPUT_MESSAGE_NAMES = ("OidEstimate", "OidShaft", "OidQuality", "OidStatus", "OidAlert", "OidExcitation")
+"""Output messages whose IDs ``publish.frame_ids`` may change (those of ``online_id.io.dbc_output``)."""
 
 __all__ = [
     "ColumnSettings", "UnitSettings", "InertiaSettings", "IdentificationSettings", "BusSettings", "RoleSettings",
@@ -254,7 +258,13 @@ def _convert(tp: Any, value: Any, key: str, file: str) -> Any:
         raise bad
     if tp is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
-            return float(value)
+            try:
+                value = float(value)
+            except OverflowError:  # an integer beyond the floats
+                value = math.inf
+            if not math.isfinite(value):
+                raise ConfigError(f"{file}: {key}: expected a finite number, got {value!r}")
+            return value
         raise bad
     if tp is str:
         if isinstance(value, str):
@@ -354,6 +364,9 @@ def _check_service(s: Settings, file: str) -> None:
     nonnegative("model", m, "min_excitation_nm")
     positive("publish", s.publish, "rate_hz", "physical_interval_s")
     for name, ident in s.publish.frame_ids.items():
+        if name not in OUTPUT_MESSAGE_NAMES:
+            raise ConfigError(f"{file}: publish.frame_ids.{name}: unknown output message "
+                              f"(known: {', '.join(OUTPUT_MESSAGE_NAMES)})")
         if not 0 <= ident <= 0x1FFFFFFF:
             raise ConfigError(f"{file}: publish.frame_ids.{name}: expected a CAN ID 0..0x1FFFFFFF, got {ident!r}")
     positive("state", s.state, "save_interval_s")
@@ -390,6 +403,24 @@ def settings_from_dict(data: Any, file: str = "<config>") -> Settings:
     return settings
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that refuses a key given twice in one mapping (YAML itself keeps the last)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        seen: set = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            try:
+                dup = key in seen
+            except TypeError:  # an unhashable key: the base class reports it
+                break
+            if dup:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"duplicate key {key!r}", key_node.start_mark)
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
 def load_config(path: str | Path | None) -> Settings:
     """Read a YAML config file; ``None`` gives the defaults."""
     if path is None:
@@ -399,8 +430,12 @@ def load_config(path: str | Path | None) -> Settings:
         text = path.read_text(encoding="utf-8")
     except OSError as err:
         raise ConfigError(f"{path}: cannot read config: {err.strerror or err}") from err
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"{path}: not a YAML text file (it holds bytes that are not UTF-8: {err.reason})") from None
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=_UniqueKeyLoader)  # safe_load, plus duplicate keys refused
+    except RecursionError:
+        raise ConfigError(f"{path}: invalid YAML: nested too deep") from None
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         where = f"{path}:{mark.line + 1}" if mark is not None else str(path)

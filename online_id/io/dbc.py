@@ -27,7 +27,7 @@ from typing import Any
 import cantools
 import numpy as np
 
-from online_id.errors import ConfigError, DbcError, InputDataError
+from online_id.errors import ConfigError, DbcError, InputDataError, printable
 from online_id.records import ROLES, FrameFault, SignalSample
 
 RAD_S_PER_RPM = math.pi / 30.0
@@ -57,7 +57,7 @@ def load_dbc(path: str | Path | None = None) -> Any:
     except OSError as err:
         raise DbcError(f"{path}: cannot read the DBC file: {err.strerror or err}") from err
     except (cantools.database.Error, ValueError, KeyError, IndexError) as err:
-        text = " ".join(str(err).split())
+        text = printable(" ".join(str(err).split()))
         m = re.search(r'Invalid syntax at line (\d+), column (\d+): "(.*)"', text)
         if m:
             raise DbcError(
