@@ -150,6 +150,9 @@ class SampleAssembler:
                     if cand is None:
                         self.counters.count(FrameFault.COUNTER_JUMP)
                     self._resync[role] = s.counter
+                    # the refused frame took the next slot: the sender's next frame is not a jump
+                    self._last_counter[role] = (last + 1) % self.counter_modulo
+                    self._last_counter_t[role] = s.t_s
                     return False
             else:
                 self.counters.count(FrameFault.COUNTER_JUMP)

@@ -28,7 +28,7 @@ OUTPUT_MESSAGE_NAMES = ("OidEstimate", "OidShaft", "OidQuality", "OidStatus", "O
 __all__ = [
     "ColumnSettings", "UnitSettings", "InertiaSettings", "IdentificationSettings", "BusSettings", "RoleSettings",
     "MappingSettings", "InputSettings", "ModelSettings", "PublishSettings", "StateSettings", "ExcitationSettings",
-    "DetectionSettings", "AlertSettings", "Settings", "load_config", "settings_from_dict",
+    "DetectionSettings", "AlertSettings", "CommandSettings", "Settings", "load_config", "settings_from_dict",
 ]
 
 
@@ -77,6 +77,7 @@ class RoleSettings:
     unit: Literal["rpm", "rad/s", "Nm"] = "rpm"
     sign: Literal["braking", "driving", "positive", "negative"] = "positive"
     counter: str | None = None
+    crc: str | None = None  # CRC-8 SAE J1850 in byte 7 over bytes 0..6, checked when named
 
 
 @dataclass(frozen=True)
@@ -88,6 +89,8 @@ class MappingSettings:
     dyno_torque: RoleSettings = field(default_factory=lambda: RoleSettings("DynoTorque", "DynoTorque", "Nm", "braking", "DynoTorqueCounter"))
     command_message: str = "OidCommand"
     command_signal: str = "Command"
+    command_counter: str | None = "CommandCounter"
+    command_crc: str | None = "OidCommandCRC"
 
 
 @dataclass(frozen=True)
@@ -167,6 +170,20 @@ class DetectionSettings:
 
 
 @dataclass(frozen=True)
+class CommandSettings:
+    """What the OidCommand frame may do.
+
+    ``relearn``: ``confirm`` (default: RELEARN acts only when a second RELEARN
+    frame with a new counter follows within ``confirm_s``), ``allow`` (one
+    frame acts) or ``disabled`` (only ``online-id relearn`` on the service's
+    own state, never from the bus).
+    """
+
+    relearn: Literal["confirm", "allow", "disabled"] = "confirm"
+    confirm_s: float = 1.0
+
+
+@dataclass(frozen=True)
 class AlertSettings:
     """Where alerts go besides the CAN frame and the journal."""
 
@@ -193,6 +210,7 @@ class Settings:
     excitation: ExcitationSettings = field(default_factory=ExcitationSettings)
     detection: DetectionSettings = field(default_factory=DetectionSettings)
     alerts: AlertSettings = field(default_factory=AlertSettings)
+    commands: CommandSettings = field(default_factory=CommandSettings)
 
 
 def _describe(tp: Any) -> str:
@@ -378,6 +396,7 @@ def _check_service(s: Settings, file: str) -> None:
         raise ConfigError(f"{file}: detection.h_fault: must be >= detection.h_warning ({d.h_warning:g}), "
                           f"got {d.h_fault!r}")
     positive("alerts", s.alerts, "command_timeout_s")
+    positive("commands", s.commands, "confirm_s")
     e = s.excitation
     positive("excitation", e, "period_s", "max_amplitude_nm")
     if not 0 <= e.amplitude_nm <= e.max_amplitude_nm:

@@ -145,6 +145,8 @@ class Service:
         self._hooks = keep
 
     def _report_state(self) -> None:
+        for text in self.runtime.commands.take_log():  # every command frame, with what was done
+            self.say(text)
         p = self.runtime.pipeline
         new = p.alerts_total - self._n_alerts
         if new > 0:
