@@ -38,6 +38,7 @@ class LogBench:
     samples_total: int  # samples in all stretches
     frames: int  # frames read
     counters: AssemblyCounters  # unusable frames by kind, as the service counts them
+    truncated: str | None = None  # the warning when the log ends early
 
     @property
     def unknown_frames(self) -> int:
@@ -47,10 +48,11 @@ class LogBench:
     def note(self) -> str | None:
         """One line for the user when not all of the log is used, else None."""
         if self.stretches <= 1:
-            return None
+            return self.truncated
         t = self.data.time_s
-        return (f"{self.data.source}: {self.stretches} gap-free stretches; using the longest, "
+        text = (f"{self.data.source}: {self.stretches} gap-free stretches; using the longest, "
                 f"t = {t[0]:.3f}-{t[-1]:.3f} s ({len(t)} of {self.samples_total} samples)")
+        return text if self.truncated is None else f"{self.truncated}\n{text}"
 
 
 def is_can_log(path: str | Path) -> bool:
@@ -77,7 +79,8 @@ def read_bench_log(path: str | Path, s: Settings,
     counters = assembler.counters
     stretches: list[list[AssembledSample]] = []
     frames = 0
-    for t_s, ident, data, is_ext, is_err in read_log(path):
+    cut: list[str] = []
+    for t_s, ident, data, is_ext, is_err in read_log(path, cut.append):
         if progress is not None and frames % 5000 == 0:
             progress(0.0, f"{frames} frames, t = {t_s:.1f} s")
         frames += 1
@@ -105,7 +108,7 @@ def read_bench_log(path: str | Path, s: Settings,
     data = BenchData(np.array([a.t_s for a in best]), np.array([a.dyno_speed for a in best]),
                      np.array([a.engine_speed for a in best]), np.array([a.dyno_torque for a in best]),
                      str(path))
-    return LogBench(data, len(stretches), total, frames, counters)
+    return LogBench(data, len(stretches), total, frames, counters, cut[0] if cut else None)
 
 
 def read_bench(path: str | Path, s: Settings, notify: Callable[[str], None] | None = None) -> BenchData:

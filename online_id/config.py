@@ -10,6 +10,7 @@ name the key path, the value and the file, e.g.::
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
 from dataclasses import dataclass, field
@@ -21,10 +22,13 @@ import yaml
 from online_id.estimation.settings import IdentificationSettings, InertiaSettings
 from online_id.errors import ConfigError
 
+OUTPUT_MESSAGE_NAMES = ("OidEstimate", "OidShaft", "OidQuality", "OidStatus", "OidAlert", "OidExcitation")
+"""Output messages whose IDs ``publish.frame_ids`` may change (those of ``online_id.io.dbc_output``)."""
+
 __all__ = [
     "ColumnSettings", "UnitSettings", "InertiaSettings", "IdentificationSettings", "BusSettings", "RoleSettings",
     "MappingSettings", "InputSettings", "ModelSettings", "PublishSettings", "StateSettings", "ExcitationSettings",
-    "DetectionSettings", "AlertSettings", "Settings", "load_config", "settings_from_dict",
+    "DetectionSettings", "AlertSettings", "CommandSettings", "Settings", "load_config", "settings_from_dict",
 ]
 
 
@@ -73,6 +77,7 @@ class RoleSettings:
     unit: Literal["rpm", "rad/s", "Nm"] = "rpm"
     sign: Literal["braking", "driving", "positive", "negative"] = "positive"
     counter: str | None = None
+    crc: str | None = None  # CRC-8 SAE J1850 in byte 7 over bytes 0..6, checked when named
 
 
 @dataclass(frozen=True)
@@ -84,6 +89,8 @@ class MappingSettings:
     dyno_torque: RoleSettings = field(default_factory=lambda: RoleSettings("DynoTorque", "DynoTorque", "Nm", "braking", "DynoTorqueCounter"))
     command_message: str = "OidCommand"
     command_signal: str = "Command"
+    command_counter: str | None = "CommandCounter"
+    command_crc: str | None = "OidCommandCRC"
 
 
 @dataclass(frozen=True)
@@ -93,6 +100,7 @@ class InputSettings:
     sample_rate_hz: float = 1000.0
     timeout_s: float = 0.2
     slow_roles: tuple[str, ...] = ()
+    max_time_jump_s: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -162,6 +170,20 @@ class DetectionSettings:
 
 
 @dataclass(frozen=True)
+class CommandSettings:
+    """What the OidCommand frame may do.
+
+    ``relearn``: ``confirm`` (default: RELEARN acts only when a second RELEARN
+    frame with a new counter follows within ``confirm_s``), ``allow`` (one
+    frame acts) or ``disabled`` (only ``online-id relearn`` on the service's
+    own state, never from the bus).
+    """
+
+    relearn: Literal["confirm", "allow", "disabled"] = "confirm"
+    confirm_s: float = 1.0
+
+
+@dataclass(frozen=True)
 class AlertSettings:
     """Where alerts go besides the CAN frame and the journal."""
 
@@ -188,6 +210,7 @@ class Settings:
     excitation: ExcitationSettings = field(default_factory=ExcitationSettings)
     detection: DetectionSettings = field(default_factory=DetectionSettings)
     alerts: AlertSettings = field(default_factory=AlertSettings)
+    commands: CommandSettings = field(default_factory=CommandSettings)
 
 
 def _describe(tp: Any) -> str:
@@ -253,7 +276,13 @@ def _convert(tp: Any, value: Any, key: str, file: str) -> Any:
         raise bad
     if tp is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
-            return float(value)
+            try:
+                value = float(value)
+            except OverflowError:  # an integer beyond the floats
+                value = math.inf
+            if not math.isfinite(value):
+                raise ConfigError(f"{file}: {key}: expected a finite number, got {value!r}")
+            return value
         raise bad
     if tp is str:
         if isinstance(value, str):
@@ -329,7 +358,10 @@ def _check_service(s: Settings, file: str) -> None:
             if not 0 <= value < float("inf"):
                 raise ConfigError(f"{file}: {section}.{name}: expected a number >= 0, got {value!r}")
 
-    positive("input", s.input, "sample_rate_hz", "timeout_s")
+    positive("input", s.input, "sample_rate_hz", "timeout_s", "max_time_jump_s")
+    if s.input.max_time_jump_s <= s.input.timeout_s:
+        raise ConfigError(f"{file}: input.max_time_jump_s: expected a number > input.timeout_s "
+                          f"({s.input.timeout_s:g} s), got {s.input.max_time_jump_s!r}")
     for role in s.input.slow_roles:
         if role not in ("dyno_speed", "engine_speed", "dyno_torque"):
             raise ConfigError(f"{file}: input.slow_roles: unknown role {role!r} "
@@ -350,6 +382,9 @@ def _check_service(s: Settings, file: str) -> None:
     nonnegative("model", m, "min_excitation_nm")
     positive("publish", s.publish, "rate_hz", "physical_interval_s")
     for name, ident in s.publish.frame_ids.items():
+        if name not in OUTPUT_MESSAGE_NAMES:
+            raise ConfigError(f"{file}: publish.frame_ids.{name}: unknown output message "
+                              f"(known: {', '.join(OUTPUT_MESSAGE_NAMES)})")
         if not 0 <= ident <= 0x1FFFFFFF:
             raise ConfigError(f"{file}: publish.frame_ids.{name}: expected a CAN ID 0..0x1FFFFFFF, got {ident!r}")
     positive("state", s.state, "save_interval_s")
@@ -361,6 +396,7 @@ def _check_service(s: Settings, file: str) -> None:
         raise ConfigError(f"{file}: detection.h_fault: must be >= detection.h_warning ({d.h_warning:g}), "
                           f"got {d.h_fault!r}")
     positive("alerts", s.alerts, "command_timeout_s")
+    positive("commands", s.commands, "confirm_s")
     e = s.excitation
     positive("excitation", e, "period_s", "max_amplitude_nm")
     if not 0 <= e.amplitude_nm <= e.max_amplitude_nm:
@@ -386,6 +422,24 @@ def settings_from_dict(data: Any, file: str = "<config>") -> Settings:
     return settings
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that refuses a key given twice in one mapping (YAML itself keeps the last)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        seen: set = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            try:
+                dup = key in seen
+            except TypeError:  # an unhashable key: the base class reports it
+                break
+            if dup:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"duplicate key {key!r}", key_node.start_mark)
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
 def load_config(path: str | Path | None) -> Settings:
     """Read a YAML config file; ``None`` gives the defaults."""
     if path is None:
@@ -395,8 +449,12 @@ def load_config(path: str | Path | None) -> Settings:
         text = path.read_text(encoding="utf-8")
     except OSError as err:
         raise ConfigError(f"{path}: cannot read config: {err.strerror or err}") from err
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"{path}: not a YAML text file (it holds bytes that are not UTF-8: {err.reason})") from None
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=_UniqueKeyLoader)  # safe_load, plus duplicate keys refused
+    except RecursionError:
+        raise ConfigError(f"{path}: invalid YAML: nested too deep") from None
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         where = f"{path}:{mark.line + 1}" if mark is not None else str(path)

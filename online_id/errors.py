@@ -8,6 +8,8 @@ exception so that callers using plain ``except ValueError`` keep working.
 
 from __future__ import annotations
 
+import unicodedata
+
 
 class OnlineIdError(Exception):
     """Base class of every error raised on purpose by online-id."""
@@ -31,6 +33,14 @@ class InputDataError(OnlineIdError, ValueError):
 
 class EstimationError(OnlineIdError, ArithmeticError):
     """The estimation cannot produce a result from the given data."""
+
+
+def printable(text: str) -> str:
+    """``text`` with control and other non-printing characters escaped (``\\x1b``, ``\\n``): one safe line."""
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() or (c == " ") else
+                   (repr(c)[1:-1] if unicodedata.category(c)[0] in "CZ" else c) for c in text)
 
 
 class FieldError(ConfigError):

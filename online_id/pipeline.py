@@ -83,7 +83,8 @@ class Pipeline:
         self.worker = worker if worker is not None else InlineWorker()
         self._verify_results: dict = {}  # purpose -> (t_s submitted, adopted) of finished multi-start checks
         self._verify_running: set = set()
-        self.assembler = SampleAssembler(s.input.sample_rate_hz, s.input.timeout_s, s.input.slow_roles)
+        self.assembler = SampleAssembler(s.input.sample_rate_hz, s.input.timeout_s, s.input.slow_roles,
+                                         max_jump_s=s.input.max_time_jump_s)
         self.estimator = self._new_estimator()
         self.excitation = Excitation(s)
         d = s.detection
@@ -173,13 +174,14 @@ class Pipeline:
     # -- input -----------------------------------------------------------------------------------
     def on_signal(self, sample: SignalSample) -> list[Publication]:
         """One decoded value from a frame."""
-        if self.t_first is None:
-            self.t_first = sample.t_s
-        return self._consume(self.assembler.push(sample), sample.t_s)
+        samples = self.assembler.push(sample)  # checks the timestamp (see online_id.assembly)
+        if self.t_first is None and samples:
+            self.t_first = samples[0].t_s
+        return self._consume(samples, self.assembler.now_s)
 
     def tick(self, now_s: float) -> list[Publication]:
         """The stream clock moved without a frame (silence on the bus)."""
-        return self._consume(self.assembler.poll(now_s), now_s)
+        return self._consume(self.assembler.poll(now_s), self.assembler.now_s)
 
     def on_command(self, command: int, t_s: float) -> list[Publication]:
         """A command frame: acknowledge alerts, re-learn, reset the estimator."""
@@ -213,6 +215,9 @@ class Pipeline:
         self.t_s = now_s
         if self.worker.asynchronous:
             self.worker.poll()  # adopt finished slow work before the samples use the model
+        jump = self.assembler.take_time_jump()
+        if jump is not None:
+            self._time_jumped(jump, now_s, out)
         if self.assembler.timed_out:
             stop = self.excitation.stop(now_s)
             if stop:
@@ -327,6 +332,16 @@ class Pipeline:
                 out.append(stop)
             if state == ServiceState.INPUT_TIMEOUT:
                 self._alert(out, t_s, AlertKind.INPUT_FAULT, 1, 0.0, why or "input timeout")
+        out.append(self.status(t_s))
+
+    def _time_jumped(self, message: str, t_s: float, out: list[Publication]) -> None:
+        """The stream clock jumped and the assembler re-anchored its grid: so do the schedules here."""
+        self._next_publish = -math.inf if self._next_publish is not None else None  # publish with the next sample
+        self._next_physical = -math.inf
+        self._next_learn = None
+        self._next_alarm_repeat = -math.inf
+        self._healthy_since = None  # settle again before learning or detecting
+        self.events.append(Event(t_s, "time", message, {"time_jumps": self.counters.time_jumps}))
         out.append(self.status(t_s))
 
     def _judge(self, est: OnlineEstimate, t_s: float) -> ServiceState:
@@ -487,7 +502,7 @@ class Pipeline:
             "alerts": [{"t_s": a.t_s - t0, "kind": a.kind.name, "severity": a.severity, "message": a.message}
                        for a in self.alerts],
             "counters": {
-                "samples": c.samples, "gaps": c.gaps, "timeouts": c.timeouts,
+                "samples": c.samples, "gaps": c.gaps, "timeouts": c.timeouts, "time_jumps": c.time_jumps,
                 "bad_frames": c.bad_frames, "missing_frames": c.missing_frames,
                 "dropped_frames": self.dropped_frames,
                 **{f"frames_{k.name.lower()}": v for k, v in c.faults.items()},

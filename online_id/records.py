@@ -96,6 +96,9 @@ class FrameFault(IntEnum):
     COUNTER_JUMP = 5  # alive counter skipped values (frames lost)
     DUPLICATE = 6  # same alive counter twice (frame repeated)
     TIME_BACKWARDS = 7  # timestamp older than the last sample of that role
+    BAD_TIME = 8  # timestamp NaN, infinite, or far ahead of the stream clock and not confirmed
+    BAD_CRC = 9  # input CRC (where the mapping has one) does not match the payload
+    COMMAND_REFUSED = 10  # command frame with a bad CRC, or a repeated or stale counter
 
 
 @dataclass(frozen=True)

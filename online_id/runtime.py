@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from online_id.commands import CommandGate
 from online_id.config import MappingSettings, RoleSettings, Settings
 from online_id.io.dbc import CommandSample, CommandSignal, InputDecoder, RoleMapping, RoleSignal, load_dbc
 from online_id.io.dbc_output import OutputEncoder
@@ -29,10 +30,10 @@ def role_mapping(m: MappingSettings) -> RoleMapping:
     """The codec's role mapping from the configuration."""
     def rs(role: str) -> RoleSignal:
         r = getattr(m, role)
-        return RoleSignal(r.message, r.signal, r.unit, _sign(role, r), r.counter)
+        return RoleSignal(r.message, r.signal, r.unit, _sign(role, r), r.counter, r.crc)
 
     return RoleMapping(rs("dyno_speed"), rs("engine_speed"), rs("dyno_torque"),
-                       CommandSignal(m.command_message, m.command_signal, None))
+                       CommandSignal(m.command_message, m.command_signal, m.command_counter, m.command_crc))
 
 
 def input_decoder(s: Settings, db: Any = None) -> InputDecoder:
@@ -57,6 +58,7 @@ class Runtime:
         self.decoder = input_decoder(s, db)
         self.encoder = OutputEncoder(db, source=self.decoder.source)
         self.pipeline = Pipeline(s, worker=self.worker)
+        self.commands = CommandGate(s.commands)  # what a command frame may do (online_id.commands)
         ids = {}
         for key, name in self.encoder.names.items():
             if name in s.publish.frame_ids:
@@ -83,8 +85,12 @@ class Runtime:
         res = self.decoder.decode(arbitration_id, data, t_s, is_extended)
         if isinstance(res, FrameFault):
             self.pipeline.on_fault(res)
+            if res is FrameFault.COMMAND_REFUSED:
+                self.commands.refuse(arbitration_id, data, self.decoder.last_fault)
             return []
         if isinstance(res, CommandSample):
+            if not self.commands.admit(res, arbitration_id, data):
+                return []
             return self.frames(self.pipeline.on_command(int(res.command), t_s))
         pubs: list[Publication] = []
         for sample in res:

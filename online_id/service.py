@@ -38,13 +38,14 @@ from pathlib import Path
 from typing import Callable, TextIO
 
 from online_id.config import Settings
-from online_id.errors import BusError, EstimationError, InputDataError
+from online_id.errors import BusError
 from online_id.io.bus import CanBus
-from online_id.io.statefile import load_state, save_state
+from online_id.io.statefile import save_state
 from online_id.io.journal import Journal
 from online_id.io.systemd import Notifier
 from online_id.offload import ProcessWorker
 from online_id.records import AlertKind, AlertOut, FrameFault
+from online_id.restore import restore_pipeline
 from online_id.runtime import Runtime
 
 STATE_FILE = "online-id-state.json"
@@ -91,13 +92,10 @@ class Service:
     def _restore(self) -> None:
         if self.state_file is None:
             return
-        try:
-            state = load_state(self.state_file)
-            if state is not None:
-                self.runtime.pipeline.load_state(state)
-                self.say(f"restored estimator state from {self.state_file}")
-        except (InputDataError, EstimationError, KeyError, TypeError, ValueError) as err:
-            self.say(f"ignoring saved state {self.state_file}: {err}")
+        pipeline = restore_pipeline(self.state_file, self.settings, self.say)  # all or nothing
+        if pipeline is not None:
+            pipeline.worker = self.runtime.pipeline.worker  # the restored pipeline's slow work goes where ours did
+            self.runtime.pipeline = pipeline
 
     def save(self, final: bool = False) -> None:
         """Save the state: in the worker process while running (the write and fsync take tens of ms),
@@ -183,6 +181,8 @@ class Service:
         self._hooks = keep
 
     def _report_state(self) -> None:
+        for text in self.runtime.commands.take_log():  # every command frame, with what was done
+            self.say(text)
         p = self.runtime.pipeline
         new = p.alerts_total - self._n_alerts
         if new > 0:

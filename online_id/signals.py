@@ -13,6 +13,18 @@ from online_id.io.table_csv import LINE_KEY, read_csv_columns
 from online_id.records import BenchData
 
 MIN_SAMPLES = 200
+MAX_SPEED_RPM = 1e5
+MAX_TORQUE_NM = 1e6
+"""Limits beyond any engine bench: a value past them is a unit or file error (and would overflow the maths)."""
+
+
+def _check_range(x: np.ndarray, limit: float, column: str, unit: str, lines: np.ndarray | None, source: str) -> None:
+    bad = np.flatnonzero(~(np.abs(x) <= limit))
+    if bad.size:
+        i = int(bad[0])
+        where = f"{source}:{int(lines[i])}" if lines is not None else f"{source}: sample {i}"
+        raise InputDataError(f"{where}: column {column!r}: {x[i]:.6g} {unit} is beyond any bench "
+                             f"(|value| <= {limit:g} {unit}); check the units in the config")
 
 
 def bench_data_from_columns(
@@ -49,6 +61,9 @@ def bench_data_from_columns(
         else:
             speeds.append(angle_to_speed(raw, time_s, unit=units.speed))
     torque = columns[names.dyno_torque] * (1.0 if units.torque_sign == "braking" else -1.0)
+    for role, x in zip(("dyno_speed", "engine_speed"), speeds):
+        _check_range(x * (30.0 / np.pi), MAX_SPEED_RPM, getattr(names, role), "rpm", lines, source)
+    _check_range(torque, MAX_TORQUE_NM, names.dyno_torque, "Nm", lines, source)
     return BenchData(time_s, speeds[0], speeds[1], torque, source)
 
 

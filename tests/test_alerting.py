@@ -68,10 +68,13 @@ def test_ack_and_relearn_send_the_command_frame(capsys):
     channel = f"ack-{os.getpid()}"
     listener = CanBus("virtual", channel)
     dec = InputDecoder(load_dbc(None))
-    for name, cmd in (("ack", BenchCommand.ACK_ALERT), ("relearn", BenchCommand.RELEARN_BASELINE)):
+    for k, (name, cmd) in enumerate((("ack", BenchCommand.ACK_ALERT), ("relearn", BenchCommand.RELEARN_BASELINE))):
         assert main([name, "--interface", "virtual", "--channel", channel]) == 0
-        f = listener.recv(2.0)
-        assert f is not None and f.arbitration_id == 0x120
-        assert dec.decode(f.arbitration_id, f.data, 0.0).command == cmd
+        # relearn sends the frame twice (confirmation), with consecutive counters
+        for j in range(1 + (cmd == BenchCommand.RELEARN_BASELINE)):
+            f = listener.recv(2.0)
+            assert f is not None and f.arbitration_id == 0x120
+            out = dec.decode(f.arbitration_id, f.data, 10.0 * k + 0.2 * j)  # CRC and counter checked
+            assert out.command == cmd
     listener.close()
     assert "sent RELEARN_BASELINE" in capsys.readouterr().out

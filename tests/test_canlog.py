@@ -148,4 +148,4 @@ def test_simulate_writes_a_can_log_matching_the_csv(tmp_path, capsys):
     assert main(["simulate", "--config", str(cfg), "--out", str(tmp_path / "x.csv"), "--can-log", "x.mf4"]) == 2
     assert "--can-log: expected a file ending in .log" in capsys.readouterr().err
     assert main(["simulate", "--config", str(cfg), "--out", str(tmp_path / "none" / "x.csv")]) == 2
-    assert "x.csv: cannot write: No such file or directory" in capsys.readouterr().err
+    assert "x.csv: cannot write" in capsys.readouterr().err

@@ -222,6 +222,10 @@ def test_values_saturate_and_non_finite_clears_valid(db):
 # --- input decoding: every fault kind -------------------------------------------------------
 
 
+def _crc(seven: bytes) -> bytes:
+    return seven + bytes([crc8_j1850(seven)])
+
+
 def _speed(rpm_raw: int, counter: int = 0) -> bytes:
     return struct.pack("<iB3x", rpm_raw, counter)
 
@@ -230,7 +234,7 @@ def test_decode_sample_command_and_every_fault(db, bench_db):
     dec = InputDecoder(db)
     (s,) = dec.decode(0x101, _speed(12_345_678, 9), 2.5)
     assert s == SignalSample("dyno_speed", 1234.5678 * RPM, 2.5, 9)
-    cmd = dec.decode(0x120, bytes([3, 17, 0, 0, 0, 0, 0, 0]), 3.0)
+    cmd = dec.decode(0x120, _crc(bytes([3, 17, 0, 0, 0, 0, 0])), 3.0)
     assert cmd == CommandSample(BenchCommand.RESET_ESTIMATOR, 3.0, 17)
     rng = np.random.default_rng(3)
     for fid in rng.integers(0, 0x800, 200):
@@ -243,7 +247,8 @@ def test_decode_sample_command_and_every_fault(db, bench_db):
     assert 'Expected signal "DynoSpeed"' in dec.last_fault and "10000.0001" in dec.last_fault
     assert dec.decode(0x101, _speed(-100_000_000), 0.0) != FrameFault.OUT_OF_RANGE  # the limit itself is fine
     assert dec.decode(0x103, _speed(30_000_001), 0.0) is FrameFault.OUT_OF_RANGE
-    assert dec.decode(0x120, bytes([4] + [0] * 7), 0.0) is FrameFault.OUT_OF_RANGE
+    assert dec.decode(0x120, _crc(bytes([4] + [0] * 6)), 0.0) is FrameFault.OUT_OF_RANGE
+    assert dec.decode(0x120, bytes([3, 18] + [0] * 6), 4.0) is FrameFault.COMMAND_REFUSED  # no CRC
 
     mapping = RoleMapping(
         dyno_speed=RoleSignal("Paged", "PagedSpeed", "rpm", 1, None),
@@ -298,7 +303,8 @@ def test_decoder_never_raises_on_random_frames(db, bench_db):
             kinds.add(type(out).__name__ if not isinstance(out, FrameFault) else out.name)
             if isinstance(out, list):
                 assert all(isinstance(s, SignalSample) and math.isfinite(s.value) for s in out)
-    assert {"list", "CommandSample", "UNKNOWN_ID", "BAD_DLC", "OUT_OF_RANGE"} <= kinds
+    # random command frames fail the CRC (1 in 256 passes it, then the value must be 0..3)
+    assert {"list", "COMMAND_REFUSED", "UNKNOWN_ID", "BAD_DLC", "OUT_OF_RANGE"} <= kinds
 
 
 # --- errors that name file, message and signal ------------------------------------------------
@@ -315,8 +321,8 @@ def test_mapping_errors_list_what_exists(db):
         RoleMapping(dyno_torque=RoleSignal("DynoTorque", "DynoTorque", "rpm"))
     with pytest.raises(ConfigError, match="sign"):
         RoleSignal("DynoTorque", "DynoTorque", "Nm", sign=2)
-    with pytest.raises(DbcError, match=r"expected a signal \"DynoSpeedCRC\".*in message \"DynoSpeed\""):
-        OutputEncoder(db, {"status": "DynoSpeed"})
+    with pytest.raises(DbcError, match=r"expected a signal \"OidCommandCounter\".*in message \"OidCommand\""):
+        OutputEncoder(db, {"status": "OidCommand"})
 
 
 def test_load_dbc_errors_name_file_and_line(tmp_path):

@@ -13,7 +13,7 @@ import argparse  # noqa: E402
 import sys  # noqa: E402
 
 from online_id import __version__  # noqa: E402
-from online_id.errors import OnlineIdError  # noqa: E402
+from online_id.errors import OnlineIdError, printable  # noqa: E402
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -40,7 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     except OnlineIdError as err:
         if args.debug:
             raise
-        print(f"error: {err}", file=sys.stderr)
+        print(f"error: {printable(str(err))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

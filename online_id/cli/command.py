@@ -2,12 +2,17 @@
 
 The service listens for the ``OidCommand`` frame on its bus (a bench PC or
 operator panel can send the same frame); these commands open the bus of the
-configuration, send the frame once and exit.
+configuration, send the frame and exit.  ``relearn`` sends it twice, 0.2 s
+apart with consecutive counters: the service's default policy
+(``commands.relearn: confirm``) acts only on a confirmed RELEARN.  The
+counter follows the clock (20 per second), so that commands sent one after
+another never repeat a counter the service has just accepted.
 """
 
 from __future__ import annotations
 
 import argparse
+import time
 
 from online_id.config import load_config
 from online_id.io.bus import CanBus
@@ -33,10 +38,17 @@ def run(args: argparse.Namespace) -> int:
     s = load_config(args.config)
     command = COMMANDS[args.command_name][0]
     db = load_dbc(s.dbc)
-    ident, data = encode_command(db, s.mapping.command_message, s.mapping.command_signal, command)
+    counter = int(time.time() * 20)
+    repeats = 2 if command == BenchCommand.RELEARN_BASELINE else 1
+    frames = [encode_command(db, s.mapping.command_message, s.mapping.command_signal, command, counter + k,
+                             crc=s.mapping.command_crc) for k in range(repeats)]
     interface = args.interface or s.bus.interface
     channel = args.channel or s.bus.channel
     with CanBus(interface, channel, s.bus.bitrate) as bus:
-        bus.send(ident, data)
-    print(f"sent {command.name} (ID 0x{ident:X} data {data.hex().upper()}) on {interface}:{channel}")
+        for k, (ident, data) in enumerate(frames):
+            if k:
+                time.sleep(0.2)
+            bus.send(ident, data)
+    sent = ", ".join(data.hex().upper() for _, data in frames)
+    print(f"sent {command.name} (ID 0x{frames[0][0]:X} data {sent}) on {interface}:{channel}")
     return 0

@@ -20,6 +20,7 @@ from online_id.cli.simulate import write_csv
 from online_id.config import load_config
 from online_id.errors import ConfigError
 from online_id.io.canlog import SUFFIXES, write_log
+from online_id.io.outfile import check_output
 from online_id.io.dbc import default_dbc_path, encode_inputs, load_dbc
 from online_id.records import ROLES
 from online_id.report import TerminalProgress
@@ -106,6 +107,7 @@ def log_to_csv(args: argparse.Namespace) -> int:
 
 def run(args: argparse.Namespace) -> int:
     """Run the subcommand; returns the exit status."""
+    check_output(args.out)  # before the work, not after it
     if is_can_log(args.path):
         return log_to_csv(args)
     settings = load_config(args.config)

@@ -15,6 +15,7 @@ import numpy as np
 
 from online_id.bench import evaluate as ev
 from online_id.errors import ConfigError, InputDataError
+from online_id.io.outfile import check_output
 from online_id.report import fmt, pyplot, save_figure
 
 
@@ -111,6 +112,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"Expected --hours >= 0, --fault-plants >= 0 and --jobs >= 1, but got "
                           f"{args.hours}, {args.fault_plants}, {args.jobs}")
     if args.out is not None:
+        check_output(args.out, "results", directory=True)
         try:
             args.out.mkdir(parents=True, exist_ok=True)
         except OSError as err:

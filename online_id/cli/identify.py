@@ -10,7 +10,8 @@ import sys
 from online_id.benchlog import read_bench
 from online_id.config import Settings, load_config
 from online_id.estimation.identification import IdentificationResult, identify
-from online_id.errors import ConfigError
+from online_id.errors import ConfigError, EstimationError
+from online_id.io.outfile import check_output
 from online_id.report import TerminalProgress, fmt, identification_table, plot_identification
 
 
@@ -115,6 +116,11 @@ def run_recursive(args: argparse.Namespace, s: Settings) -> int:
     finally:
         progress.close()
     result = pipe.result()
+    if result["driveline"]["f0_hz"] is None:  # nothing identified: an error, not a table of blanks
+        changes = result["status_changes"]
+        why = changes[-1]["why"] if changes else "no complete sample"
+        raise EstimationError(f"{args.path}: the streaming estimator gave no estimate in "
+                              f"{result['counters']['samples']} samples (final state {result['state']}: {why})")
     if args.json:
         json.dump(result, sys.stdout, indent=2)
         sys.stdout.write("\n")
@@ -129,6 +135,8 @@ def run_recursive(args: argparse.Namespace, s: Settings) -> int:
 
 def run(args: argparse.Namespace) -> int:
     s = settings_from_args(args)
+    if args.plot:
+        check_output(args.plot, "plot")  # before the work, not after it
     if args.recursive:
         return run_recursive(args, s)
     result = run_identification(args.path, s)

@@ -8,6 +8,7 @@ import sys
 import time
 
 from online_id.config import load_config
+from online_id.errors import InputDataError
 from online_id.io.canlog import read_log
 from online_id.report import TerminalProgress, fmt
 from online_id.runtime import Runtime
@@ -29,11 +30,16 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def replay(path: str, runtime: Runtime, realtime: bool = False, progress=None) -> int:
-    """Feed every frame of the log; returns the number of frames published."""
+    """Feed every frame of the log; returns the number of frames published.
+
+    Raises :class:`InputDataError` when the log holds no frame; a log that
+    ends early is used up to the cut, with a warning on stderr.
+    """
     published = 0
     t_first = None
     wall0 = time.monotonic()
-    for k, (t_s, ident, data, is_ext, is_err) in enumerate(read_log(path)):
+    cut: list[str] = []
+    for k, (t_s, ident, data, is_ext, is_err) in enumerate(read_log(path, cut.append)):
         if t_first is None:
             t_first = t_s
         if realtime:
@@ -43,8 +49,11 @@ def replay(path: str, runtime: Runtime, realtime: bool = False, progress=None) -
         published += len(runtime.on_frame(t_s, ident, data, is_ext, is_err))
         if progress is not None and k % 5000 == 0:
             progress(0.0, f"{k} frames, t = {t_s - t_first:.1f} s")
-    if t_first is not None:
-        published += len(runtime.tick(runtime.pipeline.t_s))
+    if t_first is None:
+        raise InputDataError(f"{path}: no CAN frames in the log" + (" (it ends early)" if cut else ""))
+    for text in cut:
+        print(text, file=sys.stderr)
+    published += len(runtime.tick(runtime.pipeline.t_s))
     return published
 
 

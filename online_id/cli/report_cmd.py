@@ -35,6 +35,7 @@ from online_id.monitoring.detection import ChangeDetector
 from online_id.monitoring.tracks import PoleTracker
 from online_id.errors import InputDataError, OnlineIdError
 from online_id.io.canlog import SUFFIXES as LOG_SUFFIXES
+from online_id.io.outfile import check_output
 from online_id.io.statefile import load_state
 from online_id.records import AlertKind, AlertOut, EstimateOut, Publication
 from online_id.report import (
@@ -403,6 +404,7 @@ def write_report(data: ReportData, out: Path) -> list[Path]:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_output(args.out, "report", directory=True)  # before the work, not after it
     data = load_source(Path(args.source), args.config)
     for path in write_report(data, Path(args.out)):
         print(f"wrote {path}")

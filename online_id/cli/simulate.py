@@ -10,7 +10,8 @@ from pathlib import Path
 
 from online_id.bench.scenario import BenchScenario, load_scenario
 from online_id.bench.simulate import BenchRecord, simulate_bench
-from online_id.errors import ConfigError, OnlineIdError
+from online_id.errors import ConfigError
+from online_id.io.outfile import atomic_output, check_output
 from online_id.io.table_csv import write_csv_columns
 
 CSV_FORMATS = ("%.6f", "%.4f", "%.4f", "%.4f")
@@ -72,19 +73,21 @@ def run(args: argparse.Namespace) -> int:
         if Path(args.can_log).suffix.lower() not in SUFFIXES:  # fail before simulating
             raise ConfigError(f"--can-log: expected a file ending in {', '.join(SUFFIXES)}, "
                               f"but got {str(args.can_log)!r}")
+    for path, what in ((out, "bench CSV"), (truth_path, "truth file"), (args.can_log, "CAN log")):
+        if path is not None:
+            check_output(path, what)  # before simulating, not after
     show = sys.stderr.isatty()
     record = simulate_bench(scenario, progress=_progress if show else None)
     if show:
         print(file=sys.stderr)
-    try:
-        write_csv(record, out)
-        truth_path.write_text(json.dumps(record.truth, indent=2) + "\n", encoding="utf-8")
-    except OSError as err:
-        raise OnlineIdError(f"Cannot write simulation output: {err}") from err
-    can_note = ""
-    if args.can_log is not None:
-        count = write_can_log(record, Path(args.can_log))
-        can_note = f" Wrote {count} CAN frames to {args.can_log}."
+    # every output under a temporary name, all renamed only when all are written
+    with atomic_output(out) as out_tmp, atomic_output(truth_path) as truth_tmp:
+        write_csv(record, out_tmp)
+        truth_tmp.write_text(json.dumps(record.truth, indent=2) + "\n", encoding="utf-8")
+        can_note = ""
+        if args.can_log is not None:
+            count = write_can_log(record, Path(args.can_log))
+            can_note = f" Wrote {count} CAN frames to {args.can_log}."
     t = record.truth
     print(
         f"Simulated {scenario.duration_s:.1f} s ({record.time_s.size} samples at "

@@ -16,12 +16,13 @@ from __future__ import annotations
 
 import struct
 import zlib
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import can
 
 from online_id.errors import InputDataError
+from online_id.io.outfile import atomic_output
 
 SUFFIXES = (".log", ".asc", ".blf")
 """Log formats :func:`write_log` and :func:`read_log` support."""
@@ -61,23 +62,27 @@ def write_log(path: str | Path, frames: Iterable[tuple], channel: str = "can0") 
     path = Path(path)
     suffix = _suffix(path)
     count = 0
-    try:
-        writer = _writer(path, suffix, channel)
-    except OSError as err:
-        raise InputDataError(f"{path}: cannot write: {err.strerror or err}") from err
-    try:
-        for frame in frames:
-            t_s, arbitration_id, data = frame[0], int(frame[1]), bytes(frame[2])
-            extended = bool(frame[3]) if len(frame) > 3 else arbitration_id > 0x7FF
-            writer.on_message_received(can.Message(
-                timestamp=float(t_s), arbitration_id=arbitration_id, is_extended_id=extended,
-                data=data, dlc=len(data), is_rx=True, channel=channel,
-            ))
-            count += 1
-    except OSError as err:
-        raise InputDataError(f"{path}: cannot write: {err.strerror or err}") from err
-    finally:
-        writer.stop()
+    with atomic_output(path) as tmp:  # no half-written log: a temporary name, renamed on success
+        try:
+            writer = _writer(tmp, suffix, channel)
+        except OSError as err:
+            raise InputDataError(f"{path}: cannot write: {err.strerror or err}") from err
+        try:
+            for frame in frames:
+                t_s, arbitration_id, data = frame[0], int(frame[1]), bytes(frame[2])
+                extended = bool(frame[3]) if len(frame) > 3 else arbitration_id > 0x7FF
+                writer.on_message_received(can.Message(
+                    timestamp=float(t_s), arbitration_id=arbitration_id, is_extended_id=extended,
+                    data=data, dlc=len(data), is_rx=True, channel=channel,
+                ))
+                count += 1
+        except OSError as err:
+            raise InputDataError(f"{path}: cannot write: {err.strerror or err}") from err
+        finally:
+            try:
+                writer.stop()  # flushes: a full disk shows here (.blf)
+            except OSError as err:
+                raise InputDataError(f"{path}: cannot write: {err.strerror or err}") from err
     return count
 
 
@@ -100,8 +105,37 @@ def _bad_line(path: Path, frames_read: int) -> int | None:
     return None
 
 
-def read_log(path: str | Path) -> Iterator[LoggedFrame]:
+def _tail(path: Path, n: int = 256) -> bytes:
+    with path.open("rb") as fh:
+        fh.seek(0, 2)
+        size = fh.tell()
+        fh.seek(max(0, size - n))
+        return fh.read()
+
+
+def _cut_text_log(path: Path, suffix: str) -> str | None:
+    """Why a text log looks cut short (None: it looks whole)."""
+    tail = _tail(path)
+    if not tail:
+        return None
+    if suffix == ".log" and not tail.endswith(b"\n"):
+        return "its last line is incomplete"
+    if suffix == ".asc" and b"End TriggerBlock" not in tail:
+        return 'no "End TriggerBlock" at its end'
+    return None
+
+
+def _cut_note(path: Path, cut: str, count: int) -> str:
+    return f"{path}: warning: the log ends early ({cut}); used the {count} frames before the cut"
+
+
+def read_log(path: str | Path, on_truncated: Callable[[str], None] | None = None) -> Iterator[LoggedFrame]:
     """Frames ``(t_s, arbitration_id, data, is_extended, is_error_frame)`` of a CAN log.
+
+    A log that ends early (a copy cut short, a logger that died) is read up
+    to the cut: the frames before it are yielded (an incomplete last line of
+    a ``.log`` is not), and ``on_truncated`` gets one line saying so, with the
+    number of frames read, after the last frame.
 
     Raises
     ------
@@ -111,23 +145,47 @@ def read_log(path: str | Path) -> Iterator[LoggedFrame]:
     """
     path = Path(path)
     suffix = _suffix(path)
+    if path.is_dir():
+        raise InputDataError(f"{path}: cannot read the CAN log: it is a directory")
     if not path.is_file():
         raise InputDataError(f"{path}: cannot read the CAN log: no such file")
     count = 0
     try:
+        cut = _cut_text_log(path, suffix) if suffix != ".blf" else None
         reader = can.LogReader(path)
     except _READ_ERRORS as err:
         raise InputDataError(f"{path}: cannot read the CAN log: {err}") from err
     try:
+        held = None  # one frame of look-ahead: the last line of a cut .log is not used
         for msg in reader:
             data = b"" if msg.is_remote_frame or msg.data is None else bytes(msg.data)
-            yield float(msg.timestamp), int(msg.arbitration_id), data, bool(msg.is_extended_id), \
-                bool(msg.is_error_frame)
+            frame = (float(msg.timestamp), int(msg.arbitration_id), data, bool(msg.is_extended_id),
+                     bool(msg.is_error_frame))
+            if held is not None:
+                yield held
+                count += 1
+            held = frame
+        if held is not None and not (cut and suffix == ".log"):
+            yield held
             count += 1
+        if suffix == ".blf":
+            expected = int(getattr(reader, "object_count", 0) or 0)
+            if count < expected or path.stat().st_size < int(getattr(reader, "file_size", 0) or 0):
+                cut = f"{count} of the {expected} objects its header announces"
     except _READ_ERRORS as err:
-        line = _bad_line(path, count) if suffix == ".log" else None
+        line = _bad_line(path, count + (held is not None)) if suffix == ".log" else None
+        if cut and suffix == ".log" and line is not None and _bad_line(path, count + 1 + (held is not None)) is None:
+            # the incomplete last line of a cut log: the frames before it are used
+            if held is not None:
+                yield held
+                count += 1
+            if on_truncated is not None:
+                on_truncated(_cut_note(path, cut, count))
+            return
         where = f"{path}:{line}" if line else f"{path}: after {count} frames"
         text = " ".join(str(err).split()) or type(err).__name__
         raise InputDataError(f"{where}: corrupt {suffix} CAN log: {text}") from err
     finally:
         reader.stop()
+    if cut and on_truncated is not None:
+        on_truncated(_cut_note(path, cut, count))

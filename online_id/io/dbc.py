@@ -10,6 +10,22 @@ Every input frame given to :meth:`InputDecoder.decode` ends in exactly one of
 * a :class:`CommandSample` (the ``OidCommand`` frame),
 * a :class:`~online_id.records.FrameFault` (the frame is not used).
 
+Checks of the frames' integrity, as far as CAN allows:
+
+* A message whose mapping names a CRC signal (``RoleSignal.crc``,
+  ``CommandSignal.crc``) must carry in byte 7 the CRC-8 SAE J1850 of bytes
+  0..6 (:mod:`online_id.io.crc`); else ``BAD_CRC`` (inputs) or
+  ``COMMAND_REFUSED`` (the command).  The command's CRC is on by default,
+  the inputs' is optional (``mapping.<role>.crc``).
+* A command whose alive counter repeats the last accepted one, or is one of
+  the :data:`STALE_COUNTERS` before it, within :data:`COMMAND_REPEAT_WINDOW_S`
+  of stream time, is ``COMMAND_REFUSED`` (a repeated or replayed frame);
+  so is a command with a non-finite timestamp.
+
+A CRC is no signature: any node on the bus can compute it.  It catches
+corrupt and random frames; what a command may do is the policy of
+:mod:`online_id.commands`.
+
 Output frames: :class:`~online_id.io.dbc_output.OutputEncoder` (that module imports this one, never
 the reverse).
 """
@@ -27,10 +43,15 @@ from typing import Any
 import cantools
 import numpy as np
 
-from online_id.errors import ConfigError, DbcError, InputDataError
+from online_id.errors import ConfigError, DbcError, InputDataError, printable
+from online_id.io.crc import crc8_j1850
 from online_id.records import ROLES, FrameFault, SignalSample
 
 RAD_S_PER_RPM = math.pi / 30.0
+STALE_COUNTERS = 16
+"""A command counter equal to the last accepted one or up to 15 before it is a repeat."""
+COMMAND_REPEAT_WINDOW_S = 5.0
+"""How long (stream time) an accepted command counter blocks its repeats."""
 SPEED_UNITS = ("rpm", "rad/s")
 TORQUE_UNITS = ("Nm",)
 # DBC unit spellings we recognise; an unknown spelling is accepted as is.
@@ -57,7 +78,7 @@ def load_dbc(path: str | Path | None = None) -> Any:
     except OSError as err:
         raise DbcError(f"{path}: cannot read the DBC file: {err.strerror or err}") from err
     except (cantools.database.Error, ValueError, KeyError, IndexError) as err:
-        text = " ".join(str(err).split())
+        text = printable(" ".join(str(err).split()))
         m = re.search(r'Invalid syntax at line (\d+), column (\d+): "(.*)"', text)
         if m:
             raise DbcError(
@@ -85,6 +106,7 @@ class RoleSignal:
     unit: str
     sign: int = 1
     counter: str | None = None
+    crc: str | None = None
 
     def __post_init__(self) -> None:
         if self.sign not in (1, -1):
@@ -98,6 +120,7 @@ class CommandSignal:
     message: str = "OidCommand"
     signal: str = "Command"
     counter: str | None = "CommandCounter"
+    crc: str | None = "OidCommandCRC"
 
 
 @dataclass(frozen=True)
@@ -165,6 +188,15 @@ def _signal(msg: Any, name: str, source: str, what: str) -> Any:
         ) from None
 
 
+def _crc_signal(msg: Any, name: str, source: str) -> None:
+    """Check that signal ``name`` of ``msg`` is an 8-bit CRC filling byte 7 of an 8-byte frame."""
+    sig = _signal(msg, name, source, "CRC-8 over bytes 0..6")
+    start = 56 if sig.byte_order == "little_endian" else 63
+    if msg.length != 8 or sig.length != 8 or sig.start != start:
+        raise DbcError(f'{source}: expected message "{msg.name}" of 8 bytes with signal "{name}" filling byte 7, '
+                       f"but got length {msg.length}, signal start {sig.start} length {sig.length}.")
+
+
 def _scaling(sig: Any) -> tuple[float, float, float]:
     scale, offset = float(sig.scale), float(sig.offset)
     inv = 1.0 / scale if scale else 0.0
@@ -216,6 +248,7 @@ class _FramePlan:
     decode: Any  # bound cantools Message.decode
     roles: tuple[_RolePlan, ...]
     command: _RolePlan | None
+    crc: bool = False  # byte 7 is a CRC-8 of bytes 0..6, to check
 
 
 class InputDecoder:
@@ -242,6 +275,9 @@ class InputDecoder:
         self.last_fault = ""
         grouped: dict[str, list[_RolePlan]] = {}
         messages: dict[str, Any] = {}
+        with_crc: set[str] = set()
+        self._command_last: tuple[int, float] | None = None  # the last accepted command counter and its time
+        self._command_wrap = 256
         for role in ROLES:
             rs = self.mapping.role(role)
             what = f"role {role}"
@@ -255,6 +291,9 @@ class InputDecoder:
                 )
             if rs.counter is not None:
                 _signal(msg, rs.counter, source, f"alive counter of role {role}")
+            if rs.crc is not None:
+                _crc_signal(msg, rs.crc, source)
+                with_crc.add(msg.name)
             factor = (RAD_S_PER_RPM if rs.unit == "rpm" else 1.0) * rs.sign
             grouped.setdefault(msg.name, []).append(
                 _RolePlan(role, sig.name, *_bounds(sig), factor, rs.counter, bool(sig.is_float), *_scaling(sig),
@@ -267,7 +306,10 @@ class InputDecoder:
             msg = _message(db, cs.message, source, "service command")
             sig = _signal(msg, cs.signal, source, "service command")
             if cs.counter is not None:
-                _signal(msg, cs.counter, source, "alive counter of the command")
+                self._command_wrap = 1 << _signal(msg, cs.counter, source, "alive counter of the command").length
+            if cs.crc is not None:
+                _crc_signal(msg, cs.crc, source)
+                with_crc.add(msg.name)
             command = _RolePlan("command", sig.name, *_bounds(sig), 1.0, cs.counter, bool(sig.is_float),
                                 *_scaling(sig), _limits(sig))
             messages.setdefault(msg.name, msg)
@@ -278,7 +320,8 @@ class InputDecoder:
                 raise DbcError(f'{source}: message "{name}" carries both input roles and the command; '
                                f"expected separate messages.")
             self._plans[(int(msg.frame_id), bool(msg.is_extended_frame))] = _FramePlan(
-                name, int(msg.length), msg.decode, tuple(grouped.get(name, ())), command if is_cmd else None
+                name, int(msg.length), msg.decode, tuple(grouped.get(name, ())), command if is_cmd else None,
+                name in with_crc,
             )
 
     @property
@@ -301,6 +344,10 @@ class InputDecoder:
         if n != plan.length:
             return self._fault(FrameFault.BAD_DLC,
                                f'message "{plan.message}": expected {plan.length} data bytes, but got {n}')
+        if plan.crc and crc8_j1850(data[:7]) != data[7]:
+            return self._fault(FrameFault.COMMAND_REFUSED if plan.command is not None else FrameFault.BAD_CRC,
+                               f'message "{plan.message}": CRC 0x{data[7]:02X} in byte 7 does not match bytes 0..6 '
+                               f"(expected 0x{crc8_j1850(data[:7]):02X})")
         try:
             values = plan.decode(data if type(data) is bytes else bytes(data), False, False)
         except Exception as err:  # noqa: BLE001 - third-party decoder fed arbitrary bytes
@@ -330,7 +377,19 @@ class InputDecoder:
         if not rp.lo <= value <= rp.hi or value not in BenchCommand._value2member_map_:
             return self._fault(FrameFault.OUT_OF_RANGE, self._range_text(rp, plan, value))
         counter = values.get(rp.counter) if rp.counter is not None else None
-        return CommandSample(BenchCommand(int(value)), t_s, None if counter is None else int(counter))
+        if not math.isfinite(t_s):
+            return self._fault(FrameFault.COMMAND_REFUSED, f'message "{plan.message}": timestamp {t_s} is not finite')
+        if counter is not None:
+            counter = int(counter)
+            if self._command_last is not None:
+                last, t_last = self._command_last
+                if (last - counter) % self._command_wrap < STALE_COUNTERS and \
+                        abs(t_s - t_last) < COMMAND_REPEAT_WINDOW_S:
+                    return self._fault(FrameFault.COMMAND_REFUSED,
+                                       f'message "{plan.message}": counter {counter} repeats or precedes the last '
+                                       f"accepted {last} ({t_s - t_last:.3f} s ago)")
+            self._command_last = (counter, t_s)
+        return CommandSample(BenchCommand(int(value)), t_s, counter)
 
     @staticmethod
     def _range_text(rp: _RolePlan, plan: _FramePlan, value: float) -> str:
@@ -398,6 +457,7 @@ def encode_inputs(
     groups: dict[str, dict[str, np.ndarray]] = {}
     steps: dict[str, int] = {}
     counters: dict[str, str | None] = {}
+    crcs: set[str] = set()
     for role in ROLES:
         rs = mapping.role(role)
         msg = _message(db, rs.message, "DBC", f"role {role}")
@@ -421,6 +481,9 @@ def encode_inputs(
         groups.setdefault(msg.name, {})[sig.name] = x
         if rs.counter is not None:
             counters[msg.name] = rs.counter
+        if rs.crc is not None:
+            _crc_signal(msg, rs.crc, "DBC")
+            crcs.add(msg.name)
     rng = np.random.default_rng(seed)
     frames: list[tuple[float, int, bytes]] = []
     for name, signals in groups.items():
@@ -431,20 +494,23 @@ def encode_inputs(
         wrap = 1 << msg.get_signal_by_name(counter).length if counter else 1
         base = {s.name: _fill_value(s) for s in msg.signals if s.name not in signals}
         cols = {s: v[idx].tolist() for s, v in signals.items()}
-        encode, fid = msg.encode, int(msg.frame_id)
+        encode, fid, crc = msg.encode, int(msg.frame_id), name in crcs
         for j, tj in enumerate(times.tolist()):
             values = dict(base)
             for s, v in cols.items():
                 values[s] = v[j]
             if counter:
                 values[counter] = j % wrap
-            frames.append((tj, fid, bytes(encode(values, scaling=True, padding=False, strict=False))))
+            data = bytes(encode(values, scaling=True, padding=False, strict=False))
+            frames.append((tj, fid, data[:7] + bytes([crc8_j1850(data[:7])]) if crc else data))
     frames.sort(key=lambda f: f[0])
     return frames
 
 
-def encode_command(db: Any, message: str, signal: str, command: int, counter: int = 0) -> tuple[int, bytes]:
-    """The service command frame ``(arbitration_id, data)``: the signal set, other signals 0 (counter)."""
+def encode_command(db: Any, message: str, signal: str, command: int, counter: int = 0,
+                   crc: str | None = "OidCommandCRC") -> tuple[int, bytes]:
+    """The service command frame ``(arbitration_id, data)``: the signal set, the counter (signals ending
+    in "counter") set, other signals 0, and byte 7 the CRC-8 of bytes 0..6 when the message has signal ``crc``."""
     msg = _message(db, message, "the DBC", "service command")
     _signal(msg, signal, "the DBC", "service command")
     values = {s.name: 0 for s in msg.signals}
@@ -453,7 +519,10 @@ def encode_command(db: Any, message: str, signal: str, command: int, counter: in
         if s.name != signal and s.name.lower().endswith("counter"):
             values[s.name] = counter % (1 << s.length)
     try:
-        data = msg.encode(values, scaling=True, padding=True, strict=True)
+        data = bytes(msg.encode(values, scaling=True, padding=True, strict=True))
     except (cantools.database.Error, ValueError, KeyError) as err:
         raise DbcError(f'Cannot encode command {command} in message "{message}": {err}') from err
-    return int(msg.frame_id), bytes(data)
+    if crc is not None and crc in {s.name for s in msg.signals}:
+        _crc_signal(msg, crc, "the DBC")
+        data = data[:7] + bytes([crc8_j1850(data[:7])])
+    return int(msg.frame_id), data
