@@ -98,10 +98,17 @@ class BenchDiagnosis:
         return [s.candidate for s in self.steps]
 
     def errors(self, fit: BenchFit) -> dict:
-        """Held-out one-step RMS [rpm] per equation, overall and per plateau."""
-        return {eq: {"rms_rpm": float(np.sqrt(fit.mse(eq)) * RPM_PER_RAD_S),
-                     "per_plateau_rpm": [x * RPM_PER_RAD_S for x in fit.eqs[eq].plateau_rms(fit.plateaus)]}
-                for eq in fit.eqs}
+        """Held-out one-step RMS [rpm] per equation, overall and per plateau.
+
+        ``rms`` is the dyno equation's in rad/s (the dyno-speed one-step error
+        the generic path reports).
+        """
+        out: dict = {eq: {"rms_rpm": float(np.sqrt(fit.mse(eq)) * RPM_PER_RAD_S),
+                          "per_plateau_rpm": [x * RPM_PER_RAD_S
+                                              for x in fit.eqs[eq].plateau_rms(fit.plateaus)]}
+                     for eq in fit.eqs}
+        out["rms"] = float(np.sqrt(fit.mse("dyno")))
+        return out
 
     def as_dict(self) -> dict:
         s = self.series
