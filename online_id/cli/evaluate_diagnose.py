@@ -29,10 +29,14 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _progress(label: str):
+def _progress(label: str, sink: Path):
     t0 = time.monotonic()
+    sink.parent.mkdir(parents=True, exist_ok=True)
+    sink.write_text("", encoding="utf-8")
 
     def report(i: int, n: int, r: dict) -> None:
+        with sink.open("a", encoding="utf-8") as fh:  # finished cases survive an interrupted run
+            fh.write(json.dumps(r, default=float) + "\n")
         el = time.monotonic() - t0
         print(f"\r{label}: {i}/{n} cases, {el:.0f} s, eta {el / i * (n - i):.0f} s  ({r['case']})   ",
               end="", file=sys.stderr, flush=True)
@@ -57,10 +61,13 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError(f"{args.thresholds}: cannot read thresholds: {err}") from err
     else:
         jobs = [("clean", ev.CALIBRATION_SEED0 + i) for i in range(n_cal)]
-        calibration = ev.run_cases(jobs, args.jobs, _progress("calibration (clean benches)"))
+        calibration = ev.run_cases(jobs, args.jobs, _progress("calibration (clean benches)",
+                                                              Path(args.out) / "calibration.jsonl"))
         thresholds = ev.calibrate(calibration)
+        (Path(args.out) / "thresholds.json").write_text(json.dumps(thresholds, indent=1) + "\n",
+                                                        encoding="utf-8")
     jobs = [(k, args.seed + i) for i in range(n_test) for k in KINDS]
-    results = ev.run_cases(jobs, args.jobs, _progress("test benches"))
+    results = ev.run_cases(jobs, args.jobs, _progress("test benches", Path(args.out) / "cases.jsonl"))
     summary = ev.summarise(results, thresholds)
     summary["seconds"] = time.monotonic() - t0
     summary["command"] = " ".join(["online-id"] + sys.argv[1:]) if sys.argv else ""

@@ -43,7 +43,7 @@ from online_id.errors import EstimationError
 T_CRIT = 2.86
 COHERENCE_MODE = 0.2  # residual line coherent with the dyno torque: a mode
 SIDE_UNDETERMINED = 0.8  # the weaker side explains at least this share of the stronger
-MAX_DELAY_S = 0.014
+MAX_DELAY_S = 0.012
 # calibrated on clean randomised benches (seeds 1000-1039, `online-id evaluate-diagnose --calibrate`)
 THRESHOLDS = {
     "rotation_order_disturbance": 0.02,

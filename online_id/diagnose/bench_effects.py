@@ -217,7 +217,7 @@ def search_delay(series: BenchSeries, spec: Spec, base: BenchFit, signal: str,
     values = [loss(d) for d in grid]
     i = int(np.argmin(values))
     res = minimize_scalar(loss, bounds=(max(grid[i] - 1.0, 0.05), grid[i] + 1.0), method="bounded",
-                          options={"xatol": 0.02})
+                          options={"xatol": 0.05, "maxiter": 8})
     d = float(res.x) if res.fun < values[i] else float(grid[i])
     return replace(spec, **{attr: start + d})
 
@@ -227,12 +227,12 @@ def search_backlash(series: BenchSeries, spec: Spec) -> TwistTerm:
     ps = plateau_signals(series, spec)
     span = float(np.median([np.subtract(*np.percentile(p.twist[p.rows], [95, 5])) for p in ps]))
     best = (np.inf, None)
-    for gap in span * np.geomspace(0.05, 1.0, 6):
+    for gap in span * np.geomspace(0.05, 1.0, 5):
         total, centers = 0.0, []
         for p in ps:
             lo, hi = np.percentile(p.twist[p.rows], [10, 90])
             pick = (np.inf, 0.0)
-            for c in np.linspace(lo, hi, 5):
+            for c in np.linspace(lo, hi, 4):
                 x = np.clip(p.twist - c, -0.5 * gap, 0.5 * gap)
                 cols = p.lagged(x, np.arange(spec.nb))
                 v = 0.0
