@@ -25,6 +25,9 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--thresholds", metavar="JSON", help="use these thresholds instead of calibrating")
     p.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
     p.add_argument("--quick", action="store_true", help="3 cases per kind, 6 calibration benches")
+    p.add_argument("--include", metavar="DIR", action="append", default=[],
+                   help="also summarise the finished test cases of an earlier run (its cases.jsonl); "
+                   "give the same --thresholds")
     p.add_argument("--out", metavar="DIR", default="diagnose-eval", help="output directory")
     p.set_defaults(func=run)
 
@@ -68,6 +71,12 @@ def run(args: argparse.Namespace) -> int:
                                                         encoding="utf-8")
     jobs = [(k, args.seed + i) for i in range(n_test) for k in KINDS]
     results = ev.run_cases(jobs, args.jobs, _progress("test benches", Path(args.out) / "cases.jsonl"))
+    for d in args.include:
+        try:
+            lines = (Path(d) / "cases.jsonl").read_text(encoding="utf-8").splitlines()
+            results += [json.loads(x) for x in lines if x.strip()]
+        except (OSError, ValueError) as err:
+            raise ConfigError(f"{d}/cases.jsonl: cannot read earlier cases: {err}") from err
     summary = ev.summarise(results, thresholds)
     summary["seconds"] = time.monotonic() - t0
     summary["command"] = " ".join(["online-id"] + sys.argv[1:]) if sys.argv else ""

@@ -213,11 +213,11 @@ def search_delay(series: BenchSeries, spec: Spec, base: BenchFit, signal: str,
     attr = "shift_dyno" if signal == "dyno" else "shift_engine"
     start = getattr(spec, attr)
     loss = lambda d: est_loss(series, replace(spec, **{attr: start + d}), base)  # noqa: E731
-    grid = np.arange(1.0, max_samples + 1e-9, 1.0)
+    grid = np.arange(0.5, max_samples + 1e-9, 0.5)
     values = [loss(d) for d in grid]
     i = int(np.argmin(values))
-    res = minimize_scalar(loss, bounds=(max(grid[i] - 1.0, 0.05), grid[i] + 1.0), method="bounded",
-                          options={"xatol": 0.05, "maxiter": 8})
+    res = minimize_scalar(loss, bounds=(max(grid[i] - 0.5, 0.05), grid[i] + 0.5), method="bounded",
+                          options={"xatol": 0.02})
     d = float(res.x) if res.fun < values[i] else float(grid[i])
     return replace(spec, **{attr: start + d})
 
