@@ -26,6 +26,11 @@ c_2 \\varphi_2 + d_2 (y_2 - y_3)`.  ``u`` is the dyno torque (control + test
 signal, held per sample) plus ripple :math:`A_r \\sin(o\\,\\theta_1 + \\psi)`;
 ``T_dist`` is a sinusoidal disturbance plus ``gain * x_s`` of the structural
 mode :math:`\\ddot x_s + 2\\zeta_s\\omega_s \\dot x_s + \\omega_s^2 x_s = n(t)`.
+Effects for the diagnosis (off by default, then the arithmetic is unchanged):
+an unmeasured order torque :math:`A \\sin(o\\,\\theta_i + \\psi)` on the dyno
+(added to ``T_dist``) or the engine (subtracted in the ``J_2`` equation), and
+Coulomb friction in the coupling, :math:`F_c \\tanh((y_1 - y_2)/v_\\epsilon)`
+added to ``T_s``.
 """
 
 from __future__ import annotations
@@ -42,8 +47,8 @@ N_STATES = 9
 # parameter indices
 (P_J1, P_J2, P_J3, P_C2, P_D2, P_B0, P_B1, P_B2, P_V, P_SIGMA, P_GAP,
  P_RIP_A, P_RIP_ORDER, P_RIP_PHASE, P_DIST_A, P_DIST_W, P_STR_W, P_STR_Z,
- P_STR_GAIN) = range(19)
-N_PARAMS = 19
+ P_STR_GAIN, P_ORD_A, P_ORD_ORDER, P_ORD_PHASE, P_ORD_ENGINE, P_COUL, P_COUL_V) = range(25)
+N_PARAMS = 25
 
 _FOUR_PI = 4.0 * math.pi
 
@@ -86,14 +91,22 @@ def _derivative(x, t, u, c_s, d_s, force, p, tdc, strength, third, dx):
     y1 = x[Y1]
     y2 = x[Y2]
     t_s = _shaft_torque(x[PHI], y1 - y2, c_s, d_s, p[P_GAP])
+    if p[P_COUL] != 0.0:  # Coulomb friction in the coupling, smoothed over P_COUL_V rad/s
+        t_s += p[P_COUL] * math.tanh((y1 - y2) / p[P_COUL_V])
     t_dyno = u + _ripple(x[THETA1], p)
     t_dist = p[P_DIST_A] * math.sin(p[P_DIST_W] * t) + p[P_STR_GAIN] * x[XS]
+    t_eng = 0.0
+    if p[P_ORD_A] != 0.0:  # unmeasured rotation-order torque on one shaft
+        if p[P_ORD_ENGINE] != 0.0:
+            t_eng = p[P_ORD_A] * math.sin(p[P_ORD_ORDER] * x[THETA2] + p[P_ORD_PHASE])
+        else:
+            t_dist += p[P_ORD_A] * math.sin(p[P_ORD_ORDER] * x[THETA1] + p[P_ORD_PHASE])
     t_23 = 0.0
     if third:
         t_23 = p[P_C2] * x[PHI2] + p[P_D2] * (y2 - x[Y3])
     dx[PHI] = y1 - y2
     dx[Y1] = (-t_s - t_dyno - t_dist) / p[P_J1]
-    dx[Y2] = (t_s - _engine_torque(x[THETA2], y2, p, tdc, strength) - t_23) / p[P_J2]
+    dx[Y2] = (t_s - _engine_torque(x[THETA2], y2, p, tdc, strength) - t_23 - t_eng) / p[P_J2]
     dx[THETA1] = y1
     dx[THETA2] = y2
     if third:

@@ -192,6 +192,42 @@ class SinusoidalDisturbance:
         _non_negative(self, "amplitude_nm")
 
 
+ORDER_SHAFTS = ("dyno", "engine")
+
+
+@dataclass(frozen=True)
+class OrderTorque:
+    """Unmeasured torque ``amplitude_nm sin(order theta + phase_rad)`` on one shaft.
+
+    Unlike :class:`TorqueRipple` it is not in the recorded dyno torque (a
+    ripple of the dyno's air gap that its torque signal does not see, or an
+    engine-side torque such as an imbalance of the drive train).
+    """
+
+    shaft: str
+    order: float
+    amplitude_nm: float
+    phase_rad: float = 0.0
+
+    def __post_init__(self) -> None:
+        _require(self.shaft in ORDER_SHAFTS, "shaft", self.shaft,
+                 f"expected one of {', '.join(ORDER_SHAFTS)}")
+        _positive(self, "order")
+        _non_negative(self, "amplitude_nm")
+
+
+@dataclass(frozen=True)
+class CouplingFriction:
+    """Coulomb friction ``torque_nm sign(y1 - y2)`` in the coupling (smoothed over ``smoothing_rad_s``)."""
+
+    torque_nm: float
+    smoothing_rad_s: float = 0.01
+
+    def __post_init__(self) -> None:
+        _non_negative(self, "torque_nm")
+        _positive(self, "smoothing_rad_s")
+
+
 @dataclass(frozen=True)
 class Effects:
     """Effects the identification model does not declare; ``None`` = off."""
@@ -201,6 +237,8 @@ class Effects:
     sensor_delay: SensorDelay | None = None
     structural_resonance: StructuralResonance | None = None
     disturbance: SinusoidalDisturbance | None = None
+    order_torque: OrderTorque | None = None
+    coupling_friction: CouplingFriction | None = None
 
 
 @dataclass(frozen=True)

@@ -121,6 +121,14 @@ def _parameters(s: BenchScenario) -> np.ndarray:
         sr = fx.structural_resonance
         p[plant.P_STR_W], p[plant.P_STR_Z] = 2.0 * math.pi * sr.freq_hz, sr.zeta
         p[plant.P_STR_GAIN] = sr.amplitude_nm
+    if fx.order_torque is not None:
+        ot = fx.order_torque
+        p[plant.P_ORD_A], p[plant.P_ORD_ORDER], p[plant.P_ORD_PHASE] = (
+            ot.amplitude_nm, ot.order, ot.phase_rad)
+        p[plant.P_ORD_ENGINE] = 1.0 if ot.shaft == "engine" else 0.0
+    if fx.coupling_friction is not None:
+        p[plant.P_COUL] = fx.coupling_friction.torque_nm
+        p[plant.P_COUL_V] = fx.coupling_friction.smoothing_rad_s
     return p
 
 

@@ -1,9 +1,9 @@
 """``online-id diagnose PATH``: residual diagnosis, effect tracing, error before and after.
 
 Inputs: a bench CSV or a CAN log of the bench (``.log``, ``.asc``, ``.blf``,
-decoded with the config's DBC and mapping; default: input = dyno torque,
-output = dyno speed, both shaft speeds for order spectra, torsion proxy =
-integral of dyno minus engine speed), a generic CSV (``--input-col U --output-col Y [--time-col T | --fs HZ]``)
+decoded with the config's DBC and mapping), diagnosed per operating point
+(:mod:`online_id.diagnose.bench_diagnosis`: causal data path, both inertia
+equations, calibrated candidates), or a generic CSV (``--input-col U --output-col Y [--time-col T | --fs HZ]``)
 or a MATLAB ``.mat`` file (``--input-var U --output-var Y [--time-var T | --fs HZ]``).
 """
 
@@ -20,12 +20,16 @@ from online_id.benchlog import read_bench
 from online_id.config import load_config
 from online_id.estimation.preprocess import check_uniform, decimate, decimation_factor
 from online_id.diagnose import DiagnoseData, Diagnosis, diagnose
+from online_id.diagnose.bench_data import TARGET_FS_HZ, prepare
+from online_id.diagnose.bench_diagnosis import BenchDiagnosis, diagnose_bench
+from online_id.cli.diagnose_bench_report import bench_text, write_bench_report
 from online_id.diagnose.effects import shaft_angle
 from online_id.errors import ConfigError, InputDataError
 from online_id.io.table_csv import read_csv_columns
 from online_id.report import TerminalProgress
 
 BENCH_ORDERS = (8, 8, 8, 0)
+DEFAULT_PULSES_PER_REV = 2.0  # four-stroke four-cylinder
 GENERIC_ORDERS = (2, 2, 2, 1)
 
 
@@ -62,6 +66,9 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     m.add_argument("--min-explained", type=float, default=0.1, metavar="F",
                    help="smallest share of held-out residual variance an effect must remove (default 0.1)")
     m.add_argument("--max-effects", type=int, default=3)
+    m.add_argument("--pulses-per-rev", type=float, metavar="F",
+                   help="bench: compression pulses per revolution (declared orders; default from the "
+                   "config's model.pulses_per_rev, else 2 = four-stroke four-cylinder)")
     m.add_argument("--sim-horizon", type=float, metavar="S",
                    help="restart the simulation every S seconds (bench default 0.5; else whole part)")
     p.set_defaults(func=run)
@@ -138,6 +145,30 @@ def load_data(args: argparse.Namespace) -> tuple[DiagnoseData, bool]:
     data = DiagnoseData(dec(u), dec(y), fs / q, names[0], names[1], speeds, torsion,
                         source=str(path))
     return data, bench
+
+
+def is_bench(args: argparse.Namespace) -> bool:
+    """A bench file (CSV in the bench layout, or a CAN log), not generic or MATLAB input."""
+    return not (Path(args.path).suffix.lower() == ".mat" or args.input_col or args.output_col)
+
+
+def run_bench(args: argparse.Namespace) -> BenchDiagnosis:
+    """Bench files: causal data path, plateaus, per-plateau baseline, calibrated candidates."""
+    path = Path(args.path)
+    if not path.exists():
+        raise InputDataError(f"{path}: no such file")
+    s = load_config(args.config)
+    d = read_bench(path, s, lambda text: print(text, file=sys.stderr))
+    ppr = args.pulses_per_rev or s.model.pulses_per_rev or DEFAULT_PULSES_PER_REV
+    series = prepare(d.time_s, d.dyno_torque_nm, d.dyno_speed_rad_s, d.engine_speed_rad_s,
+                     source=str(path), pulses_per_rev=ppr,
+                     target_hz=args.sample_rate or TARGET_FS_HZ)
+    progress = TerminalProgress("diagnose")
+    try:
+        return diagnose_bench(series, na=args.na or 6, nb=args.nb or 6,
+                              max_effects=args.max_effects, progress=progress)
+    finally:
+        progress.close()
 
 
 def run_diagnosis(args: argparse.Namespace) -> Diagnosis:
@@ -250,13 +281,16 @@ def plot_residuals(d: Diagnosis, out: Path) -> list[Path]:
 
 
 def run(args: argparse.Namespace) -> int:
-    d = run_diagnosis(args)
-    files = write_report(d, Path(args.report)) if args.report else []
+    if is_bench(args):
+        result, text, writer = run_bench(args), bench_text, write_bench_report
+    else:
+        result, text, writer = run_diagnosis(args), text_report, write_report
+    files = writer(result, Path(args.report)) if args.report else []
     if args.json:
-        json.dump(d.as_dict(), sys.stdout, indent=2, default=float)
+        json.dump(result.as_dict(), sys.stdout, indent=2, default=float)
         sys.stdout.write("\n")
     else:
-        print(text_report(d))
+        print(text(result))
         for f in files:
             print(f"wrote {f}")
     return 0

@@ -1,0 +1,85 @@
+"""Text, JSON and plots of a bench diagnosis (``online-id diagnose BENCH_FILE``)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from online_id.diagnose.bench_data import RPM_PER_RAD_S
+from online_id.diagnose.bench_diagnosis import BenchDiagnosis
+
+
+def _fmt(params: dict) -> str:
+    out = []
+    for k, v in params.items():
+        if isinstance(v, dict):
+            continue
+        out.append(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}")
+    return ", ".join(out)
+
+
+def bench_text(b: BenchDiagnosis) -> str:
+    """The report printed by ``online-id diagnose`` for a bench file."""
+    s, path = b.series, b.series.path
+    lines = [f"online-id diagnose {s.source}",
+             f"causal data path: {path.fs_in_hz:g} Hz -> {path.fs_hz:g} Hz, linear-phase FIR of "
+             f"{path.numtaps} taps, its delay ({path.group_delay_samples} samples) removed from "
+             "torque and both speeds alike",
+             f"declared: compression pulses, {s.pulses_per_rev:g} per revolution", "",
+             "| plateau | speed rpm | t s | declared orders |", "|---|---|---|---|"]
+    for i, (p, q) in enumerate(zip(s.plateaus, b.baseline.plateaus), 1):
+        lines.append(f"| {i} | {p.speed_rpm:.0f} | {p.t_start_s:.1f}-{p.t_end_s:.1f} | "
+                     f"{', '.join(f'{k:g}' for k in q.declared)} |")
+    e0 = b.errors(b.baseline)
+    lines += ["", "| step | effect | parameters | gain (held-out) | t | RMS dyno eq rpm | RMS engine eq rpm |",
+              "|---|---|---|---|---|---|---|",
+              f"| 0 | baseline per plateau (na={b.baseline.spec.na}, nb={b.baseline.spec.nb}) | | | | "
+              f"{e0['dyno']['rms_rpm']:.4g} | {e0['engine']['rms_rpm']:.4g} |"]
+    for i, st in enumerate(b.steps, 1):
+        c = st.candidate
+        lines.append(f"| {i} | {c.kind} | {_fmt(c.params)} | {100 * c.gain:.1f} % | {c.t_stat:.1f} | "
+                     f"{st.rms_after['dyno']:.4g} | {st.rms_after['engine']:.4g} |")
+    lines += ["", "result: " + (", then ".join(c.kind for c in b.effects) if b.steps
+                                else "no significant effect"), f"stopped: {b.stop_reason}", "",
+              "held-out one-step error per plateau [rpm], before -> after:"]
+    e1 = b.errors(b.final)
+    for eq in ("dyno", "engine"):
+        pairs = zip(e0[eq]["per_plateau_rpm"], e1[eq]["per_plateau_rpm"])
+        lines.append(f"  {eq:6s} equation: " + ", ".join(f"{a:.4g} -> {c:.4g}" for a, c in pairs))
+    lines += ["", "strongest candidates of step 1 (gain, t; accepted when gain >= threshold and t >= 2.86):"]
+    for c in sorted(b.candidates[0], key=lambda c: -c.gain)[:6] if b.candidates else []:
+        lines.append(f"  {c.kind:28s} {100 * c.gain:6.2f} %  t={c.t_stat:5.1f}  threshold "
+                     f"{100 * b.thresholds[c.kind]:.2f} %  {_fmt(c.params)}")
+    return "\n".join(lines)
+
+
+def write_bench_report(b: BenchDiagnosis, out: Path) -> list[Path]:
+    """summary.md, diagnosis.json and residual_spectrum.png (both equations, before and after)."""
+    out.mkdir(parents=True, exist_ok=True)
+    files = [out / "summary.md", out / "diagnosis.json", out / "residual_spectrum.png"]
+    files[0].write_text("# Diagnosis\n\n```\n" + bench_text(b) + "\n```\n", encoding="utf-8")
+    files[1].write_text(json.dumps(b.as_dict(), indent=2, default=float) + "\n", encoding="utf-8")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from scipy.signal import welch
+
+    fig, axes = plt.subplots(2, 1, figsize=(8, 6.5), sharex=True)
+    fs = b.series.fs_hz
+    for ax, eq in zip(axes, ("dyno", "engine")):
+        for label, fit in (("before", b.baseline), ("after", b.final)):
+            r = np.concatenate([x[p.val] for x, p in zip(fit.eqs[eq].residuals, fit.plateaus)])
+            f, pxx = welch(r * RPM_PER_RAD_S, fs=fs, nperseg=min(r.size, int(2 * fs)))
+            ax.semilogy(f, pxx, label=label)
+        ax.set_ylabel(f"{eq} eq. residual PSD")
+        ax.grid(alpha=0.3)
+        ax.legend()
+    axes[-1].set_xlabel("frequency [Hz]")
+    fig.suptitle(f"held-out residuals, {Path(b.series.source).name}")
+    fig.tight_layout()
+    fig.savefig(files[2], dpi=100)
+    plt.close(fig)
+    return files

@@ -1,0 +1,89 @@
+"""``online-id evaluate-diagnose``: the diagnosis on randomised benches, confusion matrix and figures."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from online_id.errors import ConfigError
+
+
+def add_subparser(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "evaluate-diagnose", help="measure the diagnosis on randomised benches (confusion matrix)",
+        description="Simulate randomised benches (compression pulses, PI speed control, PRBS, "
+        "3-4 plateaus, noise), each clean or with one undeclared effect; calibrate the acceptance "
+        "thresholds on clean benches with their own seeds, then diagnose the test benches and "
+        "report the kind named first, parameter errors and the false-effect rate.")
+    p.add_argument("--cases", type=int, default=30, metavar="N", help="test cases per kind (default 30)")
+    p.add_argument("--calibration-cases", type=int, default=30, metavar="N",
+                   help="clean calibration benches (default 30)")
+    p.add_argument("--seed", type=int, default=1, help="first test seed (default 1)")
+    p.add_argument("--thresholds", metavar="JSON", help="use these thresholds instead of calibrating")
+    p.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
+    p.add_argument("--quick", action="store_true", help="3 cases per kind, 6 calibration benches")
+    p.add_argument("--include", metavar="DIR", action="append", default=[],
+                   help="also summarise the finished test cases of an earlier run (its cases.jsonl); "
+                   "give the same --thresholds")
+    p.add_argument("--out", metavar="DIR", default="diagnose-eval", help="output directory")
+    p.set_defaults(func=run)
+
+
+def _progress(label: str, sink: Path):
+    t0 = time.monotonic()
+    sink.parent.mkdir(parents=True, exist_ok=True)
+    sink.write_text("", encoding="utf-8")
+
+    def report(i: int, n: int, r: dict) -> None:
+        with sink.open("a", encoding="utf-8") as fh:  # finished cases survive an interrupted run
+            fh.write(json.dumps(r, default=float) + "\n")
+        el = time.monotonic() - t0
+        print(f"\r{label}: {i}/{n} cases, {el:.0f} s, eta {el / i * (n - i):.0f} s  ({r['case']})   ",
+              end="", file=sys.stderr, flush=True)
+        if i == n:
+            print(file=sys.stderr)
+    return report
+
+
+def run(args: argparse.Namespace) -> int:
+    from online_id import diagnose_evaluation as ev
+    from online_id.bench.diagnose_cases import KINDS
+
+    n_test, n_cal = (3, 6) if args.quick else (args.cases, args.calibration_cases)
+    if n_test < 1 or n_cal < 0 or args.jobs < 1:
+        raise ConfigError("--cases and --jobs must be >= 1, --calibration-cases >= 0")
+    t0 = time.monotonic()
+    calibration = []
+    if args.thresholds:
+        try:
+            thresholds = json.loads(Path(args.thresholds).read_text(encoding="utf-8"))
+        except (OSError, ValueError) as err:
+            raise ConfigError(f"{args.thresholds}: cannot read thresholds: {err}") from err
+    else:
+        jobs = [("clean", ev.CALIBRATION_SEED0 + i) for i in range(n_cal)]
+        calibration = ev.run_cases(jobs, args.jobs, _progress("calibration (clean benches)",
+                                                              Path(args.out) / "calibration.jsonl"))
+        thresholds = ev.calibrate(calibration)
+        (Path(args.out) / "thresholds.json").write_text(json.dumps(thresholds, indent=1) + "\n",
+                                                        encoding="utf-8")
+    jobs = [(k, args.seed + i) for i in range(n_test) for k in KINDS]
+    results = ev.run_cases(jobs, args.jobs, _progress("test benches", Path(args.out) / "cases.jsonl"))
+    for d in args.include:
+        try:
+            lines = (Path(d) / "cases.jsonl").read_text(encoding="utf-8").splitlines()
+            results += [json.loads(x) for x in lines if x.strip()]
+        except (OSError, ValueError) as err:
+            raise ConfigError(f"{d}/cases.jsonl: cannot read earlier cases: {err}") from err
+    summary = ev.summarise(results, thresholds)
+    summary["seconds"] = time.monotonic() - t0
+    summary["command"] = " ".join(["online-id"] + sys.argv[1:]) if sys.argv else ""
+    files = ev.write_outputs(Path(args.out), summary, calibration, results)
+    print("thresholds: " + ", ".join(f"{k} {v:.3f}" for k, v in thresholds.items()))
+    print(ev.table(summary))
+    print(f"{len(results)} test and {len(calibration)} calibration cases in {summary['seconds']:.0f} s")
+    for f in files:
+        print(f"wrote {f}")
+    return 0

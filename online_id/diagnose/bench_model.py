@@ -1,0 +1,288 @@
+"""Per-plateau baseline of the two-mass bench: one equation per inertia.
+
+Notes
+-----
+The driveline is written as two local equations, each an ARX model fitted
+by least squares on the estimation blocks of every plateau separately:
+
+.. math::
+
+    \\text{dyno:}\\quad A_1(q) y_1 = B_1(q) u + C_1(q) y_2 + \\sum_k g_k^T s_k(\\theta_2) + k_1 + r_1
+
+    \\text{engine:}\\quad A_2(q) y_2 = C_2(q) y_1 + \\sum_k h_k^T s_k(\\theta_2) + k_2 + r_2
+
+with :math:`s_k(\\theta) = [\\sin k\\theta, \\cos k\\theta]` at the declared
+compression orders (multiples of ``pulses_per_rev`` below Nyquist), speed
+lags ``0 .. nb - 1`` and torque lags ``1 .. nb`` (at lag 0 the torque holds
+the speed controller's reaction to the measured dyno speed).  The continuous plant gives exactly these
+second-order relations (:math:`(J_1 s^2 + d s + c) y_1 = (d s + c) y_2 - s u`
+and its twin for :math:`J_2`), so the residual :math:`r_1` holds only what
+acts on the dyno inertia and :math:`r_2` only what acts on the engine
+inertia: an undeclared torque shows in the equation of the shaft it enters.
+Effects add columns to one or both equations (:class:`Term`), raise the
+orders of one (an additional mode) or shift a speed signal by a fraction of
+a sample (a sensor delay; cubic-spline interpolation of the band-limited
+signal).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Protocol
+
+import numpy as np
+from scipy.linalg import lstsq as scipy_lstsq
+from scipy.ndimage import uniform_filter1d
+from scipy.signal import lfilter, lfiltic
+
+from online_id.diagnose.bench_data import BenchSeries
+from online_id.errors import EstimationError
+
+EQS = ("dyno", "engine")
+BLOCK_S = 5.0
+HOLDOUT_S = 1.0
+MAX_DECLARED_HARMONICS = 12
+TWIST_HIGHPASS_S = 2.0
+ROW_MARGIN = 16
+
+
+class Term(Protocol):
+    """An effect that adds regressor columns to one or both equations."""
+
+    kind: str
+
+    def columns(self, p: "PlateauSignals", eq: str) -> np.ndarray | None:
+        """Columns ``(rows, m)`` for equation ``eq`` of plateau ``p``, or ``None``."""
+
+
+@dataclass(frozen=True)
+class Spec:
+    """Model structure: orders, extra pole pairs, speed-signal shifts and effect terms."""
+
+    na: int = 6
+    nb: int = 6
+    modes: tuple[int, int] = (0, 0)
+    shift_dyno: float = 0.0
+    shift_engine: float = 0.0
+    terms: tuple = ()
+
+    def orders(self, eq: str) -> tuple[int, int]:
+        m = self.modes[EQS.index(eq)]
+        return self.na + 2 * m, self.nb + 2 * m
+
+    @property
+    def max_lag(self) -> int:
+        return max(self.na, self.nb) + 2 * max(self.modes) + 1
+
+    def with_term(self, term: object) -> "Spec":
+        return replace(self, terms=self.terms + (term,))
+
+
+@dataclass
+class PlateauSignals:
+    """The signals of one plateau on its rows ``start .. stop - 1`` and the lags before."""
+
+    index: int
+    rows: np.ndarray
+    est: np.ndarray
+    val: np.ndarray
+    u: np.ndarray
+    y1: np.ndarray
+    y2: np.ndarray
+    theta1: np.ndarray
+    theta2: np.ndarray
+    time_s: np.ndarray
+    twist: np.ndarray
+    rev_hz: float
+    fs_hz: float
+    declared: list = field(default_factory=list)
+    cache: dict = field(default_factory=dict)  # (eq, na, nb) -> base regressors
+    residual: dict = field(default_factory=dict)  # eq -> baseline residual on the full plateau span
+
+    def lagged(self, x: np.ndarray, lags: np.ndarray) -> np.ndarray:
+        return np.column_stack([x[self.rows - k] for k in lags])
+
+
+def declared_orders(series: BenchSeries, rev_hz: float) -> list[float]:
+    """Compression orders ``pulses_per_rev * (1, 2, ...)`` below the Nyquist frequency at ``rev_hz``."""
+    out = []
+    for i in range(1, MAX_DECLARED_HARMONICS + 1):
+        k = series.pulses_per_rev * i
+        if k * rev_hz < 0.5 * series.fs_hz:
+            out.append(k)
+    return out
+
+
+def order_columns(theta: np.ndarray, orders: list[float] | tuple[float, ...]) -> np.ndarray:
+    return np.column_stack([f(k * theta) for k in orders for f in (np.sin, np.cos)])
+
+
+def shifted(x: np.ndarray, advance: float, pad: int = 1024) -> np.ndarray:
+    """``x(n + advance)`` for a band-limited ``x``: an all-pass phase ramp in the DFT domain.
+
+    Unlike an interpolating polynomial it keeps the amplitude of every
+    frequency (a spline shift smooths the noise and would always "improve"
+    the fit).  The record is extended by reflection at both ends first.
+    """
+    if advance == 0.0:
+        return x
+    ext = np.concatenate((x[pad:0:-1], x, x[-2:-pad - 2:-1]))
+    f = np.fft.rfftfreq(ext.size)
+    out = np.fft.irfft(np.fft.rfft(ext) * np.exp(2j * np.pi * f * advance), n=ext.size)
+    return out[pad:pad + x.size]
+
+
+def plateau_signals(series: BenchSeries, spec: Spec) -> list[PlateauSignals]:
+    """Per-plateau signal views with the spec's speed shifts and block masks."""
+    fs = series.fs_hz
+    y1 = shifted(series.dyno, spec.shift_dyno)
+    y2 = shifted(series.engine, spec.shift_engine)
+    block, hold = int(round(BLOCK_S * fs)), int(round(HOLDOUT_S * fs))
+    out = []
+    for i, p in enumerate(series.plateaus):
+        if spec.max_lag > ROW_MARGIN:
+            raise EstimationError(f"model lags up to {spec.max_lag} exceed {ROW_MARGIN}")
+        rows = np.arange(p.start + ROW_MARGIN, p.stop)  # the same rows for every spec
+        pos = (rows - rows[0]) % block
+        val = pos >= block - hold
+        span = slice(p.start, p.stop)
+        tw = np.zeros(series.dyno.size)
+        seg = np.cumsum(y1[span] - y2[span]) / fs
+        tw[span] = seg - uniform_filter1d(seg, int(TWIST_HIGHPASS_S * fs), mode="nearest")
+        out.append(PlateauSignals(i, rows, ~val, val, series.torque, y1, y2, series.theta_dyno,
+                                  series.theta_engine, np.arange(series.dyno.size) / fs, tw,
+                                  float(np.mean(series.engine[span])) / (2 * np.pi), fs))
+        out[-1].declared = declared_orders(series, out[-1].rev_hz)
+    return out
+
+
+@dataclass
+class EquationFit:
+    """One equation fitted on every plateau: residuals on the plateau rows."""
+
+    eq: str
+    residuals: list[np.ndarray]
+    coefs: list[np.ndarray]
+    n_cols: int
+
+    def val_mse(self, ps: list[PlateauSignals]) -> float:
+        e = np.concatenate([r[p.val] for r, p in zip(self.residuals, ps)])
+        return float(np.mean(e**2))
+
+    def val_errors(self, ps: list[PlateauSignals]) -> np.ndarray:
+        return np.concatenate([r[p.val] for r, p in zip(self.residuals, ps)])
+
+    def plateau_rms(self, ps: list[PlateauSignals]) -> list[float]:
+        return [float(np.sqrt(np.mean(r[p.val] ** 2))) for r, p in zip(self.residuals, ps)]
+
+
+@dataclass
+class BenchFit:
+    """Both equations of one spec."""
+
+    spec: Spec
+    plateaus: list[PlateauSignals]
+    eqs: dict[str, EquationFit]
+
+    def mse(self, eq: str) -> float:
+        return self.eqs[eq].val_mse(self.plateaus)
+
+
+def _base_columns(p: PlateauSignals, spec: Spec, eq: str) -> list[np.ndarray]:
+    na, nb = spec.orders(eq)
+    key = (eq, na, nb)
+    if key not in p.cache:
+        p.cache[key] = np.hstack(_build_base(p, eq, na, nb))
+    return [p.cache[key]]
+
+
+def _build_base(p: PlateauSignals, eq: str, na: int, nb: int) -> list[np.ndarray]:
+    lags_a, lags_b = np.arange(1, na + 1), np.arange(0, nb)
+    if eq == "dyno":
+        # the torque from lag 1: at lag 0 it holds the speed controller's reaction to the
+        # measured dyno speed (feedback), which a one-step predictor must not use
+        cols = [p.lagged(p.y1, lags_a), p.lagged(p.u, lags_b + 1), p.lagged(p.y2, lags_b)]
+    else:
+        cols = [p.lagged(p.y2, lags_a), p.lagged(p.y1, lags_b)]
+    if p.declared:
+        cols.append(order_columns(p.theta2[p.rows], p.declared))
+    cols.append(np.ones((p.rows.size, 1)))
+    return cols
+
+
+def _lstsq(phi: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Least squares by the normal equations of the column-scaled regressors (a tiny ridge keeps
+    collinear columns, e.g. an order above the band, harmless); falls back to QR."""
+    scale = np.maximum(np.sqrt(np.mean(phi**2, axis=0)), 1e-300)
+    x = phi / scale
+    gram = x.T @ x
+    gram[np.diag_indices_from(gram)] += 1e-9 * x.shape[0]
+    try:
+        coef = np.linalg.solve(gram, x.T @ y)
+    except np.linalg.LinAlgError:
+        coef, *_ = scipy_lstsq(x, y, cond=1e-10, check_finite=False)
+    return coef / scale
+
+
+def fit_plateau(p: PlateauSignals, spec: Spec, eq: str, extra: list[np.ndarray] = (),
+                source: str = "<memory>") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Fit equation ``eq`` on plateau ``p``: residual on its rows, coefficients, regressors."""
+    cols = _base_columns(p, spec, eq)
+    for term in spec.terms:
+        c = term.columns(p, eq)
+        if c is not None:
+            cols.append(np.asarray(c, dtype=float).reshape(p.rows.size, -1))
+    cols += [np.asarray(c, dtype=float).reshape(p.rows.size, -1) for c in extra]
+    phi = np.hstack(cols)
+    y = (p.y1 if eq == "dyno" else p.y2)[p.rows]
+    if int(p.est.sum()) <= 3 * phi.shape[1]:
+        raise EstimationError(f"{source}: plateau {p.index + 1} has too few samples "
+                              f"({int(p.est.sum())}) for {phi.shape[1]} parameters")
+    coef = _lstsq(phi[p.est], y[p.est])
+    return y - phi @ coef, coef, phi
+
+
+def fit_spec(series: BenchSeries, spec: Spec, ps: list[PlateauSignals] | None = None,
+             only: tuple[str, ...] = EQS) -> BenchFit:
+    """Fit both (or ``only`` some) equations of ``spec`` on every plateau's estimation blocks."""
+    ps = ps if ps is not None else plateau_signals(series, spec)
+    eqs = {}
+    for eq in only:
+        res, coefs, width = [], [], 0
+        for p in ps:
+            r, coef, phi = fit_plateau(p, spec, eq, source=series.source)
+            res.append(r)
+            coefs.append(coef)
+            width = phi.shape[1]
+        eqs[eq] = EquationFit(eq, res, coefs, width)
+    return BenchFit(spec, ps, eqs)
+
+
+def batch_t(e_old: np.ndarray, e_new: np.ndarray, n_batch: int = 20) -> float:
+    """Batch-means t statistic of the held-out improvement ``e_old^2 - e_new^2``."""
+    d = e_old**2 - e_new**2
+    means = np.array([b.mean() for b in np.array_split(d, n_batch)])
+    se = means.std(ddof=1) / np.sqrt(n_batch)
+    return float(means.mean() / se) if se > 0 else 0.0
+
+
+def simulate_validation(p: PlateauSignals, spec: Spec, eq: str, coef: np.ndarray,
+                        phi: np.ndarray) -> np.ndarray:
+    """Simulation error of equation ``eq`` over each held-out block of ``p``.
+
+    The output is simulated from the equation's inputs alone (its own lags
+    are the simulated ones), started from the measured output before each
+    block; returns the error on the held-out rows.
+    """
+    na, _ = spec.orders(eq)
+    y = (p.y1 if eq == "dyno" else p.y2)[p.rows]
+    w = phi[:, na:] @ coef[na:]
+    A = np.concatenate(([1.0], -coef[:na]))
+    out = []
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], p.val.astype(int), [0]))))
+    for a, b in zip(edges[::2], edges[1::2]):
+        past = y[max(a - na, 0):a][::-1]
+        zi = lfiltic([1.0], A, np.pad(past, (0, na - past.size)))
+        ysim = lfilter([1.0], A, w[a:b], zi=zi)[0]
+        out.append(y[a:b] - ysim)
+    return np.concatenate(out) if out else np.zeros(0)
