@@ -69,7 +69,7 @@ class CausalPath:
 
 def causal_path(fs_hz: float, target_hz: float = TARGET_FS_HZ) -> CausalPath:
     """Decimation factor and FIR length for ``fs_hz`` (no filter when ``q = 1``)."""
-    q = max(1, int(fs_hz // target_hz))
+    q = max(1, int(fs_hz / target_hz + 1e-6))  # 999.9999999 Hz from a CSV time column is 1 kHz
     return CausalPath(float(fs_hz), q, 1 if q == 1 else 16 * q + 1)
 
 

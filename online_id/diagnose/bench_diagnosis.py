@@ -35,10 +35,9 @@ from scipy.optimize import minimize_scalar
 
 from online_id.diagnose import bench_effects as bx
 from online_id.diagnose.bench_data import RPM_PER_RAD_S, BenchSeries
-from online_id.diagnose.bench_model import (EQS, BenchFit, Spec, batch_t, fit_spec, plateau_signals,
-                                            simulate_validation, fit_plateau)
+from online_id.diagnose.bench_model import (EQS, BenchFit, Spec, batch_t, fit_plateau, fit_spec,
+                                            simulate_validation)
 from online_id.diagnose.effects import new_mode_freq_hz
-from online_id.errors import EstimationError
 
 T_CRIT = 2.86
 COHERENCE_MODE = 0.2  # residual line coherent with the dyno torque: a mode
@@ -159,13 +158,11 @@ def _refine_freq(series: BenchSeries, spec: Spec, base: BenchFit, f0: float, eq:
     ps = base.plateaus
 
     def loss(f: float) -> float:
-        term = bx.FixedTerm(f, eq)
         v = 0.0
         for p in ps:
             w = 2 * np.pi * f * p.time_s[p.rows]
             r, _, _ = fit_plateau(p, spec, eq, [np.column_stack((np.sin(w), np.cos(w)))])
             v += float(np.mean(r[p.est] ** 2))
-        del term
         return v
 
     res = minimize_scalar(loss, bounds=(f0 - 0.4, f0 + 0.4), method="bounded", options={"xatol": 0.01})
