@@ -414,14 +414,21 @@ class Pipeline:
             self._next_alarm_repeat = t_s + 1.0
             out.append(self._alert_out(self.detector.active, t_s))
 
-    def _baseline_for(self, speed: float, load: float) -> BandStats | None:
-        """What an estimate is compared with: a learned cell, the pooled baseline, else the cell still
-        learning once it holds ``PROVISIONAL`` of ``min_count`` estimates (its spread doubled)."""
+    def _baseline_for(self, speed: float, load: float, learning: bool = False) -> BandStats | None:
+        """What an estimate is compared with: a learned cell or the pooled baseline of the learned cells;
+        before any cell is learned, the cell's own first estimates once it holds ``PROVISIONAL`` of
+        ``min_count``, else the pool of such cells (provisional: for detection their spread is doubled,
+        for the learning check, ``learning``, it is not)."""
         stats = self.baseline.lookup(speed, load)
         if stats is None:
-            cell = self.baseline.cell(speed, load)
-            if cell is not None and cell.count >= PROVISIONAL * self.baseline.min_count:
-                stats = dataclasses.replace(cell, std_f=2.0 * cell.std_f, std_zeta=2.0 * cell.std_zeta)
+            n = math.ceil(PROVISIONAL * self.baseline.min_count)
+            stats = self.baseline.cell(speed, load)
+            if stats is None or stats.count < n:
+                stats = self.baseline.pooled(speed, load, min_n=n)
+            elif not learning:
+                stats = dataclasses.replace(stats, std_f=2.0 * stats.std_f, std_zeta=2.0 * stats.std_zeta)
+            if stats is not None and stats.kind == "pooled" and not learning:
+                stats = dataclasses.replace(stats, std_f=2.0 * stats.std_f, std_zeta=2.0 * stats.std_zeta)
         return stats
 
     def _learn(self, est: OnlineEstimate, t_s: float, speed: float, load: float) -> OnlineEstimate:
@@ -448,7 +455,7 @@ class Pipeline:
             load = est.load_nm
         if not (est.valid and math.isfinite(load) and math.isfinite(est.f0_hz) and est.zeta > 0):
             return est
-        ref = self._baseline_for(speed, load)
+        ref = self._baseline_for(speed, load, learning=True)
         why = (self.baseline.disagrees(ref, est.f0_hz, est.zeta, self.detector.min_change_f,
                                        self.detector.min_change_zeta) if ref is not None else None)
         if why is not None:
@@ -486,7 +493,9 @@ class Pipeline:
         (see :class:`~online_id.monitoring.detection.ChangeDetector`, *confirm*).
         None while the refit runs in the worker (the detector asks again).
         """
-        ref = self._references.get(self.baseline.key(0.5 * (stats.band[0] + stats.band[1])))
+        key = self.baseline.key(0.5 * (stats.band[0] + stats.band[1]))
+        near = sorted(self._references, key=lambda k: abs(k - key))  # a pooled baseline: the nearest learned band's
+        ref = self._references[near[0]] if near else None
         if self._verify(("confirm", kind), t_s, (ref,)) is PENDING:
             return None
         est = self.estimator.estimate()

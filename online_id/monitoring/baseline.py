@@ -305,7 +305,7 @@ class Baseline:
                 return self._stats(j, c)
         return self.pooled(speed_rpm, load_nm)
 
-    def pooled(self, speed_rpm: float, load_nm: float = 0.0) -> BandStats | None:
+    def pooled(self, speed_rpm: float, load_nm: float = 0.0, min_n: int | None = None) -> BandStats | None:
         """The baseline of all learned cells for a cell not learned yet (kind ``"pooled"``), or None.
 
         Notes
@@ -325,9 +325,12 @@ class Baseline:
 
             s_p^2 = \\overline{s_i^2} + s_b^2 + (\\tau \\bar f)^2
 
-        and the damping alike (``pool_tolerance_zeta``).
+        and the damping alike (``pool_tolerance_zeta``). ``min_n``: pool the
+        cells with at least this many estimates (default ``min_count``: the
+        learned ones).
         """
-        cells = [(i, c) for i, cs in self._bands.items() for c in cs if c.n >= self.min_count]
+        min_n = self.min_count if min_n is None else max(2, int(min_n))
+        cells = [(i, c) for i, cs in self._bands.items() for c in cs if c.n >= min_n]
         if not cells or not (math.isfinite(speed_rpm) and math.isfinite(load_nm)):
             return None
         stats = [self._stats(i, c) for i, c in cells]
