@@ -159,7 +159,8 @@ class DetectionSettings:
     enabled: bool = True
     band_rpm: float = 250.0
     load_band_nm: float = 2.0
-    min_count: int = 60
+    min_count: int = 20
+    pool_tolerance_pct: float = 0.5
     k: float = 0.5
     h_warning: float = 8.0
     h_fault: float = 16.0
@@ -167,6 +168,7 @@ class DetectionSettings:
     min_freq_change_pct: float = 0.5
     min_damping_change_pct: float = 40.0
     settle_s: float = 20.0
+    settle_detect_s: float = 10.0
 
 
 @dataclass(frozen=True)
@@ -391,7 +393,10 @@ def _check_service(s: Settings, file: str) -> None:
     positive("bus", s.bus, "reopen_max_s")
     d = s.detection
     positive("detection", d, "band_rpm", "load_band_nm", "min_count", "k", "h_warning", "h_fault")
-    nonnegative("detection", d, "min_freq_change_pct", "min_damping_change_pct", "settle_s")
+    nonnegative("detection", d, "min_freq_change_pct", "min_damping_change_pct", "settle_s", "settle_detect_s",
+                "pool_tolerance_pct")
+    if d.min_count < 2:
+        raise ConfigError(f"{file}: detection.min_count: expected an integer >= 2, got {d.min_count!r}")
     if d.h_fault < d.h_warning:
         raise ConfigError(f"{file}: detection.h_fault: must be >= detection.h_warning ({d.h_warning:g}), "
                           f"got {d.h_fault!r}")

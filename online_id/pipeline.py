@@ -20,6 +20,7 @@ Health states (published in the status frame):
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import deque
 from dataclasses import dataclass, field
@@ -60,6 +61,8 @@ WINDOW = "window"  # worker lane of the window refits and multi-start checks
 PHYSICAL = "physical"  # worker lane of the physical-parameter fit
 PENDING = None  # a multi-start check is running in the worker: decide later
 VERIFY_FRESH_S = 5.0  # a multi-start check older than this is not used for a decision
+PROVISIONAL = 0.5  # share of min_count after which a cell still learning serves detection (nothing else does)
+SPREAD_RATIO_REPORTED = 5.0  # a learned spread this many times the estimator's own uncertainty is reported
 
 
 @dataclass
@@ -89,7 +92,10 @@ class Pipeline:
         self.excitation = Excitation(s)
         d = s.detection
         self.tracker = PoleTracker(dt=self.estimator.dt, pulses_per_rev=s.model.pulses_per_rev)
-        self.baseline = Baseline(band_rpm=d.band_rpm, min_count=d.min_count, load_band_nm=d.load_band_nm)
+        self.baseline = Baseline(band_rpm=d.band_rpm, min_count=d.min_count, load_band_nm=d.load_band_nm,
+                                 pool_tolerance_f=d.pool_tolerance_pct / 100.0)
+        self.run_label = ""  # the run learned cells are marked with (replay: the log's name)
+        self.reference_run = False  # cells learned now are a reference (relearn --from LOG)
         self.detector = ChangeDetector(k=d.k, h_warning=d.h_warning, h_fault=d.h_fault,
                                        correlation_s=correlation_for_window(settings.model.window_s),
                                        min_change_f=d.min_freq_change_pct / 100.0,
@@ -99,6 +105,9 @@ class Pipeline:
         self._references: dict[int, np.ndarray] = {}  # per baseline band: a window solution it was learned from
         self._next_learn: float | None = None
         self._next_alarm_repeat = 0.0
+        self._stats: BandStats | None = None  # the baseline the latest estimate was compared with
+        self._rejected = 0  # learning estimates not learned (they disagreed with the baselines)
+        self._next_reject_event = 0.0
         self.state = ServiceState.STARTING
         self.t_s = float("nan")
         self.t_first: float | None = None
@@ -382,6 +391,7 @@ class Pipeline:
         self.tracker.update(t_s=t_s, speed_rpm=speed, poles=est.poles)
         healthy = (est.valid and not est.frozen and self.state == ServiceState.TRACKING
                    and est.excitation_nm >= d.min_excitation_nm)
+        learnable = False
         # the first fits at a new operating point start cold and, where the model does not fit exactly
         # (backlash), may sit for a while in another local minimum: learning and detection wait settle_s
         # after the estimate becomes healthy at another speed than it last was
@@ -393,26 +403,19 @@ class Pipeline:
                         and abs(speed - self._healthy_rpm) <= self.settings.model.max_speed_span_rpm)
                 self._healthy_since = t_s - (d.settle_s if same else 0.0)
             self._healthy_rpm = speed
-            healthy = t_s - self._healthy_since >= d.settle_s
+            # detection resumes once the window holds only the new point (settle_detect_s, about the window):
+            # a deviation it sees then is confirmed by a multi-start refit before it is raised; learning waits
+            # the longer settle_s, a baseline must not hold a transient
+            healthy = t_s - self._healthy_since >= d.settle_detect_s
+            learnable = t_s - self._healthy_since >= d.settle_s
         if self._next_learn is None or t_s < self._next_learn - 10.0:
             self._next_learn = t_s
-        if healthy and self.detector.active is None and t_s >= self._next_learn:
+        if healthy and learnable and self.detector.active is None and t_s >= self._next_learn:
             self._next_learn = t_s + 1.0  # about one independent-ish estimate per second
-            cell = self.baseline.cell(speed, load)
-            # a new cell is learned from the best of several starts, not from whichever of the nearly equal
-            # minima of a mismatched model (backlash) the warm-started refits happen to follow
-            verified = self._verify("learn", t_s) if cell is None else False
-            if verified:
-                est = self.estimator.estimate()
-                self._estimate = est
-                load = est.load_nm
-            if verified is not PENDING and ((cell is None or cell.count < d.min_count) and est.valid and math.isfinite(load)
-                    and math.isfinite(est.f0_hz)):  # a learned cell stays fixed until re-learned
-                self.baseline.learn(speed_rpm=speed, f0_hz=est.f0_hz, zeta=est.zeta, load_nm=load)
-                solution = self.estimator.solution
-                if solution is not None:
-                    self._references[self.baseline.key(speed)] = solution
-        stats = self.baseline.lookup(speed, load)
+            est = self._learn(est, t_s, speed, load)
+            load = est.load_nm
+        stats = self._baseline_for(speed, load)
+        self._stats = stats
         alarm = self.detector.update(
             t_s=t_s, speed_rpm=speed, f0_hz=est.f0_hz, zeta=est.zeta, f0_std_hz=est.f0_std_hz,
             zeta_std=est.zeta_std, baseline=stats, suppressed=not healthy,
@@ -426,6 +429,78 @@ class Pipeline:
             self._next_alarm_repeat = t_s + 1.0
             out.append(self._alert_out(self.detector.active, t_s))
 
+    def _baseline_for(self, speed: float, load: float, learning: bool = False) -> BandStats | None:
+        """What an estimate is compared with: a learned cell or the pooled baseline of the learned cells;
+        before any cell is learned, the cell's own first estimates once it holds ``PROVISIONAL`` of
+        ``min_count``, else the pool of such cells (provisional: for detection their spread is doubled,
+        for the learning check, ``learning``, it is not)."""
+        stats = self.baseline.lookup(speed, load)
+        if stats is None:
+            n = math.ceil(PROVISIONAL * self.baseline.min_count)
+            stats = self.baseline.cell(speed, load)
+            if stats is None or stats.count < n:
+                stats = self.baseline.pooled(speed, load, min_n=n)
+            elif not learning:
+                stats = dataclasses.replace(stats, std_f=2.0 * stats.std_f, std_zeta=2.0 * stats.std_zeta)
+            if stats is not None and stats.kind == "pooled" and not learning:
+                stats = dataclasses.replace(stats, std_f=2.0 * stats.std_f, std_zeta=2.0 * stats.std_zeta)
+        return stats
+
+    def _learn(self, est: OnlineEstimate, t_s: float, speed: float, load: float) -> OnlineEstimate:
+        """One estimate into the baseline of its cell, unless the cell is learned or the estimate disagrees.
+
+        A cell still learning compares each estimate with what serves it
+        (:meth:`_baseline_for`: a learned cell, the pooled baseline, or its
+        own first estimates); an estimate that deviates beyond the dead band
+        plus three spreads is not learned (a change during learning must not
+        be absorbed into the baseline): it only feeds the detector.
+        """
+        d = self.settings.detection
+        cell = self.baseline.cell(speed, load)
+        if cell is not None and cell.count >= d.min_count:
+            return est  # a learned cell stays fixed until re-learned
+        # a new cell is learned from the best of several starts, not from whichever of the nearly equal
+        # minima of a mismatched model (backlash) the warm-started refits happen to follow
+        verified = self._verify("learn", t_s) if cell is None else False
+        if verified is PENDING:
+            return est
+        if verified:
+            est = self.estimator.estimate()
+            self._estimate = est
+            load = est.load_nm
+        if not (est.valid and math.isfinite(load) and math.isfinite(est.f0_hz) and est.zeta > 0):
+            return est
+        ref = self._baseline_for(speed, load, learning=True)
+        why = (self.baseline.disagrees(ref, est.f0_hz, est.zeta, self.detector.min_change_f,
+                                       self.detector.min_change_zeta) if ref is not None else None)
+        if why is not None:
+            self.baseline.reject(speed_rpm=speed, load_nm=load)
+            self._rejected += 1
+            if t_s >= self._next_reject_event:
+                self._next_reject_event = t_s + 60.0
+                self.events.append(Event(t_s, "not_learned", f"{why} estimate not learned at {speed:.0f} rpm, "
+                                         f"{load:.1f} Nm: it disagrees with the {ref.kind} baseline "
+                                         f"({est.f0_hz:.3f} Hz against {ref.mean_f:.3f} +- {ref.std_f:.3f} Hz)",
+                                         {"kind": why, "baseline": ref.kind}))
+            return est
+        self.baseline.learn(speed_rpm=speed, f0_hz=est.f0_hz, zeta=est.zeta, load_nm=load,
+                            f0_std_hz=est.f0_std_hz, source=self.run_label, reference=self.reference_run)
+        solution = self.estimator.solution
+        if solution is not None:
+            self._references[self.baseline.key(speed)] = solution
+        done = self.baseline.cell(speed, load)
+        if done is not None and done.count == d.min_count:
+            ratio = done.spread_ratio
+            self.events.append(Event(t_s, "learned", f"cell {speed:.0f} rpm, {load:.1f} Nm learned: f0 "
+                                     f"{done.mean_f:.3f} +- {done.std_f:.3f} Hz, zeta {done.mean_zeta:.4f}",
+                                     done.as_dict()))
+            if math.isfinite(ratio) and ratio > SPREAD_RATIO_REPORTED:
+                self.events.append(Event(t_s, "wide_baseline", f"baseline at {speed:.0f} rpm, {load:.1f} Nm: "
+                                         f"spread {done.std_f:.3f} Hz is {ratio:.0f} times the estimator's own "
+                                         f"uncertainty ({done.uncertainty_f:.4f} Hz): the driveline moved "
+                                         f"while it was learned", done.as_dict()))
+        return est
+
     def _confirm(self, kind: str, stats: BandStats, t_s: float) -> bool | None:
         """Before a new drift alarm: does a refit of the window from several starts still deviate?
 
@@ -433,7 +508,9 @@ class Pipeline:
         (see :class:`~online_id.monitoring.detection.ChangeDetector`, *confirm*).
         None while the refit runs in the worker (the detector asks again).
         """
-        ref = self._references.get(self.baseline.key(0.5 * (stats.band[0] + stats.band[1])))
+        key = self.baseline.key(0.5 * (stats.band[0] + stats.band[1]))
+        near = sorted(self._references, key=lambda k: abs(k - key))  # a pooled baseline: the nearest learned band's
+        ref = self._references[near[0]] if near else None
         if self._verify(("confirm", kind), t_s, (ref,)) is PENDING:
             return None
         est = self.estimator.estimate()
@@ -454,7 +531,19 @@ class Pipeline:
         return AlertOut(t_s, kind, alarm.level, alarm.change_pct, alarm.speed_rpm, alarm.message)
 
     def _raise(self, alarm: Alarm, out: list[Publication]) -> None:
-        self._record(self._alert_out(alarm, alarm.detected_t_s), out, alarm.as_dict())
+        stats = self._stats
+        data = alarm.as_dict()
+        if stats is not None:
+            what = (f"the pooled baseline ({stats.mean_f:.2f} Hz)" if stats.kind == "pooled" else
+                    f"the {stats.kind} baseline of {0.5 * (stats.band[0] + stats.band[1]):.0f} rpm"
+                    + (f", {stats.load_nm:.0f} Nm" if math.isfinite(stats.load_nm) else "")
+                    + f" ({stats.mean_f:.2f} Hz)")
+            load = self._estimate.load_nm if self._estimate is not None else float("nan")
+            cell = f"cell {alarm.speed_rpm:.0f} rpm" + (f", {load:.0f} Nm" if math.isfinite(load) else "")
+            alarm = dataclasses.replace(alarm, message=f"{alarm.message} ({cell}, against {what}"
+                                        + (f", learned from {stats.source}" if stats.source else "") + ")")
+            data |= {"message": alarm.message, "baseline_kind": stats.kind, "baseline_source": stats.source}
+        self._record(self._alert_out(alarm, alarm.detected_t_s), out, data)
 
     def status(self, t_s: float) -> StatusOut:
         c = self.counters
@@ -495,6 +584,9 @@ class Pipeline:
             "active_alarm": self.detector.active.as_dict() if self.detector.active else None,
             "withheld_alarms": dict(self.detector.withheld),
             "baseline": [b.as_dict() for b in self.baseline.bands],
+            "baseline_not_learned": self._rejected,  # learning estimates that disagreed with the baselines
+            "baseline_notes": [{"t_s": e.t_s - t0, "kind": e.kind, "message": e.message} for e in self.events
+                               if e.kind in ("learned", "not_learned", "wide_baseline")][-20:],
             "tracks": [{"id": t.id, "f_hz": t.f_hz, "zeta": t.zeta, "class": t.cls, "confidence": t.confidence,
                         "order": t.order} for t in self.tracker.tracks],
             "status_changes": [{"t_s": e.t_s - t0, "state": e.data["state"], "why": e.message}
@@ -518,26 +610,39 @@ class Pipeline:
                 "references": {str(k): v.tolist() for k, v in self._references.items()},
                 "alerts": [a.__dict__ | {"kind": int(a.kind)} for a in self.alerts[-50:]]}
 
-    def load_state(self, state: dict) -> None:
-        if state.get("version") != STATE_VERSION:
-            raise EstimationError(f"state version {state.get('version')!r} is not {STATE_VERSION}")
-        self.estimator.load_state(state["estimator"])
+    def load_state(self, state: dict, new_run: bool = False) -> None:
+        """Restore a state saved by :meth:`get_state`.
+
+        ``new_run``: the state comes from an earlier run (another log, another
+        day): the baselines, their reference solutions, the detector's
+        statistics and latched alarms and the alerts are restored, the
+        estimator and the pole tracks start afresh (their history belongs to
+        the other run's time base and operating point).
+        """
+        if not isinstance(state, dict) or state.get("version") != STATE_VERSION:
+            got = state.get("version") if isinstance(state, dict) else type(state).__name__
+            raise EstimationError(f"state version {got!r} is not {STATE_VERSION}")
+        if not new_run:
+            self.estimator.load_state(state["estimator"])
         if "baseline" in state:
             self.baseline = Baseline.from_dict(state["baseline"])
         if "detector" in state:
             # statistics and latched alarms from the state, levels and dead bands from the config in force
             self.detector = ChangeDetector.from_dict({**state["detector"], "params": self.detector.params()})
-        if "tracker" in state:
+            if new_run:
+                self.detector.new_stream()
+        if "tracker" in state and not new_run:
             self.tracker = PoleTracker.from_dict(state["tracker"])
         self.alerts = [AlertOut(**(a | {"kind": AlertKind(a["kind"])})) for a in state.get("alerts", [])]
         n = self.estimator.orders.n_params
         self._references = {int(k): np.asarray(v, dtype=float) for k, v in state.get("references", {}).items()
-                            if isinstance(v, list) and len(v) == n}
+                            if isinstance(v, (list, np.ndarray)) and len(v) == n}
         rpm = state.get("healthy_rpm")
-        self._healthy_rpm = float(rpm) if isinstance(rpm, (int, float)) else None
+        self._healthy_rpm = float(rpm) if isinstance(rpm, (int, float)) and not new_run else None
 
 
-def run_bench_data(data, settings: Settings, progress=None, on_output=None, worker=None) -> Pipeline:
+def run_bench_data(data, settings: Settings, progress=None, on_output=None, state: dict | None = None,
+                   run_label: str = "", worker=None) -> Pipeline:
     """Feed bench data (a :class:`~online_id.records.BenchData`) through the pipeline, sample by sample.
 
     The values go through the same assembler and estimator as decoded frames
@@ -545,6 +650,8 @@ def run_bench_data(data, settings: Settings, progress=None, on_output=None, work
     so a replay of the same data as CAN frames gives the same result.
     ``on_output(pipeline, t_s, publications)`` is called with every non-empty
     list of publications (e.g. to acknowledge alerts as an operator would).
+    ``state``: a state of an earlier run to start from (``load_state(state,
+    new_run=True)``); ``run_label`` marks the cells learned in this run.
     ``worker``: where slow work runs (default: inline, see :mod:`online_id.offload`).
     """
     import dataclasses
@@ -553,6 +660,9 @@ def run_bench_data(data, settings: Settings, progress=None, on_output=None, work
     if abs(fs - settings.input.sample_rate_hz) > 1e-6 * fs:
         settings = dataclasses.replace(settings, input=dataclasses.replace(settings.input, sample_rate_hz=fs))
     pipe = Pipeline(settings, worker=worker)
+    if state is not None:
+        pipe.load_state(state, new_run=True)
+    pipe.run_label = run_label
     t = data.time_s
     cols = (("dyno_speed", data.dyno_speed_rad_s), ("engine_speed", data.engine_speed_rad_s),
             ("dyno_torque", data.dyno_torque_nm))

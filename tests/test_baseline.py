@@ -48,8 +48,8 @@ def test_lookup_outside_learned_range_and_neighbours():
     assert base.lookup(1500.0).band == (1375.0, 1625.0)
     assert base.lookup(1700.0).band == (1375.0, 1625.0)  # adjacent band falls back
     assert base.lookup(1300.0).band == (1375.0, 1625.0)
-    assert base.lookup(2000.0) is None  # two bands away
-    assert base.lookup(2500.0) is None  # not enough counts
+    assert base.lookup(2000.0).kind == "pooled"  # two bands away: the pooled baseline (issue 15)
+    assert base.lookup(2500.0).kind == "pooled"  # not enough counts: the pooled baseline serves it
     assert base.lookup(float("nan")) is None
     assert base.learned_range_rpm == (1375.0, 1625.0)
     base.reset()
@@ -64,11 +64,11 @@ def test_round_trip():
         base.learn(speed_rpm=rng.uniform(900, 2500), f0_hz=20 + rng.standard_normal(), zeta=0.05 + 0.001 * rng.random())
     copy = Baseline.from_dict(json.loads(json.dumps(base.to_dict())))
     for rpm in np.arange(800, 2700, 50.0):
-        assert copy.lookup(rpm) == base.lookup(rpm)
+        assert copy.lookup(rpm).as_dict() == base.lookup(rpm).as_dict()
     assert copy.learned_range_rpm == base.learned_range_rpm
     copy.learn(speed_rpm=1000.0, f0_hz=21.0, zeta=0.05)
     base.learn(speed_rpm=1000.0, f0_hz=21.0, zeta=0.05)
-    assert copy.lookup(1000.0) == base.lookup(1000.0)
+    assert copy.lookup(1000.0).as_dict() == base.lookup(1000.0).as_dict()
 
 
 def test_validation():
@@ -105,11 +105,11 @@ def test_cells_per_load(seed, f0, slope_pct_per_nm, loads):
             assert abs(st.load_nm - load) < 0.3
         assert base.cell(2000.0, load + 0.5).count == 40  # learned into the cell within half the width
     far = min(loads) - 2.5
-    assert base.lookup(2000.0, far) is None and base.cell(2000.0, far) is None
+    assert base.lookup(2000.0, far).kind == "pooled" and base.cell(2000.0, far) is None
     base.learn(speed_rpm=2000.0, f0_hz=f0, zeta=0.05, load_nm=far)  # a new cell, not yet learned
-    assert len(base.bands) == len(loads) and base.lookup(2000.0, far) is None
+    assert len(base.bands) == len(loads) and base.lookup(2000.0, far).kind == "pooled"
     again = Baseline.from_dict(json.loads(json.dumps(base.to_dict())))
-    assert again.bands == base.bands
+    assert [b.as_dict() for b in again.bands] == [b.as_dict() for b in base.bands]
 
 
 def test_state_from_before_load_cells_serves_any_load():
@@ -129,3 +129,73 @@ def test_bad_load_is_refused():
     assert Baseline().lookup(1500.0, float("inf")) is None
     with pytest.raises(ConfigError, match="load_band_nm"):
         Baseline(load_band_nm=0.0)
+
+
+# -- fast, pooled baselines that never absorb a change (issue 15) --------------------------------------------
+
+
+def _learn_cell(base, rng, speed, f0, zeta, n, load=0.0, rel_noise=0.001, source=""):
+    for _ in range(n):
+        base.learn(speed_rpm=speed + rng.uniform(-10, 10), f0_hz=f0 * (1 + rel_noise * rng.standard_normal()),
+                   zeta=zeta * (1 + 0.02 * rng.standard_normal()), load_nm=load, f0_std_hz=0.01, source=source)
+
+
+@pytest.mark.parametrize("seed, f0, zeta", [(1, 18.0, 0.04), (2, 27.5, 0.06), (3, 33.0, 0.03)])
+def test_cell_usable_after_twenty_estimates_and_pooled_serves_new_cells(seed, f0, zeta):
+    rng = np.random.default_rng(seed)
+    base = Baseline()  # the defaults: 20 estimates (about 20 s at 1 Hz)
+    assert base.min_count == 20
+    _learn_cell(base, rng, 1500.0, f0, zeta, 19, source="run 1")
+    assert base.lookup(1500.0) is None and base.status(1500.0) == "unknown"
+    _learn_cell(base, rng, 1500.0, f0, zeta, 1, source="run 1")
+    assert base.status(1500.0) == "learned"
+    _learn_cell(base, rng, 2500.0, f0 * 1.001, zeta, 20, source="run 1")
+    pooled = base.lookup(2000.0)
+    assert pooled is not None and pooled.kind == "pooled" and base.status(3200.0) == "pooled"
+    assert pooled.mean_f == pytest.approx(f0, rel=0.003)
+    learned = base.lookup(1500.0)
+    # widened for the unknown speed dependence: at least the tolerance, more than a learned cell's spread
+    assert pooled.std_f >= base.pool_tolerance_f * pooled.mean_f > learned.std_f
+    assert pooled.source == "run 1"
+
+
+@pytest.mark.parametrize("slope_pct_per_1000rpm", [-3.0, 2.0, 4.0])
+def test_pooled_models_a_speed_dependence_where_cells_disagree(slope_pct_per_1000rpm):
+    rng = np.random.default_rng(4)
+    base = Baseline(min_count=20)
+    f_at = lambda s: 25.0 * (1 + slope_pct_per_1000rpm / 100 * (s - 2000.0) / 1000.0)  # noqa: E731
+    for speed in (1000.0, 1500.0, 2500.0):
+        _learn_cell(base, rng, speed, f_at(speed), 0.05, 20)
+    pooled = base.lookup(3250.0)
+    assert pooled.kind == "pooled"
+    # the fitted dependence, not the plain mean of the cells
+    assert abs(pooled.mean_f - f_at(3250.0)) < 0.2 * abs(f_at(3250.0) - f_at(1666.7))
+    assert abs(pooled.mean_f - f_at(3250.0)) < 3 * pooled.std_f
+
+
+@pytest.mark.parametrize("seed, f0", [(5, 20.0), (6, 31.0)])
+def test_disagreeing_estimates_are_told_apart(seed, f0):
+    rng = np.random.default_rng(seed)
+    base = Baseline()
+    _learn_cell(base, rng, 1500.0, f0, 0.05, 20)
+    stats = base.lookup(2250.0)  # pooled
+    # a 5 % stiffness loss (2.5 % in f0) disagrees; a healthy estimate and a small wobble do not
+    assert base.disagrees(stats, f0 * 0.975, 0.05, 0.005, 0.4) == "frequency"
+    assert base.disagrees(stats, f0 * 1.002, 0.05, 0.005, 0.4) is None
+    assert base.disagrees(stats, f0, 0.05 * 2.0, 0.005, 0.4) == "damping"
+    base.reject(speed_rpm=2250.0, load_nm=0.0)  # no cell there yet: nothing to count, no error
+
+
+def test_sources_reference_and_spread_ratio_round_trip():
+    rng = np.random.default_rng(7)
+    base = Baseline(min_count=10)
+    for _ in range(10):
+        base.learn(speed_rpm=2000.0, f0_hz=22.0 + 0.5 * rng.standard_normal(), zeta=0.05, load_nm=3.0,
+                   f0_std_hz=0.01, source="reference run day1.log", reference=True)
+    stats = base.lookup(2000.0, 3.0)
+    assert stats.kind == "reference" and stats.source == "reference run day1.log"
+    assert stats.spread_ratio > 5  # a spread far above the estimator's own uncertainty
+    again = Baseline.from_dict(base.to_dict())
+    assert again.lookup(2000.0, 3.0) == stats
+    d = stats.as_dict()
+    assert d["kind"] == "reference" and d["spread_ratio"] == pytest.approx(stats.std_f / 0.01)

@@ -101,3 +101,24 @@ def test_evaluate_command_writes_table_json_and_plot(tmp_path, capsys, cli_error
 
 def test_evaluate_command_rejects_bad_arguments(cli_error):
     assert cli_error(["evaluate", "--jobs", "0"]).startswith("error: Expected --hours >= 0")
+
+
+def test_families_a_and_b_follow_how_benches_run():
+    specs = ev.plan(1.0, 3, seed=5, families=("a", "b"), cases=("stiffness -10 %", "stiffness -15 %"))
+    free = [s for s in specs if s.case == "fault-free"]
+    assert [s.family for s in free] == ["short"]  # short plateaus first when families a/b are asked for
+    assert all(30.0 <= p.duration_s <= 60.0 for p in free[0].scenario.operating_points[:-1])
+    a = [s for s in specs if s.family == "a"]
+    b = [s for s in specs if s.family == "b"]
+    assert len(a) == len(b) == 3 * 2
+    for s in a:  # a fresh service: the fault after 60-120 s over 2-4 points of 30-60 s
+        assert s.earlier is None and 60.0 <= s.t_fault_s <= 120.0
+        pts = s.scenario.operating_points
+        assert all(30.0 <= p.duration_s <= 60.0 for p in pts)
+        assert 2 <= len({round(p.speed_rpm, -2) for p in pts}) <= 4
+        assert s.scenario.duration_s >= s.t_fault_s + 60.0
+    for s in b:  # a later run at other points, with the state of an earlier healthy run
+        assert s.earlier is not None and not s.earlier.faults and 30.0 <= s.t_fault_s <= 90.0
+        before = {round(p.speed_rpm, -2) for p in s.earlier.operating_points}
+        now = {round(p.speed_rpm, -2) for p in s.scenario.operating_points}
+        assert 120.0 <= s.earlier.duration_s and not before & now

@@ -18,6 +18,19 @@ assembler, estimator, baselines and detector as the live service):
   The detection delay is the time from the fault to the first alarm of the
   expected kind (warning, and separately fault level).
 
+Scenario families of how benches run (``family``; the fault cases of
+``FAMILY_CASES``):
+
+* **(a) first run** -- a fresh service (nothing learned); 2-4 operating
+  points of 30-60 s visited in turn; the fault after 60-120 s of data;
+* **(b) later run** -- the state of an earlier healthy run (120-180 s at 2-3
+  operating points) carried into a run at other operating points (pooled
+  baselines serve them), the fault 30-90 s into it;
+* **(c) long runs** -- the dwell at one operating point above.
+
+Fault-free hours come in two kinds alternating: the long dwells above, and
+short plateaus (operating points changing every 30-60 s).
+
 The test torque is the seed paper's excitation: a maximal-length PRBS of
 30-50 Nm with a 1 s period.
 """
@@ -59,6 +72,14 @@ FAULT_CASES = (  # (label, stiffness factor, damping factor, expected alarm)
     ("damping +50 %", 1.0, 1.5, AlertKind.DAMPING_DRIFT),
     ("damping -50 %", 1.0, 0.5, AlertKind.DAMPING_DRIFT),
 )
+FAMILY_CASES = (  # the fault cases of families (a) and (b)
+    ("stiffness -5 %", 0.95, 1.0, AlertKind.FREQ_DRIFT),
+    ("stiffness -10 %", 0.90, 1.0, AlertKind.FREQ_DRIFT),
+    ("stiffness -15 %", 0.85, 1.0, AlertKind.FREQ_DRIFT),
+    ("damping +50 %", 1.0, 1.5, AlertKind.DAMPING_DRIFT),
+    ("damping -50 %", 1.0, 0.5, AlertKind.DAMPING_DRIFT),
+)
+FAMILIES = ("a", "b", "c")
 ACK_AFTER_S = 30.0
 SPEEDS_RPM = tuple(range(1000, 3001, 250))
 
@@ -72,6 +93,8 @@ class RunSpec:
     scenario: BenchScenario
     t_fault_s: float | None = None
     expect: AlertKind | None = None
+    family: str = "c"  # "a", "b", "c" (see module notes); fault-free: "long" or "short"
+    earlier: BenchScenario | None = None  # (b): the healthy run whose state this run starts from
 
 
 @dataclass
@@ -92,6 +115,8 @@ class RunResult:
     valid_fraction: float = 0.0
     f0_err_pct: list[float] = field(default_factory=list)  # valid estimates vs truth, 1 Hz, before any fault
     elapsed_s: float = 0.0
+    family: str = "c"
+    cells: list[dict[str, Any]] = field(default_factory=list)  # the baseline cells at the end
 
     def as_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -141,23 +166,58 @@ def usable_speeds(plant: dict[str, Any]) -> list[float]:
     return [float(s) for s in SPEEDS_RPM if all(abs(o * s / 60.0 - f0) > 0.25 * f0 for o in orders)]
 
 
-def fault_free_spec(seed: int, duration_s: float = 3600.0) -> RunSpec:
-    """A fault-free run of ``duration_s`` with 3-4 operating points visited in turn."""
+def fault_free_spec(seed: int, duration_s: float = 3600.0, short: bool = False) -> RunSpec:
+    """A fault-free run of ``duration_s`` with 3-4 operating points visited in turn (``short``: 30-60 s each)."""
     rng = np.random.default_rng([seed, 0])
     plant = random_plant(rng)
     speeds = usable_speeds(plant)
     chosen = list(rng.choice(speeds, size=min(len(speeds), int(rng.integers(3, 5))), replace=False))
     points: list[OperatingPoint] = []
     t = 0.0
+    dwell = (30.0, 60.0) if short else (180.0, 420.0)
     while t < duration_s:
         for s in rng.permutation(chosen):
-            d = min(float(rng.uniform(180.0, 420.0)), max(duration_s - t, 30.0))
+            d = min(float(rng.uniform(*dwell)), max(duration_s - t, 30.0))
             points.append(OperatingPoint(float(s) + float(rng.uniform(-15.0, 15.0)), d))
             t += d + 3.0
             if t >= duration_s:
                 break
     sc = dataclasses.replace(BenchScenario(), seed=seed, operating_points=tuple(points), **plant)
-    return RunSpec("fault-free", seed, sc)
+    return RunSpec("fault-free", seed, sc, family="short" if short else "long")
+
+
+def _tour(rng: np.random.Generator, speeds: list[float], until_s: float) -> tuple[OperatingPoint, ...]:
+    """Operating points of 30-60 s visited in turn (a few rpm of jitter) until ``until_s``."""
+    points: list[OperatingPoint] = []
+    t = 0.0
+    while t < until_s:
+        d = float(rng.uniform(30.0, 60.0))
+        points.append(OperatingPoint(speeds[len(points) % len(speeds)] + float(rng.uniform(-15.0, 15.0)), d))
+        t += d + BenchScenario().ramp_s
+    return tuple(points)
+
+
+def family_spec(seed: int, case: str, family: str) -> RunSpec:
+    """A run of family ``"a"`` or ``"b"`` with one fault of ``case`` (a label of FAMILY_CASES)."""
+    label, k_c, k_d, expect = next(c for c in FAMILY_CASES if c[0] == case)
+    rng = np.random.default_rng([seed, 2 if family == "a" else 3])
+    plant = random_plant(rng)
+    speeds = [float(x) for x in rng.permutation(usable_speeds(plant))]
+    fault = lambda t: (Fault(t, stiffness_factor=k_c, damping_factor=k_d),)  # noqa: E731
+    if family == "a":
+        n = min(len(speeds), int(rng.integers(2, 5)))
+        t_fault = float(rng.uniform(60.0, 120.0))
+        sc = dataclasses.replace(BenchScenario(), seed=seed, operating_points=_tour(rng, speeds[:n], t_fault + 75.0),
+                                 faults=fault(t_fault), **plant)
+        return RunSpec(label, seed, sc, t_fault, expect, family="a")
+    n = min(len(speeds) // 2, int(rng.integers(2, 4)))
+    earlier = dataclasses.replace(BenchScenario(), seed=seed + 7919,
+                                  operating_points=_tour(rng, speeds[:n], float(rng.uniform(120.0, 180.0))), **plant)
+    later = speeds[n:] or speeds[:n]
+    t_fault = float(rng.uniform(30.0, 90.0))
+    sc = dataclasses.replace(BenchScenario(), seed=seed, operating_points=_tour(rng, later[:3], t_fault + 75.0),
+                             faults=fault(t_fault), **plant)
+    return RunSpec(label, seed, sc, t_fault, expect, family="b", earlier=earlier)
 
 
 def fault_spec(seed: int, case: str) -> RunSpec:
@@ -172,18 +232,31 @@ def fault_spec(seed: int, case: str) -> RunSpec:
     return RunSpec(label, seed, sc, t_fault, expect)
 
 
-def plan(hours: float, fault_plants: int, seed: int = 1) -> list[RunSpec]:
-    """Fault-free runs of up to an hour each, making ``hours`` in total, and every fault case on each plant."""
+def plan(hours: float, fault_plants: int, seed: int = 1, families: tuple[str, ...] = ("c",),
+         cases: tuple[str, ...] | None = None) -> list[RunSpec]:
+    """Fault-free runs of up to an hour each, making ``hours`` in total (long dwells and short plateaus
+    alternating when families (a) or (b) are asked for), and each fault case of each family on each plant.
+
+    ``cases``: only the fault cases with these labels (default: all).
+    """
     runs = []
     left = hours * 3600.0
     k = 0
+    short = any(f in families for f in ("a", "b"))
     while left > 1.0:
-        runs.append(fault_free_spec(seed * 1000 + k, min(3600.0, left)))
+        runs.append(fault_free_spec(seed * 1000 + k, min(3600.0, left), short=short and k % 2 == 0))
         left -= 3600.0
         k += 1
     for p in range(fault_plants):
-        for case in FAULT_CASES:
-            runs.append(fault_spec(seed * 1000 + 500 + p, case[0]))
+        if "c" in families:
+            for case in FAULT_CASES:
+                if cases is None or case[0] in cases:
+                    runs.append(fault_spec(seed * 1000 + 500 + p, case[0]))
+        for family in ("a", "b"):
+            if family in families:
+                for case in FAMILY_CASES:
+                    if cases is None or case[0] in cases:
+                        runs.append(family_spec(seed * 1000 + 700 + p, case[0], family))
     return runs
 
 
@@ -235,7 +308,14 @@ def run(spec: RunSpec, settings: Settings | None = None) -> RunResult:
             pipe.on_command(COMMAND_ACK, t_s)
             open_since[0] = None
 
-    run_bench_data(data, settings or settings_for(spec), on_output=on_output)
+    settings = settings or settings_for(spec)
+    state = None
+    if spec.earlier is not None:  # family (b): the state of an earlier healthy run
+        earlier = simulate_bench(spec.earlier).to_data(f"evaluation earlier run seed {spec.seed}")
+        state = run_bench_data(earlier, settings, run_label="earlier run").get_state()
+    pipe = run_bench_data(data, settings, on_output=on_output, state=state, run_label="this run")
+    res.family = spec.family
+    res.cells = [b.as_dict() for b in pipe.baseline.bands]
     res.valid_fraction = n_pub[1] / n_pub[0] if n_pub[0] else 0.0
     res.elapsed_s = time.monotonic() - t0
     return res
@@ -267,14 +347,19 @@ def summarize(results: list[RunResult]) -> dict[str, Any]:
             by_effect[name] = {"hours": sum(r.duration_s for r in rs) / 3600.0,
                                "false_alarms": sum(r.false_alarms for r in rs)}
     out["fault_free"]["by_effect"] = by_effect
-    for label, *_ in FAULT_CASES:
-        rs = [r for r in results if r.case == label]
+    out["fault_free"]["by_dwell"] = {
+        kind: {"hours": sum(r.duration_s for r in rs) / 3600.0, "false_alarms": sum(r.false_alarms for r in rs)}
+        for kind in ("long", "short") if (rs := [r for r in free if r.family == kind])}
+    groups = [(fam, label) for fam in FAMILIES
+              for label, *_ in (FAULT_CASES if fam == "c" else FAMILY_CASES)]
+    for fam, label in groups:
+        rs = [r for r in results if r.case == label and r.family == fam]
         if not rs:
             continue
         warn = [r.warning_delay_s for r in rs if r.warning_delay_s is not None]
         fault = [r.fault_delay_s for r in rs if r.fault_delay_s is not None]
         out["faults"].append({
-            "case": label, "runs": len(rs),
+            "family": fam, "case": label, "runs": len(rs),
             "detected": len(warn), "missed": len(rs) - len(warn),
             "warning_delay_s_median": float(np.median(warn)) if warn else None,
             "warning_delay_s_worst": float(max(warn)) if warn else None,

@@ -7,14 +7,23 @@ apart with consecutive counters: the service's default policy
 (``commands.relearn: confirm``) acts only on a confirmed RELEARN.  The
 counter follows the clock (20 per second), so that commands sent one after
 another never repeat a counter the service has just accepted.
+
+``online-id relearn --from LOG [--state DIR]`` sends nothing: it learns the
+baselines from a healthy reference log (an acceptance run after a shaft
+change, a run of an earlier day) through the service pipeline and writes
+them into the service's state (the latched alarms and the detector's
+statistics start afresh); the cells are marked as learned from that
+reference run, and alerts name it.
 """
 
 from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
 from online_id.config import load_config
+from online_id.errors import ConfigError
 from online_id.io.bus import CanBus
 from online_id.io.dbc import BenchCommand, encode_command, load_dbc
 
@@ -31,11 +40,21 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
         p.add_argument("--config", metavar="FILE", help="the service's YAML configuration (bus, DBC, mapping)")
         p.add_argument("--interface", help="override bus.interface")
         p.add_argument("--channel", help="override bus.channel")
+        if name == "relearn":
+            p.add_argument("--from", dest="from_log", metavar="LOG",
+                           help="send nothing: learn the baselines from this healthy reference log (.log, .asc, "
+                           ".blf) and write them into the state in --state DIR (default: state.directory)")
+            p.add_argument("--state", metavar="DIR", type=Path,
+                           help="with --from: the service's state directory")
         p.set_defaults(func=run, command_name=name)
 
 
 def run(args: argparse.Namespace) -> int:
     s = load_config(args.config)
+    if getattr(args, "from_log", None):
+        return relearn_from(args.from_log, args.state, s)
+    if getattr(args, "state", None) is not None:
+        raise ConfigError("relearn: --state needs --from LOG (a running service keeps its own state)")
     command = COMMANDS[args.command_name][0]
     db = load_dbc(s.dbc)
     counter = int(time.time() * 20)
@@ -51,4 +70,48 @@ def run(args: argparse.Namespace) -> int:
             bus.send(ident, data)
     sent = ", ".join(data.hex().upper() for _, data in frames)
     print(f"sent {command.name} (ID 0x{frames[0][0]:X} data {sent}) on {interface}:{channel}")
+    return 0
+
+
+def relearn_from(log: str, directory: Path | None, settings) -> int:
+    """Learn the baselines from a reference log into the state of ``directory`` (see module notes)."""
+    from online_id.cli.replay import keep, replay, restore, state_file
+    from online_id.report import TerminalProgress
+    from online_id.runtime import Runtime
+    from online_id.service import state_path
+
+    path = state_file(directory) if directory is not None else state_path(settings)
+    if path is None:
+        raise ConfigError("relearn --from: no state directory: give --state DIR or state.directory in the config")
+    runtime = Runtime(settings)
+    restored = restore(runtime, path)
+    pipe = runtime.pipeline
+    pipe.baseline.reset()
+    pipe._references.clear()
+    pipe.detector.reset()
+    pipe.alerts.clear()
+    pipe.run_label = f"reference run {Path(log).name}"
+    pipe.reference_run = True
+    progress = TerminalProgress("relearn")
+    try:
+        replay(log, runtime, progress=progress)
+    finally:
+        progress.close()
+    drift = [a for a in pipe.alerts if a.kind.name in ("FREQ_DRIFT", "DAMPING_DRIFT")]
+    pipe.detector.reset()  # the reference run's own statistics are no change
+    pipe.alerts.clear()
+    keep(runtime, path)
+    learned = [b for b in pipe.baseline.bands if b.count >= pipe.baseline.min_count]
+    print(f"online-id relearn --from {log}: {len(learned)} cells learned "
+          f"({len(pipe.baseline.bands) - len(learned)} still learning), "
+          f"state {'updated' if restored else 'written'} in {path}")
+    for b in learned:
+        print(f"  {b.band[0]:.0f}-{b.band[1]:.0f} rpm, {b.load_nm:.1f} Nm: f0 {b.mean_f:.3f} +- {b.std_f:.3f} Hz, "
+              f"zeta {b.mean_zeta:.4f} +- {b.std_zeta:.4f} ({b.count} estimates)")
+    if drift:
+        print(f"  warning: {len(drift)} drift alarms during the reference log; is it healthy? first: "
+              f"{drift[0].message}")
+    if not learned:
+        print("  warning: no cell learned (too short, or not excited: a cell needs "
+              f"{pipe.baseline.min_count} s of steady, well-excited estimates)")
     return 0

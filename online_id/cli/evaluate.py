@@ -28,13 +28,21 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
         "feed each through the service pipeline and report false alarms per hour and the detection delay "
         "(median and worst). The full default (10 h, 4 plants) takes about 20 minutes on two cores.",
     )
-    p.add_argument("--hours", type=float, default=10.0, help="fault-free hours to simulate (default 10)")
-    p.add_argument("--fault-plants", type=int, default=4,
+    p.add_argument("--hours", type=float, default=None, help="fault-free hours to simulate (default 10)")
+    p.add_argument("--fault-plants", type=int, default=None,
                    help="random plants on which every fault case runs (default 4)")
     p.add_argument("--seed", type=int, default=1, help="seed of the random plants and conditions (default 1)")
-    p.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="parallel processes (default: all cores)")
+    p.add_argument("--jobs", type=int, default=None, help="parallel processes (default: all cores)")
     p.add_argument("--out", type=Path, metavar="DIR", help="write results.json, table.md and evaluation.png here")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON document")
+    p.add_argument("--families", default="c", metavar="LIST",
+                   help="scenario families, comma-separated: a (first run of a fresh service, short plateaus), "
+                   "b (a later run with the state of an earlier healthy run, at other operating points), "
+                   "c (long dwells at one point); default c")
+    p.add_argument("--cases", metavar="LIST",
+                   help="only these fault cases, comma-separated labels (e.g. 'stiffness -10 %%,damping +50 %%')")
+    p.add_argument("--quick", action="store_true",
+                   help="a bounded check: --hours 0.5 --fault-plants 2 --families a,b --jobs 2 unless given")
     p.add_argument("--from-results", type=Path, metavar="results.json",
                    help="no simulation: summarise, tabulate and plot the runs of an earlier results.json")
     p.set_defaults(func=run)
@@ -54,13 +62,17 @@ def table(summary: dict) -> str:
         + ", ".join(f"{k} {v['hours']:.1f} h / {v['false_alarms']}" for k, v in f.get("by_effect", {}).items())
         + ".",
         "",
-        "| fault | runs | detected | warning delay median / worst [s] | fault-level delay median / worst [s] "
-        "| false alarms before the fault |",
-        "|---|---:|---:|---:|---:|---:|",
+        "Fault-free hours and false alarms by dwell: "
+        + ", ".join(f"{k} plateaus {v['hours']:.1f} h / {v['false_alarms']}" for k, v in f.get("by_dwell", {}).items())
+        + ".",
+        "",
+        "| family | fault | runs | detected | warning delay median / worst [s] "
+        "| fault-level delay median / worst [s] | false alarms before the fault |",
+        "|---|---|---:|---:|---:|---:|---:|",
     ]
     for r in summary["faults"]:
         lines.append(
-            f"| {r['case']} | {r['runs']} | {r['detected']} | {fmt(r['warning_delay_s_median'], '.1f')} / "
+            f"| {r.get('family', 'c')} | {r['case']} | {r['runs']} | {r['detected']} | {fmt(r['warning_delay_s_median'], '.1f')} / "
             f"{fmt(r['warning_delay_s_worst'], '.1f')} | {fmt(r['fault_delay_s_median'], '.1f')} / "
             f"{fmt(r['fault_delay_s_worst'], '.1f')} ({r['fault_level_reached']}/{r['runs']}) "
             f"| {r['false_alarms_before_fault']} |")
@@ -107,7 +119,29 @@ def plot(results: list[ev.RunResult], path: Path) -> None:
     save_figure(fig, path)
 
 
+def _defaults(args: argparse.Namespace) -> None:
+    quick = {"hours": 0.5, "fault_plants": 2, "jobs": min(2, os.cpu_count() or 1)}
+    full = {"hours": 10.0, "fault_plants": 4, "jobs": os.cpu_count() or 1}
+    for key, value in (quick if args.quick else full).items():
+        if getattr(args, key) is None:
+            setattr(args, key, value)
+    if args.quick and args.families == "c":
+        args.families = "a,b"
+    families = tuple(f.strip() for f in args.families.split(",") if f.strip())
+    bad = [f for f in families if f not in ev.FAMILIES]
+    if bad or not families:
+        raise ConfigError(f"--families: expected a comma-separated list of {', '.join(ev.FAMILIES)}, "
+                          f"but got {args.families!r}")
+    args.families = families
+    labels = {c[0] for c in ev.FAULT_CASES + ev.FAMILY_CASES}
+    cases = None if args.cases is None else tuple(c.strip() for c in args.cases.split(",") if c.strip())
+    if cases is not None and (not cases or any(c not in labels for c in cases)):
+        raise ConfigError(f"--cases: expected labels among {', '.join(sorted(labels))}, but got {args.cases!r}")
+    args.cases = cases
+
+
 def run(args: argparse.Namespace) -> int:
+    _defaults(args)
     if not (args.hours >= 0 and args.fault_plants >= 0 and args.jobs >= 1):
         raise ConfigError(f"Expected --hours >= 0, --fault-plants >= 0 and --jobs >= 1, but got "
                           f"{args.hours}, {args.fault_plants}, {args.jobs}")
@@ -119,7 +153,7 @@ def run(args: argparse.Namespace) -> int:
             raise InputDataError(f"{args.out}: cannot create the output directory ({err.strerror})") from None
     if args.from_results is not None:
         return _from_results(args)
-    specs = ev.plan(args.hours, args.fault_plants, args.seed)
+    specs = ev.plan(args.hours, args.fault_plants, args.seed, args.families, args.cases)
     specs.sort(key=lambda s: -s.scenario.duration_s)  # longest first: the pool finishes together
     total_s = sum(s.scenario.duration_s for s in specs)
     print(f"online-id evaluate: {len(specs)} runs, {total_s / 3600:.1f} simulated hours, {args.jobs} processes",
@@ -134,10 +168,12 @@ def run(args: argparse.Namespace) -> int:
             done_s += r.duration_s
             what = (f"{r.false_alarms} false alarms" if r.case == "fault-free"
                     else f"alarm after {fmt(r.warning_delay_s, '.1f')} s")
-            print(f"[{len(results):3d}/{len(specs)}] {100 * done_s / total_s:5.1f}%  {r.case:16s} seed {r.seed:5d}  "
+            print(f"[{len(results):3d}/{len(specs)}] {100 * done_s / total_s:5.1f}%  ({r.family}) {r.case:16s} "
+                  f"seed {r.seed:5d}  "
                   f"{r.duration_s / 60:5.1f} min simulated in {r.elapsed_s:5.1f} s  {what}", file=sys.stderr)
     elapsed = time.monotonic() - t0
     settings = {"hours": args.hours, "fault_plants": args.fault_plants, "seed": args.seed,
+                "families": list(args.families), "cases": list(args.cases) if args.cases else None,
                 "jobs": args.jobs, "elapsed_s": round(elapsed, 1),
                 "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"}
     _write(args, results, settings)
@@ -152,6 +188,7 @@ def _from_results(args: argparse.Namespace) -> int:
     try:
         doc = json.loads(path.read_text())
         results = [ev.RunResult(**r) for r in doc["runs"]]
+        args.families = tuple(doc["summary"].get("settings", {}).get("families", ["c"]))
         settings = doc["summary"].get("settings", {})
     except OSError as err:
         raise InputDataError(f"{path}: cannot read the results ({err.strerror})") from None

@@ -6,10 +6,12 @@ import argparse
 import json
 import sys
 import time
+from pathlib import Path
 
 from online_id.config import load_config
-from online_id.errors import InputDataError
+from online_id.errors import EstimationError, InputDataError
 from online_id.io.canlog import read_log
+from online_id.io.statefile import load_state, save_state
 from online_id.report import TerminalProgress, fmt
 from online_id.runtime import Runtime
 
@@ -25,8 +27,41 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("log", metavar="LOG", help="CAN log file (.log, .asc or .blf)")
     p.add_argument("--config", metavar="FILE", help="YAML configuration (DBC, mapping, model)")
     p.add_argument("--realtime", action="store_true", help="pace the frames by their timestamps")
+    p.add_argument("--state", metavar="DIR", type=Path,
+                   help="load the service's state (baselines, latched alarms) from DIR/online-id-state.json at "
+                   "start and save it there at the end, as online-id run keeps it (replay a day of logs one "
+                   "after another)")
     p.add_argument("--json", action="store_true", help="print one JSON document")
     p.set_defaults(func=run)
+
+
+def state_file(directory: Path) -> Path:
+    """The state file in ``directory`` (the name the live service uses)."""
+    from online_id.service import STATE_FILE
+
+    if directory.exists() and not directory.is_dir():
+        raise InputDataError(f"{directory}: --state expects a directory, but this is a file")
+    return directory / STATE_FILE
+
+
+def restore(runtime: Runtime, path: Path) -> bool:
+    """Load a saved state as an earlier run's into ``runtime``'s pipeline; False if there is none yet."""
+    state = load_state(path)
+    if state is None:
+        return False
+    try:
+        runtime.pipeline.load_state(state, new_run=True)
+    except (EstimationError, KeyError, TypeError, ValueError) as err:
+        raise InputDataError(f"{path}: not a state of this version of online-id ({err})") from None
+    return True
+
+
+def keep(runtime: Runtime, path: Path) -> None:
+    """Save the pipeline's state to ``path`` (atomically); an unwritable place is a one-line error."""
+    try:
+        save_state(path, runtime.pipeline.get_state())
+    except OSError as err:
+        raise InputDataError(f"{path}: cannot save the state ({err.strerror or err})") from None
 
 
 def replay(path: str, runtime: Runtime, realtime: bool = False, progress=None) -> int:
@@ -60,6 +95,9 @@ def replay(path: str, runtime: Runtime, realtime: bool = False, progress=None) -
 def run(args: argparse.Namespace) -> int:
     s = load_config(args.config)
     runtime = Runtime(s)
+    path = state_file(args.state) if args.state is not None else None
+    restored = restore(runtime, path) if path is not None else False
+    runtime.pipeline.run_label = Path(args.log).name
     progress = TerminalProgress("replay")
     t0 = time.monotonic()
     try:
@@ -70,6 +108,9 @@ def run(args: argparse.Namespace) -> int:
     result = runtime.pipeline.result()
     result["frames_in"] = runtime.frames_in
     result["frames_out"] = published
+    if path is not None:
+        keep(runtime, path)
+        result["state_file"] = {"path": str(path), "restored": restored, "saved": True}
     if args.json:
         json.dump(result, sys.stdout, indent=2)
         sys.stdout.write("\n")
@@ -77,6 +118,8 @@ def run(args: argparse.Namespace) -> int:
     d = result["driveline"]
     print(f"online-id replay {args.log}: {runtime.frames_in} frames in {elapsed:.1f} s "
           f"({runtime.frames_in / max(elapsed, 1e-9):,.0f} frames/s), {published} frames published")
+    if path is not None:
+        print(f"  state            {'restored from' if restored else 'none yet in'} {path}, saved at the end")
     print(f"  final state      {result['state']}")
     print(f"  resonance  f0    {fmt(d['f0_hz'], '.3f')} Hz   damping ratio {fmt(d['zeta'], '.4f')}   "
           f"valid {d['valid']}")
@@ -86,6 +129,10 @@ def run(args: argparse.Namespace) -> int:
           f"missing frames {c['missing_frames']}, foreign frames {c['frames_unknown_id']}")
     print("  status changes: " + ", ".join(f"{e['t_s']:.1f} s {e['state']}" for e in result["status_changes"][:12])
           + (" ..." if len(result["status_changes"]) > 12 else ""))
+    for b in result["baseline"]:
+        print(f"  baseline {b['band_rpm'][0]:.0f}-{b['band_rpm'][1]:.0f} rpm, {fmt(b['load_nm'], '.1f')} Nm: "
+              f"f0 {fmt(b['f0_hz'], '.3f')} +- {fmt(b['f0_std_hz'], '.3f')} Hz, {b['count']} estimates, "
+              f"{b['kind']}" + (f" from {b['source']}" if b['source'] else ""))
     for a in result["alerts"]:
         print(f"  alert at {a['t_s']:.1f} s: {a['kind']} {a['message']}")
     return 0

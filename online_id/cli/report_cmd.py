@@ -355,11 +355,13 @@ def markdown(data: ReportData, doc: dict) -> str:
               f"| {fmt(f.get('f0_hz'), '.3f')} | {fmt(f.get('zeta'), '.4f')} "
               f"| {'yes' if f.get('valid') else 'no'} | {f.get('source', '')} |"]
     lines += _section("Baselines", "| band [rpm] | load [Nm] | f0 [Hz] | std f0 [Hz] | zeta | std zeta | count "
-                      "| learned |", "|---|---:|---:|---:|---:|---:|---:|:---:|", "No baseline learned yet.", [
+                      "| status | learned from | spread / estimator uncertainty |",
+                      "|---|---:|---:|---:|---:|---:|---:|:---:|---|---:|", "No baseline learned yet.", [
                           f"| {b['band_rpm'][0]:.0f}-{b['band_rpm'][1]:.0f} | {fmt(b['load_nm'], '.1f')} "
                           f"| {b['f0_hz']:.3f} | "
                           f"{b['f0_std_hz']:.3f} | {b['zeta']:.4f} | {b['zeta_std']:.4f} | {b['count']} | "
-                          f"{'yes' if b['learned'] else 'no'} |" for b in doc["baselines"]])
+                          f"{b.get('kind', 'learned' if b['learned'] else 'learning')} | {b.get('source') or '-'} "
+                          f"| {fmt(b.get('spread_ratio'), '.1f')} |" for b in doc["baselines"]])
     lines += _section("Alerts", "| t [s] | kind | level | speed [rpm] | change [%] | message |",
                       "|---:|---|---|---:|---:|---|", "No alerts.", [
                           f"| {fmt(a['t_s'], '.1f')} | {a['kind']} | {a['level']} | "

@@ -43,9 +43,17 @@ or the window is flagged faulty -- a baseline learned from a faulty driveline
 would hide the fault.  The estimates are strongly autocorrelated (fits over
 overlapping 10 s windows), so the spread is only representative
 once a band has been learned over several correlation times; feed
-:meth:`Baseline.learn` at about 1 Hz (then ``min_count = 60`` is one minute)
-rather than at the 10 Hz publish rate, or raise ``min_count``.
+:meth:`Baseline.learn` at about 1 Hz (then the default ``min_count = 20`` is
+20 s; the spread is floored, see above) rather than at the 10 Hz publish rate.
 :meth:`Baseline.reset` forgets everything (re-learning on command).
+
+**Pooled baseline** (:meth:`Baseline.pooled`): a cell not learned yet is
+served at once by the learned cells pooled, with a spread widened for the
+unknown dependence on speed and load; where the learned cells disagree, a
+least-squares fit against speed (and load) gives its mean. The caller keeps
+a change out of the baseline with :meth:`Baseline.disagrees`: an estimate
+that deviates from what serves its cell beyond the dead band plus three
+spreads is not learned (:meth:`Baseline.reject` counts it).
 """
 
 from __future__ import annotations
@@ -75,6 +83,18 @@ class BandStats:
     load_nm
         Mean load (dyno torque) of the learned estimates [Nm]; nan for a
         cell saved before loads were kept (it serves any load).
+    kind
+        ``"learned"`` (a cell learned in this service), ``"reference"`` (a
+        cell learned from a reference run, ``online-id relearn --from``),
+        ``"pooled"`` (the learned cells pooled, serving a cell not learned
+        yet) or ``"learning"`` (a cell still learning, see
+        :meth:`Baseline.cell`).
+    source
+        The run(s) the statistics were learned from ("" if unknown).
+    uncertainty_f
+        Mean of the estimator's own frequency uncertainty over the learned
+        estimates [Hz] (nan if unknown); a spread far above it is reported
+        (:attr:`spread_ratio`).
     """
 
     mean_f: float
@@ -84,6 +104,15 @@ class BandStats:
     count: int
     band: tuple[float, float]
     load_nm: float = 0.0
+    kind: str = "learned"
+    source: str = ""
+    uncertainty_f: float = float("nan")
+
+    @property
+    def spread_ratio(self) -> float:
+        """Frequency spread over the estimator's own uncertainty (nan if unknown)."""
+        u = self.uncertainty_f
+        return self.std_f / u if math.isfinite(u) and u > 0 else float("nan")
 
     def as_dict(self) -> dict[str, Any]:
         """Plain (JSON-able) form for results and reports; non-finite numbers as None."""
@@ -92,25 +121,34 @@ class BandStats:
 
         return {"band_rpm": [float(self.band[0]), float(self.band[1])], "load_nm": fin(self.load_nm),
                 "f0_hz": fin(self.mean_f), "f0_std_hz": fin(self.std_f), "zeta": fin(self.mean_zeta),
-                "zeta_std": fin(self.std_zeta), "count": int(self.count)}
+                "zeta_std": fin(self.std_zeta), "count": int(self.count), "kind": self.kind,
+                "source": self.source, "f0_uncertainty_hz": fin(self.uncertainty_f),
+                "spread_ratio": fin(self.spread_ratio)}
 
 
 class _Welford:
     """Running statistics of one cell: frequency, damping and the mean load."""
 
-    __slots__ = ("n", "mean_f", "m2_f", "mean_z", "m2_z", "load")
+    __slots__ = ("n", "mean_f", "m2_f", "mean_z", "m2_z", "load", "unc_f", "source", "reference", "rejected")
 
     def __init__(self, n: int = 0, mean_f: float = 0.0, m2_f: float = 0.0, mean_z: float = 0.0, m2_z: float = 0.0,
-                 load: float = 0.0):
+                 load: float = 0.0, unc_f: float = float("nan"), source: str = "", reference: bool = False,
+                 rejected: int = 0):
         self.n, self.mean_f, self.m2_f, self.mean_z, self.m2_z = int(n), mean_f, m2_f, mean_z, m2_z
         self.load = load
+        self.unc_f = unc_f  # running mean of the estimator's own f0 uncertainty
+        self.source = source  # the run it was learned from
+        self.reference = reference  # learned from a reference run (relearn --from)
+        self.rejected = rejected  # estimates not learned: they disagreed with the baselines
 
     def distance(self, load_nm: float) -> float:
         """How far ``load_nm`` is from the cell's load (0 for a cell without one)."""
         return abs(load_nm - self.load) if math.isfinite(self.load) else 0.0
 
-    def add(self, f: float, z: float, load: float) -> None:
+    def add(self, f: float, z: float, load: float, unc_f: float = float("nan")) -> None:
         self.n += 1
+        if math.isfinite(unc_f):
+            self.unc_f = unc_f if not math.isfinite(self.unc_f) else self.unc_f + (unc_f - self.unc_f) / self.n
         if math.isfinite(self.load):
             self.load += (load - self.load) / self.n
         d = f - self.mean_f
@@ -120,8 +158,9 @@ class _Welford:
         self.mean_z += d / self.n
         self.m2_z += d * (z - self.mean_z)
 
-    def as_list(self) -> list[float]:
-        return [self.n, self.mean_f, self.m2_f, self.mean_z, self.m2_z, self.load]
+    def as_list(self) -> list:
+        return [self.n, self.mean_f, self.m2_f, self.mean_z, self.m2_z, self.load, self.unc_f, self.source,
+                self.reference, self.rejected]
 
 
 class Baseline:
@@ -137,6 +176,10 @@ class Baseline:
         Floor of the frequency spread, relative to the mean frequency.
     min_rel_std_zeta
         Floor of the damping spread, relative to the mean damping.
+    pool_tolerance_f, pool_tolerance_zeta
+        Relative widening of the pooled baseline for the unknown dependence
+        on speed and load (added in quadrature to its spread, see
+        :meth:`pooled`).
     load_band_nm
         Width of a load cell [Nm]: an estimate is learned into the cell of
         its speed band whose load is within half of it, and compared with a
@@ -147,16 +190,20 @@ class Baseline:
         self,
         *,
         band_rpm: float = 250.0,
-        min_count: int = 60,
+        min_count: int = 20,
         min_rel_std_f: float = 0.002,
         min_rel_std_zeta: float = 0.03,
         load_band_nm: float = 2.0,
+        pool_tolerance_f: float = 0.005,
+        pool_tolerance_zeta: float = 0.10,
     ) -> None:
         self.band_rpm = _positive("band_rpm", band_rpm)
         self.min_count = integer("Baseline", "min_count", min_count, minimum=2)
         self.min_rel_std_f = _positive("min_rel_std_f", min_rel_std_f)
         self.min_rel_std_zeta = _positive("min_rel_std_zeta", min_rel_std_zeta)
         self.load_band_nm = _positive("load_band_nm", load_band_nm)
+        self.pool_tolerance_f = number("Baseline", "pool_tolerance_f", pool_tolerance_f, strict=False)
+        self.pool_tolerance_zeta = number("Baseline", "pool_tolerance_zeta", pool_tolerance_zeta, strict=False)
         self._bands: dict[int, list[_Welford]] = {}
 
     def key(self, speed_rpm: float) -> int:
@@ -176,7 +223,8 @@ class Baseline:
         """The cell of band ``i`` an estimate at ``load_nm`` is learned into (None: a new one)."""
         return self._nearest(i, load_nm, 0.5 * self.load_band_nm)
 
-    def learn(self, *, speed_rpm: float, f0_hz: float, zeta: float, load_nm: float = 0.0) -> None:
+    def learn(self, *, speed_rpm: float, f0_hz: float, zeta: float, load_nm: float = 0.0,
+              f0_std_hz: float = float("nan"), source: str = "", reference: bool = False) -> None:
         """Add one estimate to the cell of ``speed_rpm`` and ``load_nm`` (a new cell if none is near).
 
         Raises
@@ -192,9 +240,18 @@ class Baseline:
         i = self.key(speed_rpm)
         cell = self._learning_cell(i, load_nm)
         if cell is None:
-            cell = _Welford(load=float(load_nm))
+            cell = _Welford(load=float(load_nm), source=source, reference=reference)
             self._bands.setdefault(i, []).append(cell)
-        cell.add(float(f0_hz), float(zeta), float(load_nm))
+        elif source and source not in cell.source.split(", ") and cell.n < self.min_count:
+            cell.source = f"{cell.source}, {source}" if cell.source else source
+        cell.add(float(f0_hz), float(zeta), float(load_nm), float(f0_std_hz))
+
+    def reject(self, *, speed_rpm: float, load_nm: float = 0.0) -> None:
+        """Count an estimate that was not learned into its cell because it disagreed with the baselines."""
+        if math.isfinite(speed_rpm) and math.isfinite(load_nm):
+            cell = self._learning_cell(self.key(speed_rpm), load_nm)
+            if cell is not None:
+                cell.rejected += 1
 
     def cell(self, speed_rpm: float, load_nm: float = 0.0) -> BandStats | None:
         """Statistics of the cell an estimate at ``speed_rpm`` and ``load_nm`` would be learned into.
@@ -210,6 +267,7 @@ class Baseline:
     def _stats(self, i: int, b: _Welford) -> BandStats:
         std_f = math.sqrt(max(b.m2_f, 0.0) / (b.n - 1))
         std_z = math.sqrt(max(b.m2_z, 0.0) / (b.n - 1))
+        kind = "learning" if b.n < self.min_count else "reference" if b.reference else "learned"
         return BandStats(
             b.mean_f,
             max(std_f, self.min_rel_std_f * abs(b.mean_f)),
@@ -218,6 +276,9 @@ class Baseline:
             b.n,
             self._edges(i),
             b.load,
+            kind,
+            b.source,
+            b.unc_f,
         )
 
     def _ready_cell(self, i: int, load_nm: float) -> _Welford | None:
@@ -229,7 +290,8 @@ class Baseline:
 
         The learned cell of the speed band nearest the load (within
         ``load_band_nm``); else one of a learned adjacent band (the one whose
-        centre is nearer ``speed_rpm`` when both qualify); else None.
+        centre is nearer ``speed_rpm`` when both qualify); else the pooled
+        baseline of all learned cells (:meth:`pooled`); else None.
         """
         if not (math.isfinite(speed_rpm) and math.isfinite(load_nm)):
             return None
@@ -241,6 +303,95 @@ class Baseline:
             c = self._ready_cell(j, load_nm)
             if c is not None:
                 return self._stats(j, c)
+        return self.pooled(speed_rpm, load_nm)
+
+    def pooled(self, speed_rpm: float, load_nm: float = 0.0, min_n: int | None = None) -> BandStats | None:
+        """The baseline of all learned cells for a cell not learned yet (kind ``"pooled"``), or None.
+
+        Notes
+        -----
+        With learned cells :math:`i` (means :math:`\\bar f_i`, floored spreads
+        :math:`s_i`, counts :math:`N_i`): where every cell agrees with the
+        count-weighted mean :math:`\\bar f` within :math:`\\max(3 s_i, \\tau \\bar f)`
+        (:math:`\\tau` = ``pool_tolerance_f``; the driveline resonance of a linear
+        plant barely moves with speed), the pooled mean is :math:`\\bar f`; where
+        they do not, the dependence is modelled: a least-squares fit of
+        :math:`\\bar f_i` against speed (and load, with four or more cells)
+        gives the mean at ``speed_rpm`` and ``load_nm``, and its residuals
+        the between-cell spread :math:`s_b`. The pooled spread is widened for
+        the unknown dependence:
+
+        .. math::
+
+            s_p^2 = \\overline{s_i^2} + s_b^2 + (\\tau \\bar f)^2
+
+        and the damping alike (``pool_tolerance_zeta``). ``min_n``: pool the
+        cells with at least this many estimates (default ``min_count``: the
+        learned ones).
+        """
+        min_n = self.min_count if min_n is None else max(2, int(min_n))
+        cells = [(i, c) for i, cs in self._bands.items() for c in cs if c.n >= min_n]
+        if not cells or not (math.isfinite(speed_rpm) and math.isfinite(load_nm)):
+            return None
+        stats = [self._stats(i, c) for i, c in cells]
+        w = [s.count for s in stats]
+        mean_f, sb_f = self._pool([s.mean_f for s in stats], [s.std_f for s in stats], w, cells, speed_rpm,
+                                  load_nm, self.pool_tolerance_f)
+        mean_z, sb_z = self._pool([s.mean_zeta for s in stats], [s.std_zeta for s in stats], w, cells,
+                                  speed_rpm, load_nm, self.pool_tolerance_zeta)
+        if not (mean_f > 0 and mean_z > 0):
+            return None
+        within_f = math.sqrt(sum(wi * s.std_f ** 2 for wi, s in zip(w, stats)) / sum(w))
+        within_z = math.sqrt(sum(wi * s.std_zeta ** 2 for wi, s in zip(w, stats)) / sum(w))
+        std_f = math.sqrt(within_f ** 2 + sb_f ** 2 + (self.pool_tolerance_f * mean_f) ** 2)
+        std_z = math.sqrt(within_z ** 2 + sb_z ** 2 + (self.pool_tolerance_zeta * mean_z) ** 2)
+        unc = [s.uncertainty_f for s in stats if math.isfinite(s.uncertainty_f)]
+        sources = ", ".join(dict.fromkeys(x for s in stats for x in s.source.split(", ") if x))
+        i = self.key(speed_rpm)
+        return BandStats(mean_f, std_f, mean_z, std_z, sum(w), self._edges(i), float(load_nm), "pooled",
+                         sources, sum(unc) / len(unc) if unc else float("nan"))
+
+    def _pool(self, means: list[float], stds: list[float], w: list[int], cells: list, speed_rpm: float,
+              load_nm: float, tolerance: float) -> tuple[float, float]:
+        """Pooled mean at the operating point and the between-cell spread (see :meth:`pooled`)."""
+        total = sum(w)
+        mean = sum(wi * m for wi, m in zip(w, means)) / total
+        if all(abs(m - mean) <= max(3.0 * s, tolerance * abs(mean)) for m, s in zip(means, stds)):
+            return mean, 0.0
+        import numpy as np  # only where the cells disagree
+
+        speeds = np.asarray([i * self.band_rpm for i, _ in cells], dtype=float)
+        loads = np.asarray([c.load if math.isfinite(c.load) else load_nm for _, c in cells], dtype=float)
+        cols = [np.ones(len(means))]
+        if np.ptp(speeds) > 0.5 * self.band_rpm and len(cols) < len(means):
+            cols.append(speeds - speed_rpm)  # the mean at speed_rpm is the intercept
+        if np.ptp(loads) > self.load_band_nm and len(cols) < len(means) - (len(cols) > 1):
+            cols.append(loads - load_nm)
+        A = np.column_stack(cols) * np.sqrt(w)[:, None]
+        b = np.asarray(means) * np.sqrt(w)
+        coef, *_ = np.linalg.lstsq(A, b, rcond=None)
+        resid = (b - A @ coef) / np.sqrt(w)
+        dof = max(len(means) - len(cols), 1)
+        spread = float(np.sqrt(np.sum(np.asarray(w) * resid ** 2) / total * len(means) / dof))
+        spread = max(spread, float(np.std(means)) if len(means) <= len(cols) else spread)
+        return float(coef[0]), spread
+
+    def status(self, speed_rpm: float, load_nm: float = 0.0) -> str:
+        """``"learned"``, ``"reference"``, ``"pooled"`` or ``"unknown"``: what serves an estimate there."""
+        stats = self.lookup(speed_rpm, load_nm)
+        return "unknown" if stats is None else stats.kind
+
+    def disagrees(self, stats: BandStats, f0_hz: float, zeta: float, min_change_f: float, min_change_zeta: float,
+                  n_sigma: float = 3.0) -> str | None:
+        """Which of frequency and damping deviates from ``stats`` beyond the tolerance (None: neither).
+
+        The tolerance of a quantity is its dead band plus ``n_sigma`` spreads:
+        :math:`|f_0 - \\bar f| > \\delta_f \\bar f + n_\\sigma s_f`.
+        """
+        if abs(f0_hz - stats.mean_f) > min_change_f * stats.mean_f + n_sigma * stats.std_f:
+            return "frequency"
+        if abs(zeta - stats.mean_zeta) > min_change_zeta * stats.mean_zeta + n_sigma * stats.std_zeta:
+            return "damping"
         return None
 
     @property
@@ -269,7 +420,10 @@ class Baseline:
             "min_rel_std_f": self.min_rel_std_f,
             "min_rel_std_zeta": self.min_rel_std_zeta,
             "load_band_nm": self.load_band_nm,
-            "bands": {str(i): [[x if math.isfinite(x) else None for x in c.as_list()] for c in cells]
+            "pool_tolerance_f": self.pool_tolerance_f,
+            "pool_tolerance_zeta": self.pool_tolerance_zeta,
+            "bands": {str(i): [[None if isinstance(x, float) and not math.isfinite(x) else x for x in c.as_list()]
+                               for c in cells]
                       for i, cells in sorted(self._bands.items())},
         }
 
@@ -279,15 +433,25 @@ class Baseline:
         try:
             base = cls(band_rpm=data["band_rpm"], min_count=int(data["min_count"]),
                        min_rel_std_f=data["min_rel_std_f"], min_rel_std_zeta=data["min_rel_std_zeta"],
-                       load_band_nm=data.get("load_band_nm", 2.0))
+                       load_band_nm=data.get("load_band_nm", 2.0),
+                       pool_tolerance_f=data.get("pool_tolerance_f", 0.005),
+                       pool_tolerance_zeta=data.get("pool_tolerance_zeta", 0.10))
             for key, v in data["bands"].items():
                 cells = v if v and isinstance(v[0], list) else [list(v) + [None]]  # one cell, no load
-                base._bands[int(key)] = [
-                    _Welford(int(c[0]), *(float(x) for x in c[1:5]), float("nan") if c[5] is None else float(c[5]))
-                    for c in cells]
+                base._bands[int(key)] = [_cell_from_list(c) for c in cells]
         except (KeyError, TypeError, ValueError, IndexError) as err:
             raise ConfigError(f"Baseline.from_dict: saved state is incomplete or malformed ({err!r})") from err
         return base
+
+
+def _cell_from_list(c: list) -> _Welford:
+    """A cell saved by :meth:`_Welford.as_list` (older states have only the first six fields)."""
+    def num(x: Any) -> float:
+        return float("nan") if x is None else float(x)
+
+    extra = list(c[6:10]) + [None] * (4 - len(c[6:10]))
+    return _Welford(int(c[0]), *(float(x) for x in c[1:5]), num(c[5]), num(extra[0]), str(extra[1] or ""),
+                    bool(extra[2]), int(extra[3] or 0))
 
 
 def _positive(name: str, value: float) -> float:

@@ -429,6 +429,15 @@ class ChangeDetector:
         self._recent[kind].clear()
         self._armed[kind] = True  # statistic is 0 < hysteresis * h_warning
 
+    def new_stream(self) -> None:
+        """A new run with its own time base (a restored state, another log): drop the open interval.
+
+        Statistics and latched alarms are kept; only the interval being
+        averaged, whose times belong to the previous stream, is discarded.
+        """
+        self._clear_interval()
+        self._t_last = None
+
     def reset(self) -> None:
         """Forget everything (statistics, latched alarms); for a re-learned baseline."""
         self._reset_all()
