@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from scipy.ndimage import uniform_filter1d
 
 
@@ -68,7 +69,29 @@ def find_plateaus(
     slow = np.abs(rate) < max_rate_rpm_s
     trim = int(round(trim_s / dt))
     min_len = int(round(min_duration_s / dt))
+    starts, stops = _steady_runs(smooth, slow, float(tol_rpm), max(1, win))
     plateaus: list[Plateau] = []
+    for i, j in zip(starts.tolist(), stops.tolist()):
+        start, stop = i + trim, j - trim
+        if stop - start >= min_len:
+            seg = slice(start, stop)
+            plateaus.append(
+                Plateau(start, stop, float(np.mean(speed_rpm[seg])), float(time_s[start]), float(time_s[stop - 1]))
+            )
+    return plateaus
+
+
+@njit(cache=True)
+def _steady_runs(smooth: np.ndarray, slow: np.ndarray, tol: float, win: int) -> tuple[np.ndarray, np.ndarray]:
+    """Runs ``i:j`` of slow samples whose smoothed speed stays within ``tol`` of the run's median.
+
+    The median is of ``smooth[i:j]``, updated every ``win`` samples (compiled:
+    one pass over the record).
+    """
+    n = smooth.shape[0]
+    starts = np.empty(n, dtype=np.int64)
+    stops = np.empty(n, dtype=np.int64)
+    m = 0
     i = 0
     while i < n:
         if not slow[i]:
@@ -77,18 +100,15 @@ def find_plateaus(
         # grow a run while the smoothed speed stays near the running median
         j = i
         level = smooth[i]
-        while j < n and slow[j] and abs(smooth[j] - level) <= tol_rpm:
+        while j < n and slow[j] and abs(smooth[j] - level) <= tol:
             j += 1
-            if (j - i) % max(1, win) == 0:
-                level = float(np.median(smooth[i:j]))
-        start, stop = i + trim, j - trim
-        if stop - start >= min_len:
-            seg = slice(start, stop)
-            plateaus.append(
-                Plateau(start, stop, float(np.mean(speed_rpm[seg])), float(time_s[start]), float(time_s[stop - 1]))
-            )
+            if (j - i) % win == 0:
+                level = np.median(smooth[i:j])
+        starts[m] = i
+        stops[m] = j
+        m += 1
         i = max(j, i + 1)
-    return plateaus
+    return starts[:m], stops[:m]
 
 
 def plateaus_from_times(
