@@ -116,7 +116,7 @@ def errors(run: dict, truth: dict) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--durations", type=float, nargs="+", default=[600.0, 3600.0])
+    ap.add_argument("--durations", type=float, nargs="*", default=[600.0, 3600.0])
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--old-rev", default="616c58d", help="the commit to compare with (default: before fast identify)")
     ap.add_argument("--skip-old-above", type=float, default=float("inf"), metavar="S",
