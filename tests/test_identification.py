@@ -12,7 +12,7 @@ import pytest
 
 from online_id.bench.scenario import BenchScenario, OperatingPoint
 from online_id.bench.simulate import simulate_bench
-from online_id.estimation.identification import identify
+from online_id.estimation.identification import best_window, identify
 from online_id.analysis.poles import DRIVELINE, SPEED_DEPENDENT
 from online_id.estimation.settings import IdentificationSettings, InertiaSettings
 
@@ -46,7 +46,7 @@ def random_truth(seed):
             return (J1, J2, c, d, n_cyl, speeds)
 
 
-def run_case(case, seed, duration_s=30.0, inertias=None):
+def run_case(case, seed, duration_s=30.0, inertias=None, **identify_kwargs):
     J1, J2, c, d, n_cyl, speeds = case
     scenario = dataclasses.replace(
         BenchScenario(), J1=J1, J2=J2, c_s=c, d_s=d, n_cyl=n_cyl, seed=seed,
@@ -54,7 +54,7 @@ def run_case(case, seed, duration_s=30.0, inertias=None):
     )
     record = simulate_bench(scenario)
     inert = InertiaSettings(J1=J1) if inertias is None else inertias
-    result = identify(record.to_data("sim"), IdentificationSettings(), inert)
+    result = identify(record.to_data("sim"), IdentificationSettings(), inert, **identify_kwargs)
     return record.truth, result
 
 
@@ -103,3 +103,45 @@ def test_given_J1_and_J2_use_the_poles_only():
     truth, result = run_case(case, seed=4, inertias=InertiaSettings(J1=case[0], J2=case[1]))
     assert result.driveline.source == "J1 and J2 given"
     assert result.driveline.c_s == pytest.approx(truth["c_s"], rel=0.03)
+
+
+# -- long plateaus: the order grid on a bounded, best-excited window -----------------------
+
+def test_best_window_picks_the_most_excited_seconds():
+    u = np.zeros(1000)
+    u[600:700] = np.sign(np.sin(np.arange(100)))
+    assert best_window(u, 200, 50) == (500, 700)  # the first window holding the whole burst
+    assert best_window(u, 2000, 50) == (0, 1000)
+    assert best_window(np.ones(300), 100, 10) == (0, 100)  # ties: the first
+
+
+@pytest.mark.parametrize("case", [FIXED[2], random_truth(303)], ids=["fixed", "random"])
+def test_long_plateaus_fit_a_bounded_window_and_validate_on_the_rest(case):
+    truth, result = run_case(case, seed=5, duration_s=70.0)
+    check(truth, result)
+    assert result.driveline.c_s == pytest.approx(truth["c_s"], rel=0.05)
+    for p in result.points:
+        a, b = p.window
+        assert (b - a) * p.dt == pytest.approx(40.0)
+        assert p.fit.n == b - a - result.orders.max_lag  # the window alone
+        assert 0.5 * p.fit.V < p.validation_V < 2.0 * p.fit.V  # a steady plateau: the rest is predicted as well
+    doc = result.as_dict()["operating_points"][0]
+    assert doc["fit_window_s"][1] - doc["fit_window_s"][0] == pytest.approx(40.0)
+
+
+def test_window_fit_agrees_with_the_whole_plateau_fit():
+    """The bounded window (LM solver) against the whole plateau (scipy's trf): the former default."""
+    case = FIXED[0][:5] + ((1000, 1800, 2500),)
+    truth, window = run_case(case, seed=8, duration_s=60.0)
+    _, whole = run_case(case, seed=8, duration_s=60.0, fit_s=None, solver="trf")
+    check(truth, window)
+    check(truth, whole)
+    assert window.driveline.f0_hz == pytest.approx(whole.driveline.f0_hz, rel=2e-3)
+    assert window.driveline.zeta == pytest.approx(whole.driveline.zeta, rel=0.05)
+
+
+def test_refine_refits_the_chosen_order_on_more_seconds():
+    truth, result = run_case(FIXED[0][:5] + ((1000, 2000),), seed=9, duration_s=70.0, fit_s=20.0, refine_s=60.0)
+    check(truth, result)
+    for p in result.points:
+        assert p.fit.n == round(60.0 / p.dt) - result.orders.max_lag  # refitted on 60 s

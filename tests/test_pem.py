@@ -228,3 +228,52 @@ def test_errors_shape_and_theta0():
         fit_armax(y, u[:299], ArmaxOrders(1, 1, 1))
     with pytest.raises(EstimationError, match="theta0"):
         fit_armax(y, u, ArmaxOrders(1, 1, 1), theta0=np.zeros(2))
+
+
+# -- the Levenberg-Marquardt solver (solver="lm") ------------------------------------------
+
+@pytest.mark.parametrize("orders", [ArmaxOrders(12, 12, 12, 1), ArmaxOrders(8, 6, 4, 2, offset=True),
+                                    ArmaxOrders(3, 1, 2, 0, offset=True), ArmaxOrders(2, 0, 1, 1)],
+                         ids=str)
+def test_normal_equations_equal_the_jacobian_products(orders):
+    from online_id.estimation.pem import _PemProblem
+
+    y, u, _, theta = simulate(31, orders if orders.nb else ArmaxOrders(2, 1, 1, 1), n=3000)
+    t0 = orders.max_lag + 5
+    problem = _PemProblem(y, u, orders, t0)
+    theta = np.zeros(orders.n_params)
+    theta[: orders.na] = 0.02
+    theta[orders.na + orders.nb] = -0.5  # C = 1 - 0.5 q^-1: a stable predictor
+    H, g = problem.normal_equations(theta)
+    J, eps = problem.jacobian(theta), problem.residuals(theta)
+    assert np.max(np.abs(H - J.T @ J)) <= 1e-12 * np.max(np.abs(H))
+    assert np.max(np.abs(g - J.T @ eps)) <= 1e-12 * np.max(np.abs(g))
+
+
+@pytest.mark.parametrize("na, nb, nc, nk, seed", CASES)
+def test_lm_solver_reaches_the_trf_optimum(na, nb, nc, nk, seed):
+    orders = ArmaxOrders(na, nb, nc, nk)
+    y, u, _, theta = simulate(seed, orders)
+    trf = fit_armax(y, u, orders)
+    lm = fit_armax(y, u, orders, solver="lm")
+    assert lm.converged, lm.message
+    assert lm.V == pytest.approx(trf.V, rel=1e-5)
+    assert np.all(np.abs(lm.theta - trf.theta) < 0.05 * trf.std_errors + 1e-6)
+    np.testing.assert_allclose(lm.covariance, trf.covariance, rtol=1e-2, atol=1e-3 * np.max(trf.covariance))
+    assert np.all(np.abs(np.roots(lm.C)) < 1.0)
+
+
+def test_lm_solver_with_offset_and_bad_name():
+    orders = ArmaxOrders(2, 2, 1, offset=True)
+    y, u, _, theta = simulate(7, orders, offset=2.5)
+    fit = fit_armax(y, u, orders, solver="lm")
+    assert np.all(np.abs(fit.theta - theta) < 5 * fit.std_errors)
+    with pytest.raises(EstimationError, match="solver"):
+        fit_armax(y, u, orders, solver="svd")
+
+
+def test_lm_solver_stops_at_max_iter():
+    orders = ArmaxOrders(3, 2, 3, 1)
+    y, u, _, _ = simulate(3, orders)
+    fit = fit_armax(y, u, orders, solver="lm", max_iter=2)
+    assert not fit.converged and "maximum" in fit.message

@@ -50,6 +50,12 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     m.add_argument("--na", type=int, nargs="+", metavar="N", help="orders of A to try (nb = nc = na)")
     m.add_argument("--operating-point", action="append", metavar="T0:T1",
                    help="time window of an operating point (repeatable); default: found automatically")
+    m.add_argument("--fit-seconds", type=float, metavar="S", default=40.0,
+                   help="fit the order grid on the best-excited S seconds of each operating point and hold "
+                        "out the rest for validation (default 40); 0 fits whole plateaus, whose cost grows "
+                        "with the recording")
+    m.add_argument("--refine-seconds", type=float, metavar="S", default=0.0,
+                   help="refit the chosen order on up to S seconds around the fit window (default 0: off)")
     p.set_defaults(func=run)
 
 
@@ -97,13 +103,23 @@ def _note(text: str) -> None:
     print(text, file=sys.stderr)
 
 
-def run_identification(path: str, s: Settings, label: str = "identify") -> IdentificationResult:
-    data = read_bench(path, s, _note)
+def run_identification(path: str, s: Settings, label: str = "identify", *, fit_s: float | None = 40.0,
+                       refine_s: float | None = None) -> IdentificationResult:
+    """Read ``path`` and identify, with progress on a terminal (``fit_s``, ``refine_s``: see :func:`identify`)."""
     progress = TerminalProgress(label)
     try:
-        return identify(data, s.identification, s.inertias, progress=progress)
+        progress(0.0, f"reading {path}")
+        data = read_bench(path, s, _note)
+        return identify(data, s.identification, s.inertias, progress=progress, fit_s=fit_s, refine_s=refine_s)
     finally:
         progress.close()
+
+
+def _seconds(value: float, flag: str) -> float | None:
+    """A ``--*-seconds`` value: ``None`` for 0 (off / whole plateau)."""
+    if not value >= 0:
+        raise ConfigError(f"{flag}: expected a number of seconds >= 0, got {value!r}")
+    return value or None
 
 
 def run_recursive(args: argparse.Namespace, s: Settings) -> int:
@@ -139,7 +155,8 @@ def run(args: argparse.Namespace) -> int:
         check_output(args.plot, "plot")  # before the work, not after it
     if args.recursive:
         return run_recursive(args, s)
-    result = run_identification(args.path, s)
+    result = run_identification(args.path, s, fit_s=_seconds(args.fit_seconds, "--fit-seconds"),
+                                refine_s=_seconds(args.refine_seconds, "--refine-seconds"))
     if args.plot:
         plot_identification(result, args.plot, title=f"online-id identify {args.path}")
     if args.json:

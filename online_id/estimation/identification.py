@@ -7,6 +7,23 @@ one model order is chosen for all points by the summed log-FPE, the poles are
 sorted into the invariant driveline pair and the speed-dependent ones, and
 the physical parameters follow from the pole pair, the zeros and the gain (or
 from given inertias).
+
+Notes
+-----
+**Cost bounded by information, not by length.**  The information about the
+driveline in a steady, excited plateau grows with its length, but the order
+search does not need all of it: the model orders are compared, and started,
+on the best-excited ``fit_s`` seconds of each plateau (the window of that
+length with the largest torque variance, on a one-second grid), so their
+cost does not grow with the recording.  The rest of the plateau is held out:
+the chosen model's one-step prediction loss on it is reported next to the
+fit loss (``validation_V``), and a model that predicts it much worse than
+its own window (a plateau that is not steady) gets a warning.  With
+``refine_s`` the chosen order is then refitted, from the window's optimum, on
+up to ``refine_s`` seconds around the window (a few Gauss-Newton steps), so
+a long plateau still sharpens the estimate; ``refine_s=0`` keeps the window
+fit.  Fits use the Levenberg-Marquardt solver of
+:func:`~online_id.estimation.pem.fit_armax` (``solver="lm"``).
 """
 
 from __future__ import annotations
@@ -19,7 +36,8 @@ import numpy as np
 
 from online_id.estimation.settings import IdentificationSettings, InertiaSettings
 from online_id.estimation.model import ArmaxOrders
-from online_id.estimation.pem import ArmaxFit
+from online_id.estimation.pem import ArmaxFit, fit_armax, predict_errors
+from online_id.estimation.rels import RecursiveArmax
 from online_id.analysis.physical import (
     DrivelineParameters,
     ResponseFit,
@@ -31,7 +49,6 @@ from online_id.analysis.physical import (
 from online_id.analysis.plateaus import Plateau, find_plateaus, plateaus_from_times
 from online_id.analysis.poles import DRIVELINE, Pole, PoleSorting, poles_of, sort_poles
 from online_id.estimation.preprocess import decimate, decimation_factor
-from online_id.estimation.window import fit_two_starts
 from online_id.errors import EstimationError, InputDataError
 from online_id.records import BenchData
 
@@ -48,6 +65,10 @@ class PointResult:
     fit: ArmaxFit | None = None
     poles: list[Pole] = field(default_factory=list)
     response: ResponseFit | None = None
+    window: tuple[int, int] = (0, 0)
+    """Decimated samples ``start:stop`` of the plateau used in the order search."""
+    validation_V: float | None = None
+    """One-step prediction loss of the window's fit on the rest of the plateau (None if no rest)."""
 
     @property
     def speed_rpm(self) -> float:
@@ -81,6 +102,9 @@ class IdentificationResult:
                     "t_end_s": p.plateau.t_end_s,
                     "n_samples": p.fit.n if p.fit else 0,
                     "fpe": p.fit.fpe if p.fit else None,
+                    "fit_window_s": [p.plateau.t_start_s + p.window[0] * p.dt,
+                                     p.plateau.t_start_s + p.window[1] * p.dt],
+                    "validation_V": p.validation_V,
                     "poles": [q.as_dict() for q in p.poles],
                 }
                 for p in self.points
@@ -136,6 +160,86 @@ def _segment(data: BenchData, p: Plateau, factor: int) -> tuple[np.ndarray, np.n
     return decimate(y, factor), decimate(u, factor)
 
 
+def best_window(u: np.ndarray, n: int, step: int) -> tuple[int, int]:
+    """``(start, stop)`` of the ``n`` samples of ``u`` with the largest variance, starts on a grid of ``step``.
+
+    The whole signal when it is not longer than ``n``; the first of equally
+    good windows (a steady PRBS excites every window alike).
+    """
+    if n >= u.size:
+        return 0, u.size
+    starts = np.arange(0, u.size - n + 1, max(1, step))
+    c1 = np.concatenate(([0.0], np.cumsum(u)))
+    c2 = np.concatenate(([0.0], np.cumsum(u * u)))
+    mean = (c1[starts + n] - c1[starts]) / n
+    var = (c2[starts + n] - c2[starts]) / n - mean**2
+    best = int(starts[int(np.argmax(np.round(var, 12)))])
+    return best, best + n
+
+
+def fit_from_starts(y: np.ndarray, u: np.ndarray, orders: ArmaxOrders, recursive_start: bool = True,
+                    **fit_kwargs) -> ArmaxFit:
+    """PEM fit from two starts, Hannan-Rissanen and the recursive estimate; the lower loss wins.
+
+    As :func:`~online_id.estimation.window.fit_two_starts`, with ``fit_kwargs``
+    (e.g. ``solver="lm"``) passed to :func:`~online_id.estimation.pem.fit_armax`.
+    """
+    fits = [fit_armax(y, u, orders, **fit_kwargs)]
+    if recursive_start:
+        est = RecursiveArmax(orders, lam=1.0, p0=1e3)
+        est.update_block(y, u)
+        if np.all(np.isfinite(est.theta)):
+            try:
+                fits.append(fit_armax(y, u, orders, theta0=est.theta, **fit_kwargs))
+            except EstimationError:
+                pass
+    return min(fits, key=lambda f: f.V)
+
+
+def _refine_span(size: int, window: tuple[int, int], n: int) -> tuple[int, int]:
+    """``n`` samples (at most ``size``) centred on ``window``, shifted to stay inside ``0:size``."""
+    if n >= size:
+        return 0, size
+    n = max(n, window[1] - window[0])
+    start = max(0, (window[0] + window[1]) // 2 - n // 2)
+    start = min(start, size - n)
+    return start, start + n
+
+
+def _centred(x: np.ndarray) -> np.ndarray:
+    """``x`` minus its mean (the slice's own operating point, see :func:`_segment`)."""
+    return x - np.mean(x)
+
+
+def _validate(p: PointResult, y: np.ndarray, u: np.ndarray, warnings: list[str],
+              max_ratio: float = 2.0) -> None:
+    """Held-out check: the window fit's one-step loss on the rest of the plateau (see module notes).
+
+    The prediction errors run over the whole plateau, so the held-out
+    samples continue from the window (and the window from what precedes it);
+    the first second of the plateau, where the predictor starts from rest, is
+    left out.  The held-out loss is compared with the loss inside the window
+    in the same run.
+    """
+    a, b = p.window
+    fit = p.fit
+    start = fit.orders.max_lag + int(round(1.0 / p.dt))
+    held = np.ones(y.size, dtype=bool)
+    held[a:b] = False
+    held[:start] = False
+    inside = np.zeros(y.size, dtype=bool)
+    inside[max(a, start):b] = True
+    if np.count_nonzero(held) < 2 * fit.d or np.count_nonzero(inside) < 2 * fit.d:
+        return
+    eps = predict_errors(y, u, fit.orders, fit.theta)
+    p.validation_V = float(np.mean(eps[held] ** 2))
+    ratio = p.validation_V / float(np.mean(eps[inside] ** 2))
+    if not ratio <= max_ratio:
+        warnings.append(f"{p.speed_rpm:.0f} rpm: the model of the {(b - a) * p.dt:.0f} s fit window predicts the "
+                        f"other {np.count_nonzero(held) * p.dt:.0f} s of the plateau with {ratio:.2g} times "
+                        "its loss in the window: the operating point may not be steady")
+
+
 def _response_band(point: PointResult, f0_hz: float, nyquist_hz: float) -> np.ndarray:
     return response_grid(f0_hz, nyquist_hz, [q for q in point.poles if q.cls != DRIVELINE], 300)
 
@@ -145,8 +249,30 @@ def identify(
     settings: IdentificationSettings | None = None,
     inertias: InertiaSettings | None = None,
     progress: Progress | None = None,
+    *,
+    fit_s: float | None = 40.0,
+    refine_s: float | None = None,
+    solver: str = "lm",
 ) -> IdentificationResult:
-    """Identify the driveline from bench data (see module docstring)."""
+    """Identify the driveline from bench data (see module docstring).
+
+    Parameters
+    ----------
+    data, settings, inertias
+        The record, how to identify, and known inertias.
+    progress
+        Called as ``progress(fraction, message)``.
+    fit_s
+        Seconds of each plateau (its best-excited window) on which the order
+        grid is fitted; None fits the whole plateau (the cost then grows
+        with the recording).
+    refine_s
+        Seconds of each plateau, around the window, on which the chosen
+        order is refitted from the window's optimum; None (default) or 0
+        keeps the window fit.
+    solver
+        :func:`~online_id.estimation.pem.fit_armax` solver, ``"lm"`` or ``"trf"``.
+    """
     s = settings or IdentificationSettings()
     inertias = inertias or InertiaSettings()
     report = progress or (lambda frac, msg: None)
@@ -155,6 +281,7 @@ def identify(
     warnings: list[str] = []
 
     _check_excitation(data.dyno_torque_nm, data.source)
+    report(0.0, "finding the operating points")
     plateaus = find_operating_points(data, s)
     target_fs = min(s.sample_rate_hz, fs_raw)
     if s.pulses_per_rev is not None and plateaus:
@@ -178,15 +305,21 @@ def identify(
         )
     candidates = candidate_orders(s)
     points = [PointResult(p, dt, {}) for p in plateaus]
-    total = len(points) * len(candidates)
+    n_fit = np.iinfo(np.int64).max if fit_s is None else max(int(round(fit_s / dt)), 1)
+    step = max(1, int(round(1.0 / dt)))
+    total = len(points) * (len(candidates) + (1 if refine_s else 0))
     done = 0
+    signals = []
     for point in points:
         y, u = _segment(data, point.plateau, factor)
         _check_excitation(u, f"{data.source}: operating point at {point.speed_rpm:.0f} rpm")
+        point.window = best_window(u, n_fit, step)
+        a, b = point.window
+        signals.append((y, u))
         for orders in candidates:
             report(done / total, f"{point.speed_rpm:.0f} rpm, na={orders.na} nb={orders.nb} nc={orders.nc}")
             try:
-                point.fits[orders] = fit_two_starts(y, u, orders, s.recursive_start)
+                point.fits[orders] = fit_from_starts(_centred(y[a:b]), _centred(u[a:b]), orders, s.recursive_start, solver=solver)
             except EstimationError as err:
                 warnings.append(f"{point.speed_rpm:.0f} rpm, {orders}: {err}")
             done += 1
@@ -206,8 +339,21 @@ def identify(
     if not np.isfinite(score(scored[0])):
         raise EstimationError(f"{data.source}: no model order could be fitted at every operating point")
     orders = scored[0]
-    for p in points:
+    n_refine = int(round(refine_s / dt)) if refine_s else 0
+    for p, (y, u) in zip(points, signals):
         p.fit = p.fits[orders]
+        a, b = p.window
+        _validate(p, y, u, warnings)
+        lo, hi = _refine_span(y.size, p.window, n_refine)
+        if n_refine and (lo, hi) != (a, b):
+            report(done / total, f"{p.speed_rpm:.0f} rpm, refining na={orders.na} on {(hi - lo) * dt:.0f} s")
+            try:
+                p.fit = fit_armax(_centred(y[lo:hi]), _centred(u[lo:hi]), orders, theta0=p.fit.theta, solver=solver,
+                                  start_radius=0.999)
+            except EstimationError as err:
+                warnings.append(f"{p.speed_rpm:.0f} rpm: refining on {(hi - lo) * dt:.0f} s failed, "
+                                f"the fit of the {(b - a) * dt:.0f} s window is kept: {err}")
+        done += 1
         p.poles = poles_of(p.fit.A, dt)
 
     sorting = sort_poles(

@@ -21,8 +21,25 @@ filtering,
     \\partial\\varepsilon / \\partial b_j = -u(t-nk-j) / C, \\quad
     \\partial\\varepsilon / \\partial c_k = -\\varepsilon(t-k) / C,
 
-and the minimisation is a trust-region Gauss-Newton
-(``scipy.optimize.least_squares(method="trf")``).  The predictor is stable
+and the minimisation is a trust-region Gauss-Newton: by default
+``scipy.optimize.least_squares(method="trf")``, which takes an SVD of the
+:math:`n \\times d` Jacobian at every step; or, with ``solver="lm"``, a
+Levenberg-Marquardt iteration on the normal equations, whose Jacobian is
+formed and reduced to :math:`J^T J` and :math:`J^T \\varepsilon` block by
+block (a few MB whatever :math:`n`), about ten times faster per step.  Its
+step solves, in the variables scaled by the column norms :math:`D` of
+:math:`J` (MINPACK's scaling, ``x_scale="jac"`` in scipy),
+
+.. math::
+
+    (D^{-1} J^T J D^{-1} + \\lambda I) D \\delta = -D^{-1} J^T \\varepsilon,
+
+with :math:`\\lambda` adapted from the ratio :math:`\\rho` of actual to
+predicted reduction (Nielsen's rule: :math:`\\lambda \\leftarrow \\lambda
+\\max(1/3, 1 - (2\\rho - 1)^3)` on success, doubled growth on failure).
+Both stop on the same relative tolerances (loss, step, and the cosine between
+the residual and every Jacobian column) and reach the same minimum to within
+them; their covariances are computed the same way.  The predictor is stable
 only if :math:`C` is minimum phase, so trial points with a root of :math:`C`
 on or outside the unit circle are rejected (the residual function returns
 ``inf`` and the trust region shrinks), and every start value and every result
@@ -38,6 +55,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import solve_triangular
 from scipy.optimize import least_squares
 from scipy.signal import lfilter, lfiltic
 
@@ -235,7 +253,8 @@ def fit_arx(y: np.ndarray, u: np.ndarray, orders: ArmaxOrders, *,
 
 def fit_armax(y: np.ndarray, u: np.ndarray, orders: ArmaxOrders, *,
               theta0: np.ndarray | None = None, max_iter: int = 50, tol: float = 1e-6,
-              n_skip: int | None = None, start_radius: float = 0.99) -> ArmaxFit:
+              n_skip: int | None = None, start_radius: float = 0.99,
+              solver: str = "trf") -> ArmaxFit:
     """ARMAX fit by prediction-error minimisation (see module notes).
 
     Parameters
@@ -258,6 +277,11 @@ def fit_armax(y: np.ndarray, u: np.ndarray, orders: ArmaxOrders, *,
         Roots of :math:`C` at the start value beyond this radius are pulled in
         (reflected, then scaled) before the search begins; a warm start from
         an earlier optimum may allow more than the default.
+    solver
+        ``"trf"`` (scipy's trust-region reflective, SVD per step) or
+        ``"lm"`` (Levenberg-Marquardt on block-accumulated normal equations;
+        faster and with memory independent of the Jacobian's size); see the
+        module notes.  Both reach the same minimum within ``tol``.
 
     Returns
     -------
@@ -277,6 +301,8 @@ def fit_armax(y: np.ndarray, u: np.ndarray, orders: ArmaxOrders, *,
             raise EstimationError(
                 f"theta0 must be {orders.n_params} finite values for {orders}, "
                 f"got shape {theta0.shape}")
+    if solver not in ("trf", "lm"):
+        raise EstimationError(f'solver must be "trf" or "lm", got {solver!r}')
     if orders.nc == 0:
         return fit_arx(y, u, orders, n_skip=t0)
     if theta0 is None:
@@ -285,6 +311,13 @@ def fit_armax(y: np.ndarray, u: np.ndarray, orders: ArmaxOrders, *,
     problem = _PemProblem(y, u, orders, t0)
     if not np.all(np.isfinite(problem.residuals(theta0))):
         raise EstimationError("prediction errors at the start value are not finite")
+    if solver == "lm":
+        x, converged, n_iter, message = _levenberg_marquardt(problem, theta0, tol, max(int(max_iter), 1))
+        theta = _stabilized(x, orders, max_radius=1.0)
+        eps = problem.residuals(theta)
+        H, _ = problem.normal_equations(theta)
+        cov = float(np.mean(eps**2)) * np.linalg.pinv(H)
+        return _make_fit(orders, theta, eps, orders.n_params, converged, n_iter, message, cov)
     result = least_squares(problem.residuals, theta0, jac=problem.jacobian, method="trf",
                            x_scale="jac", ftol=tol, xtol=tol, gtol=tol,
                            max_nfev=max(int(max_iter), 1))
@@ -409,19 +442,76 @@ class _PemProblem:
             return np.full(self.y.size - self.t0, np.inf)
         return self._full(theta)[self.t0:]
 
-    def jacobian(self, theta: np.ndarray) -> np.ndarray:
+    def _filtered(self, theta: np.ndarray) -> tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray]:
+        """Signals filtered by :math:`1/C` with their signs, each with its lags; and the errors."""
         o = self.orders
         _, _, C = o.split(theta)
         eps = self._full(theta)
-        yf = lfilter([1.0], C, self.y)
-        uf = lfilter([1.0], C, self.u)
-        ef = lfilter([1.0], C, eps)
-        cols = [_lag_matrix(yf, np.arange(1, o.na + 1), self.t0),
-                -_lag_matrix(uf, o.nk + np.arange(o.nb), self.t0),
-                -_lag_matrix(ef, np.arange(1, o.nc + 1), self.t0)]
+        parts = [(lfilter([1.0], C, self.y), np.arange(1, o.na + 1)),
+                 (lfilter([-1.0], C, self.u), o.nk + np.arange(o.nb)),
+                 (lfilter([-1.0], C, eps), np.arange(1, o.nc + 1))]
         if o.offset:
-            cols.append(-lfilter([1.0], C, np.ones_like(self.y))[self.t0:, None])
-        return np.hstack(cols)
+            parts.append((lfilter([-1.0], C, np.ones_like(self.y)), np.zeros(1, dtype=int)))
+        return parts, eps
+
+    def jacobian(self, theta: np.ndarray) -> np.ndarray:
+        parts, _ = self._filtered(theta)
+        return np.hstack([_lag_matrix(x, lags, self.t0) for x, lags in parts])
+
+    def normal_equations(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:math:`J^T J` and :math:`J^T \\varepsilon` without forming :math:`J`.
+
+        Equal to ``J.T @ J`` and ``J.T @ eps`` of :meth:`jacobian` and
+        :meth:`residuals` up to rounding.  The columns of :math:`J` are
+        consecutive lags of a few filtered signals, so the Gram matrix of
+        two of them needs dot products only for its first row and column; the
+        rest follows along the diagonals by adding the sample that enters at
+        the start and removing the one that leaves at the end,
+
+        .. math::
+
+            H_{i+1, j+1} = H_{i j} + x(t_0 - 1 - l_i) z(t_0 - 1 - m_j)
+                           - x(n - 1 - l_i) z(n - 1 - m_j).
+        """
+        parts, eps = self._filtered(theta)
+        t0, n = self.t0, self.y.size
+        d = self.orders.n_params
+        H = np.empty((d, d))
+        g = np.empty(d)
+        first = np.cumsum([0] + [lags.size for _, lags in parts])
+        e = eps[t0:]
+        for p, (x, lx) in enumerate(parts):
+            for i, lag in enumerate(lx):
+                g[first[p] + i] = x[t0 - lag:n - lag] @ e
+            for q in range(p, len(parts)):
+                z, lz = parts[q]
+                if lx.size == 0 or lz.size == 0:
+                    continue
+                M = _lagged_gram(x, lx, z, lz, t0, n)
+                H[first[p]:first[p + 1], first[q]:first[q + 1]] = M
+                H[first[q]:first[q + 1], first[p]:first[p + 1]] = M.T
+        return H, g
+
+
+def _lagged_gram(x: np.ndarray, lx: np.ndarray, z: np.ndarray, lz: np.ndarray, t0: int, n: int) -> np.ndarray:
+    """:math:`M_{ij} = \\sum_{t=t_0}^{n-1} x(t - l_i) z(t - m_j)` for consecutive lags ``lx``, ``lz``."""
+    M = np.empty((lx.size, lz.size))
+    a = int(lx[0])
+    xa = x[t0 - a:n - a]
+    for j, b in enumerate(lz):
+        M[0, j] = xa @ z[t0 - b:n - b]
+    b = int(lz[0])
+    zb = z[t0 - b:n - b]
+    for i in range(1, lx.size):
+        a = int(lx[i])
+        M[i, 0] = x[t0 - a:n - a] @ zb
+    # one step down a diagonal: the sample at t0 - 1 enters, the one at n - 1 leaves
+    enter = np.outer(x[t0 - 1 - lx[:-1]], z[t0 - 1 - lz[:-1]])
+    leave = np.outer(x[n - 1 - lx[:-1]], z[n - 1 - lz[:-1]])
+    step = enter - leave
+    for i in range(lx.size - 1):
+        M[i + 1, 1:] = M[i, :-1] + step[i, :]
+    return M
 
 
 def _errors(y: np.ndarray, u: np.ndarray, orders: ArmaxOrders, theta: np.ndarray) -> np.ndarray:
@@ -430,6 +520,71 @@ def _errors(y: np.ndarray, u: np.ndarray, orders: ArmaxOrders, theta: np.ndarray
     if orders.offset:
         v = v - theta[-1]
     return lfilter([1.0], C, v)
+
+
+def _levenberg_marquardt(problem: _PemProblem, theta: np.ndarray, tol: float,
+                         max_nfev: int) -> tuple[np.ndarray, bool, int, str]:
+    """Minimise ``problem.residuals`` from ``theta`` (see module notes).
+
+    Returns the minimiser, whether a tolerance was met, the number of
+    Jacobian evaluations and a status message.
+    """
+    theta = np.array(theta, dtype=float)
+    eps = problem.residuals(theta)
+    F = 0.5 * float(eps @ eps)  # F = ||eps||^2 / 2
+    nfev = 1
+    H, g = problem.normal_equations(theta)  # H = J^T J, g = J^T eps
+    njev = 1
+    D = np.sqrt(np.diag(H))
+    D[D == 0.0] = 1.0
+    lam, nu = 1e-3, 2.0
+    eye = np.eye(theta.size)
+    while True:
+        Ds = np.outer(D, D)
+        Hs = H / Ds  # scaled: D^-1 J^T J D^-1
+        gs = g / D
+        if np.max(np.abs(gs)) <= tol * np.sqrt(2.0 * F):  # cos(residual, every column) <= tol
+            return theta, True, njev, "the gradient is below tol (cosine to every Jacobian column)"
+        if nfev >= max_nfev:
+            return theta, False, njev, "the maximum number of function evaluations is exceeded"
+        try:
+            L = np.linalg.cholesky(Hs + lam * eye)
+            ds = -_cho_solve(L, gs)  # (Hs + lam I) ds = -gs
+        except np.linalg.LinAlgError:
+            lam *= nu
+            nu *= 2.0
+            continue
+        step = ds / D
+        trial = theta + step
+        eps_new = problem.residuals(trial)
+        nfev += 1
+        F_new = 0.5 * float(eps_new @ eps_new) if np.all(np.isfinite(eps_new)) else np.inf
+        predicted = -(gs @ ds + 0.5 * ds @ (Hs @ ds))  # L(0) - L(ds) of the linear model
+        rho = (F - F_new) / predicted if predicted > 0 and np.isfinite(F_new) else -1.0
+        small_step = np.linalg.norm(step) <= tol * (tol + np.linalg.norm(theta))
+        if rho > 0:
+            small_loss = (F - F_new) <= tol * F and rho > 0.25
+            theta, eps, F = trial, eps_new, F_new
+            H, g = problem.normal_equations(theta)
+            njev += 1
+            D = np.maximum(D, np.sqrt(np.diag(H)))
+            lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+            nu = 2.0
+            if small_loss:
+                return theta, True, njev, "the relative reduction of the loss is below tol"
+            if small_step:
+                return theta, True, njev, "the relative step is below tol"
+        else:
+            if small_step:
+                return theta, True, njev, "the relative step is below tol"
+            lam *= nu
+            nu *= 2.0
+
+
+def _cho_solve(L: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Solve :math:`L L^T x = b` for lower-triangular ``L``."""
+    z = solve_triangular(L, b, lower=True)
+    return solve_triangular(L.T, z, lower=False)
 
 
 def _lag_matrix(x: np.ndarray, lags: np.ndarray, t0: int) -> np.ndarray:

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import csv
+import itertools
 import math
+import warnings
 from pathlib import Path
 from typing import Iterable, Mapping
 
@@ -67,36 +69,101 @@ def read_csv_columns(path: str | Path, columns: Iterable[str]) -> dict[str, np.n
                     f"{', '.join(repr(m) for m in missing)}; the header has {', '.join(repr(h) for h in header)}"
                 )
             index = {name: header.index(name) for name in wanted}
-            need = max(index.values()) + 1
-            values: dict[str, list[float]] = {name: [] for name in wanted}
-            line_numbers: list[int] = []
-            reader = csv.reader(handle, delimiter=delim) if delim != " " else (ln.split() for ln in handle)
+            capacity = _count_lines(path)  # an upper bound on the rows: arrays allocated once
+            out = {name: np.empty(capacity) for name in wanted}
+            line_numbers = np.empty(capacity, dtype=np.int64)
+            rows = 0
             line_no = header_no
-            for row in reader:
-                line_no += 1
-                if not row or (len(row) == 1 and not row[0].strip()) or row[0].lstrip().startswith("#"):
-                    continue
-                if len(row) < need:
-                    raise InputDataError(f"{path}:{line_no}: row has {len(row)} cells, expected at least {need}")
-                for name, col in index.items():
-                    cell = row[col].strip()
-                    try:
-                        value = float(cell)
-                    except ValueError:
-                        raise InputDataError(
-                            f"{path}:{line_no}: column {name!r}: {cell!r} is not a number"
-                        ) from None
-                    if not math.isfinite(value):
-                        raise InputDataError(f"{path}:{line_no}: column {name!r}: value {cell!r} is not finite")
-                    values[name].append(value)
-                line_numbers.append(line_no)
+            while True:
+                chunk = list(itertools.islice(handle, _CHUNK_LINES))
+                if not chunk:
+                    break
+                block = _parse_fast(chunk, delim, index)
+                if block is not None:
+                    k = block.shape[0]
+                    for c, name in enumerate(wanted):
+                        out[name][rows:rows + k] = block[:, c]
+                    line_numbers[rows:rows + k] = np.arange(line_no + 1, line_no + 1 + k)
+                else:
+                    values, numbers = _parse_rows(path, chunk, delim, index, line_no)
+                    k = len(numbers)
+                    for name in wanted:
+                        out[name][rows:rows + k] = values[name]
+                    line_numbers[rows:rows + k] = numbers
+                rows += k
+                line_no += len(chunk)
     except UnicodeDecodeError as err:
         raise InputDataError(f"{path}: not a text CSV file (it holds bytes that are not UTF-8: {err.reason})") from None
     except csv.Error as err:
         raise InputDataError(f"{path}:{line_no + 1}: not a text CSV file ({err})") from None
-    out = {name: np.asarray(v, dtype=float) for name, v in values.items()}
-    out[LINE_KEY] = np.asarray(line_numbers, dtype=np.int64)
-    return out
+    result = {name: out[name][:rows] for name in wanted}
+    result[LINE_KEY] = line_numbers[:rows]
+    return result
+
+
+_CHUNK_LINES = 65536
+
+
+def _count_lines(path: Path) -> int:
+    """Number of line breaks in the file, plus one."""
+    count = 1
+    with path.open("rb") as raw:
+        while block := raw.read(1 << 22):
+            count += block.count(b"\n")
+    return count
+
+
+def _parse_fast(chunk: list[str], delim: str, index: dict[str, int]) -> np.ndarray | None:
+    """The wanted columns of ``chunk`` parsed by NumPy, or None when the chunk needs the careful parser.
+
+    Only a chunk of plain rows (no blank or comment line) whose wanted cells
+    all parse as finite numbers is taken; anything else (a bad cell, a short
+    row, a quoted or unusual number) goes to :func:`_parse_rows`, which gives
+    the same values or the error naming line and column.
+    """
+    for line in chunk:
+        text = line.lstrip()
+        if not text or text.startswith("#"):
+            return None
+    cols = list(index.values())
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            block = np.loadtxt(chunk, delimiter=None if delim == " " else delim, usecols=cols,
+                               ndmin=2, dtype=float, comments=None, quotechar=None)
+    except ValueError:
+        return None
+    if block.shape != (len(chunk), len(cols)) or not np.all(np.isfinite(block)):
+        return None
+    return block
+
+
+def _parse_rows(path: Path, chunk: list[str], delim: str, index: dict[str, int],
+                line_no: int) -> tuple[dict[str, list[float]], list[int]]:
+    """Parse ``chunk`` (lines after ``line_no``) row by row; errors name file, line and column."""
+    need = max(index.values()) + 1
+    values: dict[str, list[float]] = {name: [] for name in index}
+    line_numbers: list[int] = []
+    reader = csv.reader(chunk, delimiter=delim) if delim != " " else (ln.split() for ln in chunk)
+    for row in reader:
+        line_no += 1
+        if not row or (len(row) == 1 and not row[0].strip()) or row[0].lstrip().startswith("#"):
+            continue
+        if len(row) < need:
+            raise InputDataError(f"{path}:{line_no}: row has {len(row)} cells, expected at least {need}")
+        for name, col in index.items():
+            cell = row[col].strip()
+            try:
+                value = float(cell)
+            except ValueError:
+                raise InputDataError(
+                    f"{path}:{line_no}: column {name!r}: {cell!r} is not a number"
+                ) from None
+            if not math.isfinite(value):
+                raise InputDataError(f"{path}:{line_no}: column {name!r}: value {cell!r} is not finite")
+            values[name].append(value)
+        line_numbers.append(line_no)
+    return values, line_numbers
 
 
 def write_csv_columns(path: str | Path, columns: Mapping[str, np.ndarray], formats: Mapping[str, str] | None = None) -> None:
