@@ -193,6 +193,9 @@ class SampleAssembler:
     def _hold_ahead(self, s: SignalSample) -> list[AssembledSample]:
         """A frame far ahead of the stream clock: an outlier, or the first of a clock that jumped."""
         if self._ahead and abs(s.t_s - self._ahead[-1].t_s) > self.max_jump_s:
+            if len(self._ahead) > 1:  # frames that agree with each other outvote the one that does not
+                self.counters.count(FrameFault.BAD_TIME)
+                return []
             self.counters.count(FrameFault.BAD_TIME, len(self._ahead))
             self._ahead.clear()
         self._ahead.append(s)

@@ -27,7 +27,7 @@ def check_output(path: str | Path, what: str = "output", directory: bool = False
     path = Path(path)
     if directory:
         if path.exists() and not path.is_dir():
-            raise InputDataError(f"{path}: cannot write the {what} here: it exists and is not a directory")
+            raise InputDataError(f"{path}: cannot create the {what} directory: it exists and is not a directory")
         parent = path
         while not parent.exists():
             parent = parent.parent
