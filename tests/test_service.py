@@ -175,7 +175,7 @@ def test_restart_restores_estimator_state(tmp_path):
     a = Service(settings, bus_factory=None, log=open(os.devnull, "w"))
     for t, i, d in frames:
         a.runtime.on_frame(t, i, d)
-    a.save()
+    a.save(final=True)  # here and now (a periodic save goes to the worker process)
     b = Service(settings, log=open(os.devnull, "w"))
     ta, tb = a.runtime.pipeline.estimator.rels.theta, b.runtime.pipeline.estimator.rels.theta
     assert np.array_equal(ta, tb) and np.any(ta != 0)
