@@ -26,6 +26,7 @@ import numpy as np
 from scipy.signal import firwin, lfilter
 
 from online_id.analysis.plateaus import Plateau, find_plateaus
+from online_id.diagnose.effects import shaft_angle
 from online_id.errors import InputDataError
 
 RPM_PER_RAD_S = 30.0 / np.pi
@@ -33,12 +34,6 @@ TARGET_FS_HZ = 500.0
 CUTOFF = 0.8  # passband edge, fraction of the decimated Nyquist frequency
 MIN_PLATEAU_S = 8.0
 PLATEAU_TOL_RPM = 100.0
-
-
-def shaft_angle(speed_rad_s: np.ndarray, fs_hz: float) -> np.ndarray:
-    """Shaft angle [rad] integrated from its speed (trapezoidal rule, 0 at the start)."""
-    s = np.asarray(speed_rad_s, dtype=float)
-    return np.concatenate(([0.0], np.cumsum(0.5 * (s[1:] + s[:-1])))) / fs_hz
 
 
 @dataclass(frozen=True)
