@@ -201,10 +201,6 @@ class OnlineDriveline:
         """A window refit is due (only without ``auto_refit``; see :meth:`refit_job`)."""
         return self.window.due
 
-    def refit(self) -> None:
-        """Run the due window refit here and now (see :class:`~online_id.estimation.window.SlidingPem`)."""
-        self.window.refit()
-
     def refit_job(self) -> RefitJob | None:
         """The due window refit as a job for :func:`~online_id.estimation.window.solve` (None: nothing to fit)."""
         return self.window.prepare()
@@ -216,10 +212,6 @@ class OnlineDriveline:
     def complete(self, job: RefitJob, fit, error: str | None = None) -> bool:
         """Adopt the result of a refit or verify job; True when a fit was adopted."""
         return self.window.complete(job, fit, error)
-
-    def verify(self, starts: tuple = ()) -> bool:
-        """Refit the current window from several starts, here and now (see :meth:`SlidingPem.verify`)."""
-        return self.window.verify(starts)
 
     @property
     def solution(self) -> np.ndarray | None:

@@ -91,7 +91,7 @@ class RefitJob:
 
     ``mode``: ``"warm"`` (a few Gauss-Newton steps from ``starts[0]``),
     ``"cold"`` (:func:`fit_two_starts` with ``starts`` as further starts) or
-    ``"verify"`` (as cold, for :meth:`SlidingPem.verify`).
+    ``"verify"`` (as cold, for :meth:`SlidingPem.prepare_verify`).
     """
 
     y: np.ndarray
@@ -219,7 +219,15 @@ class SlidingPem:
                         self.warm_iterations, self.warm_tol)
 
     def prepare_verify(self, starts: tuple = ()) -> RefitJob | None:
-        """A multi-start refit of the current window as a job (None if the window is not full or not current)."""
+        """A multi-start refit of the current window as a job (None if the window is not full or not current).
+
+        The starts: Hannan-Rissanen, the recursive estimate, the current
+        solution and ``starts`` (e.g. the solution the baseline was learned
+        with); the fit of lowest loss is adopted by :meth:`complete`. Used
+        before a baseline cell is learned and before an alarm is raised (see
+        :class:`~online_id.monitoring.detection.ChangeDetector`, *confirm*);
+        about 0.5 s, rare.
+        """
         if self._count < self.n_window or not self.current:
             return None
         y, u, n, load = self.window()
@@ -270,18 +278,6 @@ class SlidingPem:
         self._start = fit.theta
         self.fit_load_nm = float(load_nm)
         self.n_fits += 1
-
-    def verify(self, starts: tuple = ()) -> bool:
-        """Refit the current window from several starts, here and now; adopt the fit of lowest loss.
-
-        The starts: Hannan-Rissanen, the recursive estimate, the current
-        solution and ``starts`` (e.g. the solution the baseline was learned
-        with). Used before an alarm is raised (see
-        :class:`~online_id.monitoring.detection.ChangeDetector`, *confirm*);
-        about 0.5 s, rare. A window that is not full, not steady or not
-        excited is left as it is. Returns True if a fit was adopted.
-        """
-        return self._run(self.prepare_verify(starts))
 
     # -- persistence --------------------------------------------------------------------------------
     def get_state(self) -> dict:
