@@ -108,6 +108,9 @@ class SampleAssembler:
         self.counter_modulo = counter_modulo
         self.counters = AssemblyCounters()
         self._hist: dict[str, deque[tuple[float, float]]] = {r: deque(maxlen=64) for r in ROLES}
+        # the same deques in ROLES order, and those of the fast roles (the hot path indexes no dict)
+        self._hists = tuple(self._hist[r] for r in ROLES)
+        self._fast_hists = tuple(self._hist[r] for r in self.fast_roles)
         self._last_counter: dict[str, int | None] = {r: None for r in ROLES}
         self._last_counter_t: dict[str, float] = {r: -math.inf for r in ROLES}
         self._resync: dict[str, int | None] = {r: None for r in ROLES}
@@ -254,7 +257,7 @@ class SampleAssembler:
         return self._drain()
 
     def _restart(self) -> None:
-        for h in self._hist.values():
+        for h in self._hists:
             h.clear()
         for r in ROLES:
             self._last_counter[r] = None
@@ -269,27 +272,35 @@ class SampleAssembler:
         self._pending_discontinuity = True
 
     def _update_timeout(self) -> bool:
-        if self._start is None:
+        start = self._start
+        if start is None:
             return False
+        newest, limit = self._newest, self.timeout_s
+        if not self._timed_out:  # the common case, checked without building anything
+            for h in self._hists:
+                if newest - (h[-1][0] if h else start) > limit:
+                    break
+            else:
+                return False
         silent = tuple(
-            r for r in ROLES
-            if (self._newest - (self._hist[r][-1][0] if self._hist[r] else self._start)) > self.timeout_s
+            r for r, h in zip(ROLES, self._hists) if newest - (h[-1][0] if h else start) > limit
         )
         now_out = bool(silent)
         if now_out and not self._timed_out:
             self.counters.timeouts += 1
             self._t0 = None  # the grid restarts when the inputs come back
             self._pending_discontinuity = True
-            for h in self._hist.values():
+            for h in self._hists:
                 h.clear()
         self._timed_out = now_out
         self.timed_out_roles = silent if now_out else ()
         return now_out
 
-    def _value_at(self, role: str, t: float) -> float | None:
+    @staticmethod
+    def _value_at(h: deque[tuple[float, float]], limit: float) -> float | None:
+        """The latest value of one role's history stamped at or before ``limit`` (None: none yet)."""
         best = None
-        limit = t + 0.5 * self.dt
-        for ts, v in self._hist[role]:
+        for ts, v in h:
             if ts <= limit:
                 best = v
             else:
@@ -299,32 +310,38 @@ class SampleAssembler:
     def _drain(self) -> list[AssembledSample]:
         if self._update_timeout():
             return []
-        if any(not self._hist[r] for r in ROLES):
-            return []
+        hists = self._hists
+        for h in hists:
+            if not h:
+                return []
+        dt = self.dt
         if self._t0 is None:
             # start the grid at the newest of the roles' first values still held
-            self._t0 = max(self._hist[r][0][0] for r in self.fast_roles) if self.fast_roles else self._newest
+            self._t0 = max(h[0][0] for h in self._fast_hists) if self._fast_hists else self._newest
             self._k = 0
         out: list[AssembledSample] = []
-        half = 0.5 * self.dt
+        half = 0.5 * dt
+        t0, fast, value_at, counters = self._t0, self._fast_hists, self._value_at, self.counters
+        h0, h1, h2 = hists
         while True:
-            t = self._t0 + self._k * self.dt
-            if any(self._hist[r][-1][0] < t - half for r in self.fast_roles):
-                break
-            vals = [self._value_at(r, t) for r in ROLES]
-            if any(v is None for v in vals):
+            t = t0 + self._k * dt
+            lim = t - half
+            for h in fast:
+                if h[-1][0] < lim:
+                    return out
+            limit = t + half
+            v0, v1, v2 = value_at(h0, limit), value_at(h1, limit), value_at(h2, limit)
+            if v0 is None or v1 is None or v2 is None:
                 # a held role has no value old enough yet: skip this grid point
                 self._k += 1
                 continue
-            out.append(AssembledSample(t, vals[0], vals[1], vals[2], self._pending_discontinuity))
-            if self._pending_discontinuity and self.counters.samples:
-                self.counters.gaps += 1
+            out.append(AssembledSample(t, v0, v1, v2, self._pending_discontinuity))
+            if self._pending_discontinuity and counters.samples:
+                counters.gaps += 1
             self._pending_discontinuity = False
-            self.counters.samples += 1
+            counters.samples += 1
             self._k += 1
             # forget what the next grid point can no longer use (keep one value at or before it)
-            for r in ROLES:
-                h = self._hist[r]
-                while len(h) > 1 and h[1][0] <= t + half:
+            for h in hists:
+                while len(h) > 1 and h[1][0] <= limit:
                     h.popleft()
-        return out

@@ -160,10 +160,11 @@ class ProcessWorker:
                 job_id, result, error = self._conn.recv()
                 done += self._finish(job_id, result, error)
         except (OSError, EOFError):
-            self._restart("the worker process ended")
+            # the child's end of the pipe closes when it exits, however it ends (killed, out of memory):
+            # the pipe reads as ready and ``recv`` raises EOFError, so no per-call liveness check is needed
+            self._proc.join(0.1)
+            self._restart(f"the worker process ended (exit code {self._proc.exitcode})")
             return done
-        if self._pending and not self._proc.is_alive():
-            self._restart(f"the worker process died (exit code {self._proc.exitcode})")
         return done
 
     def _finish(self, job_id: int, result: Any, error: str | None) -> int:

@@ -190,6 +190,7 @@ class Pipeline:
 
     def tick(self, now_s: float) -> list[Publication]:
         """The stream clock moved without a frame (silence on the bus)."""
+        self.worker.poll()
         return self._consume(self.assembler.poll(now_s), self.assembler.now_s)
 
     def on_command(self, command: int, t_s: float) -> list[Publication]:
@@ -222,7 +223,7 @@ class Pipeline:
     def _consume(self, samples: list[AssembledSample], now_s: float) -> list[Publication]:
         out: list[Publication] = []
         self.t_s = now_s
-        if self.worker.asynchronous:
+        if samples and self.worker.asynchronous:
             self.worker.poll()  # adopt finished slow work before the samples use the model
         jump = self.assembler.take_time_jump()
         if jump is not None:
