@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -33,7 +34,7 @@ from online_id.monitoring.baseline import Baseline, BandStats
 from online_id.monitoring.detection import FREQUENCY, Alarm, ChangeDetector, correlation_for_window
 from online_id.estimation.model import ArmaxOrders
 from online_id.estimation.online import OnlineDriveline, OnlineEstimate, physical_parameters
-from online_id.estimation.window import solve
+from online_id.estimation.window import RefitJob, solve
 from online_id.analysis.physical import DrivelineParameters
 from online_id.monitoring.tracks import PoleTracker
 from online_id.errors import EstimationError
@@ -155,6 +156,21 @@ class Pipeline:
         for y, u in zip(100.0 + rng.standard_normal(n), rng.standard_normal(n)):
             scratch.update(float(y), 150.0, float(u))
         scratch.estimate()
+        if self.worker.asynchronous:
+            self._warm_up_worker(scratch.orders, rng)
+
+    def _warm_up_worker(self, orders: ArmaxOrders, rng: np.random.Generator, limit_s: float = 120.0) -> None:
+        """A small cold refit in the worker process, waited for (bounded): its first real job then does not
+        pay for importing SciPy and loading compiled code (seconds on a busy PC, which the first valid
+        estimate would wait for)."""
+        n = 20 * orders.n_params
+        job = RefitJob(rng.standard_normal(n), rng.standard_normal(n), orders, "cold", (), 0.0, 0.0, -1)
+        done: list[bool] = []
+        self.worker.submit(WINDOW, solve, (job,), lambda _fit, _err: done.append(True))
+        deadline = time.monotonic() + limit_s
+        while not done and time.monotonic() < deadline:
+            if not self.worker.poll():
+                time.sleep(0.01)
 
     @property
     def last_estimate(self) -> OnlineEstimate | None:
