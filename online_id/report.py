@@ -498,16 +498,35 @@ def _band_of(baselines: Sequence[BandStats], speed_rpm: np.ndarray) -> list[Band
     return out
 
 
+def _alert_groups(alerts: Sequence[AlertMark], ax, min_gap: float = 0.025) -> list[list[AlertMark]]:
+    """Alerts sorted by time, grouped where they lie closer than ``min_gap`` of the time axis (one label each)."""
+    marks = sorted(alerts, key=lambda m: m.t_s)
+    if not marks:
+        return []
+    lo, hi = ax.get_xlim()
+    span = max(hi - lo, marks[-1].t_s - marks[0].t_s, 1e-9)
+    groups = [[marks[0]]]
+    for m in marks[1:]:
+        if m.t_s - groups[-1][-1].t_s < min_gap * span:
+            groups[-1].append(m)
+        else:
+            groups.append([m])
+    return groups
+
+
 def plot_tracks_over_time(path: str | Path, estimates: EstimateSeries | None, tracks: Sequence[TrackSeries],
                           baselines: Sequence[BandStats], alerts: Sequence[AlertMark], time_label: str,
-                          title: str = "", max_labels: int = 12) -> None:
+                          title: str = "", max_labels: int = 12,
+                          learned_t_s: Sequence[float] | None = None) -> None:
     """f0 and zeta against time: estimates (or driveline tracks), baselines, alerts, invalid stretches.
 
     The baseline of the band holding the engine speed at each time (the
     final baselines, as learned at the end) is a dashed line at its mean with
-    a shaded +- 2 std; alerts are vertical lines (orange warning, red fault, grey info), the first
-    ``max_labels`` of them labelled; stretches without a valid estimate are
-    greyed.
+    a shaded +- 2 std, drawn from the time the band was learned when
+    ``learned_t_s`` (per baseline) gives it; alerts are vertical lines
+    (orange warning, red fault, grey info), alerts close in time share one
+    label, at most ``max_labels`` labels; stretches without a valid
+    estimate are greyed.
     """
     plt = pyplot()
     fig, (ax_f, ax_z) = plt.subplots(2, 1, figsize=(10, 7), sharex=True)
@@ -532,22 +551,31 @@ def plot_tracks_over_time(path: str | Path, estimates: EstimateSeries | None, tr
             zoom_z.append(tr.zeta)
     t_n, n = _speed_over_time(estimates, tracks)
     band = _band_of(baselines, n)
+    if learned_t_s is not None:  # no baseline before its band was learned
+        when = {id(b): t for b, t in zip(baselines, learned_t_s)}
+        band = [b if b is not None and t >= when[id(b)] else None for b, t in zip(band, t_n)]
     for ax, attr in ((ax_f, "f"), (ax_z, "zeta")):
         mean = np.array([getattr(b, "mean_" + attr) if b else np.nan for b in band])
         std = np.array([getattr(b, "std_" + attr) if b else np.nan for b in band])
         ax.plot(t_n, mean, "--", color="tab:green", lw=1.2, drawstyle="steps-post",
-                label="baseline of the speed band (final)")
+                label="baseline of the speed band (final), " + ("from when it was learned" if learned_t_s is not None
+                                                                else "time learned not known"))
         ax.fill_between(t_n, mean - 2 * std, mean + 2 * std, step="post", color="tab:green", alpha=0.15, lw=0,
                         label="baseline +- 2 std")
     zoom_f += _baseline_values(baselines, "f0")
     zoom_z += _baseline_values(baselines, "zeta")
-    for k, a in enumerate(alerts):
+    for a in alerts:
         c = SEVERITY_COLOR.get(a.severity, "tab:gray")
         for ax in (ax_f, ax_z):
             ax.axvline(a.t_s, color=c, lw=1.2, alpha=0.9)
-        if k < max_labels:
-            ax_f.annotate(a.label, (a.t_s, 1.0), xycoords=("data", "axes fraction"), rotation=90, fontsize=7,
-                          color=c, ha="right", va="top", xytext=(-2, -2), textcoords="offset points")
+    for k, group in enumerate(_alert_groups(alerts, ax_f)):
+        if k >= max_labels:
+            break
+        a = max(group, key=lambda m: m.severity)
+        text = a.label + (f" (+{len(group) - 1} within {group[-1].t_s - group[0].t_s:.0f} s)" if len(group) > 1 else "")
+        ax_f.annotate(text, (group[0].t_s, 1.0), xycoords=("data", "axes fraction"), rotation=90, fontsize=7,
+                      color=SEVERITY_COLOR.get(a.severity, "tab:gray"), ha="right", va="top", xytext=(-2, -2),
+                      textcoords="offset points")
     for ax, zoom, floor in ((ax_f, zoom_f, 0.5), (ax_z, zoom_z, 0.01)):
         lim = _zoom(zoom, floor)
         if lim is not None:
