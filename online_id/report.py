@@ -61,31 +61,129 @@ def fmt(x: float | None, spec: str) -> str:
     return "-" if x is None or not np.isfinite(x) else format(x, spec)
 
 
-def identification_table(result: IdentificationResult, *, show_real: bool = False) -> str:
-    """Poles per operating point with their class, then the driveline result."""
+# Units of the keys of ``identify --json`` (also written into the document as ``"units"``).
+IDENTIFY_UNITS = {
+    "f0_hz": "Hz", "fa_hz": "Hz", "f_hz": "Hz", "f0_std_hz": "Hz", "sample_rate_hz": "Hz", "zeta": "1",
+    "zeta_std": "1", "zeta_a": "1", "J1": "kg m^2", "J2": "kg m^2", "c_s": "Nm/rad", "d_s": "Nm s/rad",
+    "engine_speed_rpm": "rpm", "t_start_s": "s", "t_end_s": "s", "fit_window_s": "s", "compare_window_s": "s",
+    "fpe": "(rad/s)^2", "validation_V": "(rad/s)^2", "order": "1/rev (engine order)", "z_re": "1", "z_im": "1",
+    "fit_simulation_pct": "%", "fit_one_step_pct": "%", "coherence_at_f0": "1",
+}
+NEAR_NYQUIST = 0.4  # poles above this fraction of the sample rate sit where the anti-alias filter left no signal
+ORDER_MAX_ZETA = 0.02  # an engine-order line is an (almost) undamped oscillator
+
+
+def pole_notes(result: IdentificationResult, pulses_per_rev: float | None = None) -> list[list[str]]:
+    """Per operating point and pole: why a pole is spurious, or ``""`` when it is plausible.
+
+    Spurious: negative damping (an unstable pole of A: the PEM fit placed it
+    where the data hold nothing to pin it); above 0.4 fs, where the
+    anti-alias filter left no signal; an "order" that is damped or seen at a
+    single operating point, or (with ``pulses_per_rev``) not a half-multiple
+    of the compression frequency: with half-order lines every
+    ``rpm/120`` Hz and a 2.5 % tolerance, a pole at a high frequency lies
+    near some line by chance.
+    """
+    fs = result.fs_hz
+    seen: dict[float, int] = {}
+    for p in result.points:
+        for o in {q.order for q in p.poles if q.cls == SPEED_DEPENDENT and q.order is not None}:
+            seen[o] = seen.get(o, 0) + 1
+    out = []
+    for p in result.points:
+        row = []
+        for q in p.poles:
+            note = ""
+            on_line = q.cls == SPEED_DEPENDENT and abs(q.zeta) <= ORDER_MAX_ZETA  # undamped, as an order line is
+            if q.kind == "complex" and np.isfinite(q.zeta) and q.zeta < 0 and not on_line:
+                note = "spurious: negative damping (an unstable model pole, nothing in the data pins it)"
+            elif q.kind == "complex" and q.f_hz > NEAR_NYQUIST * fs and q.cls not in (DRIVELINE, INVARIANT):
+                note = f"spurious: above {NEAR_NYQUIST * fs:.0f} Hz, where the anti-alias filter left no signal"
+            elif q.cls == SPEED_DEPENDENT and q.order is not None:
+                why = []
+                if seen.get(q.order, 0) < 2 and len(result.points) > 1:
+                    why.append(f"order {q.order:g} at this point only")
+                if not on_line:
+                    why.append(f"damped (an order line has zeta ~ 0)")
+                if pulses_per_rev and (2 * q.order / pulses_per_rev) % 1:
+                    why.append(f"not a harmonic of the {pulses_per_rev:g} compression pulses per revolution")
+                if why:
+                    note = "spurious? near an order line by chance: " + ", ".join(why)
+            row.append(note)
+        out.append(row)
+    return out
+
+
+def identification_document(result: IdentificationResult, pulses_per_rev: float | None = None) -> dict:
+    """``result.as_dict()`` with a note on every pole (see :func:`pole_notes`) and a ``units`` map."""
+    doc = result.as_dict()
+    for point, notes in zip(doc["operating_points"], pole_notes(result, pulses_per_rev)):
+        for pole, note in zip(point["poles"], notes):
+            pole["spurious"] = note.startswith("spurious")
+            if note:
+                pole["note"] = note
+    doc["units"] = dict(IDENTIFY_UNITS)
+    return doc
+
+
+def figures_text(doc: dict) -> list[str]:
+    """The lines printed after the table about the figures of ``--plot`` (none without them)."""
+    fig = doc.get("figures")
+    if not fig:
+        return []
+    lines = ["", "Model against the data (compare: held-out part of each plateau)"] if fig["points"] else [""]
+    for c in fig["points"]:
+        lines.append(f"  {c['engine_speed_rpm']:6.0f} rpm  simulation fit {fmt(c['fit_simulation_pct'], '6.1f')} %  "
+                     f"one-step fit {fmt(c['fit_one_step_pct'], '6.1f')} %  coherence at f0 "
+                     f"{fmt(c['coherence_at_f0'], '.2f')}" + ("" if c["held_out"] else "  (fit window)"))
+    return lines + [f"wrote {f}" for f in fig["files"]]
+
+
+def identification_table(result: IdentificationResult, *, show_real: bool = False, show_spurious: bool = False,
+                         pulses_per_rev: float | None = None) -> str:
+    """Poles per operating point with their class, then the driveline result.
+
+    Poles that are certainly spurious (negative damping, near Nyquist) are
+    counted but not listed unless ``show_spurious``; doubtful order matches
+    are listed with the reason (see :func:`pole_notes`).
+    """
     o = result.orders
     fpes = [p.fit.fpe for p in result.points if p.fit is not None]
     lines = [
         f"ARMAX na={o.na} nb={o.nb} nc={o.nc} nk={o.nk} at {result.fs_hz:g} Hz, "
-        f"{len(result.points)} operating points, mean FPE {np.mean(fpes):.3g}",
+        f"{len(result.points)} operating points, mean FPE {np.mean(fpes):.3g} (rad/s)^2",
         "",
-        f"{'engine speed':>12}  {'time [s]':>13}  {'f [Hz]':>8}  {'zeta':>7}  class",
+        f"{'engine speed':>12}  {'time [s]':>13}  {'f [Hz]':>8}  {'zeta [-]':>8}  class",
     ]
-    for p in result.points:
+    hidden_total = 0
+    for p, notes in zip(result.points, pole_notes(result, pulses_per_rev)):
         first = True
-        shown = [q for q in p.poles if show_real or q.kind == "complex"]
         n_real = sum(q.kind != "complex" for q in p.poles)
-        for q in shown:
+        n_hidden = 0
+        for q, note in zip(p.poles, notes):
+            if q.kind != "complex" and not show_real:
+                continue
+            if note.startswith("spurious:") and not show_spurious:
+                n_hidden += 1
+                continue
             head = f"{p.speed_rpm:8.0f} rpm  {p.plateau.t_start_s:6.1f}-{p.plateau.t_end_s:<6.1f}" if first else " " * 29
             label = CLASS_LABEL.get(q.cls, q.cls)
             if q.order is not None:
                 label += f" (order {q.order:g})"
-            lines.append(f"{head}  {fmt(q.f_hz, '8.2f')}  {fmt(q.zeta, '7.4f')}  {label}")
+            if note:
+                label += f"  [{note}]"
+            lines.append(f"{head}  {fmt(q.f_hz, '8.2f')}  {fmt(q.zeta, '8.4f')}  {label}")
             first = False
-        if not show_real and n_real:
-            lines.append(" " * 31 + f"+ {n_real} real pole(s)")
+        extra = [f"{n_real} real pole(s)"] if not show_real and n_real else []
+        if n_hidden:
+            extra.append(f"{n_hidden} spurious pole(s) (negative damping, or above {NEAR_NYQUIST * result.fs_hz:.0f} Hz)")
+        if extra:
+            lines.append(" " * 31 + "+ " + ", ".join(extra) + " not listed")
+        hidden_total += n_hidden
         lines.append("")
     lines.append(driveline_text(result))
+    if hidden_total:
+        lines.append("(spurious poles: listed with a note in --json)")
     for w in result.warnings:
         lines.append(f"warning: {w}")
     return "\n".join(lines)
@@ -110,8 +208,25 @@ def driveline_text(result: IdentificationResult) -> str:
     return "\n".join(out)
 
 
-def plot_identification(result: IdentificationResult, path: str | Path, title: str = "") -> None:
-    """Frequency and damping of the identified poles against engine speed (paper Fig. 5/6)."""
+def _label_line(ax, k: float, x: np.ndarray, y: np.ndarray, text: str, color: str) -> None:
+    """Label a straight line through the origin at the point where it leaves the axes (inside them)."""
+    x0, x1 = ax.get_xlim()
+    y0, y1 = ax.get_ylim()
+    slope = (y[-1] - y[0]) / (x[-1] - x[0])
+    if slope * x1 <= y1:  # leaves through the right edge
+        ax.text(x1, slope * x1, f"{text} ", fontsize=7, color=color, ha="right", va="bottom")
+    elif y0 <= y1 / slope <= x1:  # through the top
+        ax.text(y1 / slope, y1, f" {text}", fontsize=7, color=color, ha="right", va="top", rotation=0)
+
+
+def plot_identification(result: IdentificationResult, path: str | Path, title: str = "",
+                        pulses_per_rev: float | None = None) -> None:
+    """Frequency and damping of the identified poles against engine speed (paper Fig. 5/6).
+
+    Poles that :func:`pole_notes` calls spurious are drawn faint; the damping
+    axes zooms on the driveline, and poles outside its range sit on its
+    edges as open markers (their values are in the table).
+    """
     plt = pyplot()
 
     styles = {
@@ -119,35 +234,50 @@ def plot_identification(result: IdentificationResult, path: str | Path, title: s
         SPEED_DEPENDENT: dict(color="tab:blue", marker="^", s=35, zorder=2),
         INVARIANT: dict(color="tab:green", marker="s", s=35, zorder=2),
         OTHER: dict(color="0.6", marker="x", s=20, zorder=1),
+        "spurious": dict(color="0.75", marker="x", s=14, zorder=1),
     }
+    labels = dict(CLASS_LABEL, spurious="spurious (see the table)")
     fig, (ax_f, ax_z) = plt.subplots(2, 1, figsize=(8, 8), sharex=True)
     seen: set[str] = set()
     speeds = [p.speed_rpm for p in result.points]
-    for p in result.points:
-        for q in p.poles:
+    drive_z = result.driveline.zeta if result.driveline is not None else 0.05
+    z_lo, z_hi = -0.02, max(0.15, 3.0 * drive_z)
+    outside: list[float] = []
+    for p, notes in zip(result.points, pole_notes(result, pulses_per_rev)):
+        for q, note in zip(p.poles, notes):
             if q.kind != "complex" or not np.isfinite(q.f_hz):
                 continue
-            st = styles.get(q.cls, styles[OTHER])
-            label = CLASS_LABEL.get(q.cls) if q.cls not in seen else None
-            seen.add(q.cls)
-            ax_f.scatter([p.speed_rpm], [q.f_hz], label=label, **st)
-            ax_z.scatter([p.speed_rpm], [q.zeta], **st)
-    orders = sorted({q.order for p in result.points for q in p.poles if q.order is not None})
+            key = "spurious" if note else q.cls
+            st = styles.get(key, styles[OTHER])
+            ax_f.scatter([p.speed_rpm], [q.f_hz], label=labels.get(key) if key not in seen else None, **st)
+            seen.add(key)
+            if z_lo <= q.zeta <= z_hi:
+                ax_z.scatter([p.speed_rpm], [q.zeta], **st)
+            else:
+                outside.append(q.zeta)
+                ax_z.scatter([p.speed_rpm], [min(max(q.zeta, z_lo), z_hi)], facecolors="none",
+                             edgecolors=st["color"], marker="v" if q.zeta < z_lo else "^", s=25, zorder=1)
+    ax_f.set_ylim(0, 0.5 * result.fs_hz)
+    orders = sorted({q.order for p, notes in zip(result.points, pole_notes(result, pulses_per_rev))
+                     for q, note in zip(p.poles, notes) if q.order is not None and not note})
     if speeds:
         rpm = np.linspace(0.9 * min(speeds), 1.1 * max(speeds), 50)
+        ax_f.set_xlim(rpm[0], rpm[-1])
         for k in orders:
             ax_f.plot(rpm, k * rpm / 60.0, "--", color="tab:blue", lw=0.8, alpha=0.6)
-            if k * rpm[-1] / 60.0 < 0.5 * result.fs_hz:
-                ax_f.text(rpm[-1], k * rpm[-1] / 60.0, f" order {k:g}", fontsize=8, color="tab:blue",
-                          va="center", clip_on=True)
+            _label_line(ax_f, k, rpm, k * rpm / 60.0, f"order {k:g}", "tab:blue")
     if result.driveline is not None:
         ax_f.axhline(result.driveline.f0_hz, color="tab:red", lw=0.8, alpha=0.5)
         ax_z.axhline(result.driveline.zeta, color="tab:red", lw=0.8, alpha=0.5)
+        ax_f.text(ax_f.get_xlim()[1], result.driveline.f0_hz, f"driveline f0 = {result.driveline.f0_hz:.2f} Hz ",
+                  fontsize=7, color="tab:red", va="bottom", ha="right")
     ax_f.set_ylabel("pole frequency [Hz]")
-    ax_f.set_ylim(0, 0.5 * result.fs_hz)
-    ax_z.set_ylabel("damping ratio [-]")
-    zetas = [q.zeta for p in result.points for q in p.poles if q.kind == "complex" and np.isfinite(q.zeta)]
-    ax_z.set_ylim(min(-0.05, min(zetas, default=0.0) - 0.05), 1.05)
+    ax_z.set_ylabel("damping ratio zeta [-]")
+    ax_z.set_ylim(z_lo - 0.01, z_hi + 0.01)
+    if outside:
+        ax_z.text(0.01, 0.98, f"{len(outside)} pole(s) outside this range (zeta {min(outside):.2f} to "
+                  f"{max(outside):.2f}): open triangles on the edge", transform=ax_z.transAxes, fontsize=7,
+                  va="top", color="0.35")
     ax_z.set_xlabel("engine speed [rpm]")
     ax_f.legend(loc="upper left", fontsize=8)
     ax_f.grid(alpha=0.3)
@@ -368,16 +498,35 @@ def _band_of(baselines: Sequence[BandStats], speed_rpm: np.ndarray) -> list[Band
     return out
 
 
+def _alert_groups(alerts: Sequence[AlertMark], ax, min_gap: float = 0.025) -> list[list[AlertMark]]:
+    """Alerts sorted by time, grouped where they lie closer than ``min_gap`` of the time axis (one label each)."""
+    marks = sorted(alerts, key=lambda m: m.t_s)
+    if not marks:
+        return []
+    lo, hi = ax.get_xlim()
+    span = max(hi - lo, marks[-1].t_s - marks[0].t_s, 1e-9)
+    groups = [[marks[0]]]
+    for m in marks[1:]:
+        if m.t_s - groups[-1][-1].t_s < min_gap * span:
+            groups[-1].append(m)
+        else:
+            groups.append([m])
+    return groups
+
+
 def plot_tracks_over_time(path: str | Path, estimates: EstimateSeries | None, tracks: Sequence[TrackSeries],
                           baselines: Sequence[BandStats], alerts: Sequence[AlertMark], time_label: str,
-                          title: str = "", max_labels: int = 12) -> None:
+                          title: str = "", max_labels: int = 12,
+                          learned_t_s: Sequence[float] | None = None) -> None:
     """f0 and zeta against time: estimates (or driveline tracks), baselines, alerts, invalid stretches.
 
     The baseline of the band holding the engine speed at each time (the
     final baselines, as learned at the end) is a dashed line at its mean with
-    a shaded +- 2 std; alerts are vertical lines (orange warning, red fault, grey info), the first
-    ``max_labels`` of them labelled; stretches without a valid estimate are
-    greyed.
+    a shaded +- 2 std, drawn from the time the band was learned when
+    ``learned_t_s`` (per baseline) gives it; alerts are vertical lines
+    (orange warning, red fault, grey info), alerts close in time share one
+    label, at most ``max_labels`` labels; stretches without a valid
+    estimate are greyed.
     """
     plt = pyplot()
     fig, (ax_f, ax_z) = plt.subplots(2, 1, figsize=(10, 7), sharex=True)
@@ -402,22 +551,31 @@ def plot_tracks_over_time(path: str | Path, estimates: EstimateSeries | None, tr
             zoom_z.append(tr.zeta)
     t_n, n = _speed_over_time(estimates, tracks)
     band = _band_of(baselines, n)
+    if learned_t_s is not None:  # no baseline before its band was learned
+        when = {id(b): t for b, t in zip(baselines, learned_t_s)}
+        band = [b if b is not None and t >= when[id(b)] else None for b, t in zip(band, t_n)]
     for ax, attr in ((ax_f, "f"), (ax_z, "zeta")):
         mean = np.array([getattr(b, "mean_" + attr) if b else np.nan for b in band])
         std = np.array([getattr(b, "std_" + attr) if b else np.nan for b in band])
         ax.plot(t_n, mean, "--", color="tab:green", lw=1.2, drawstyle="steps-post",
-                label="baseline of the speed band (final)")
+                label="baseline of the speed band (final), " + ("from when it was learned" if learned_t_s is not None
+                                                                else "time learned not known"))
         ax.fill_between(t_n, mean - 2 * std, mean + 2 * std, step="post", color="tab:green", alpha=0.15, lw=0,
                         label="baseline +- 2 std")
     zoom_f += _baseline_values(baselines, "f0")
     zoom_z += _baseline_values(baselines, "zeta")
-    for k, a in enumerate(alerts):
+    for a in alerts:
         c = SEVERITY_COLOR.get(a.severity, "tab:gray")
         for ax in (ax_f, ax_z):
             ax.axvline(a.t_s, color=c, lw=1.2, alpha=0.9)
-        if k < max_labels:
-            ax_f.annotate(a.label, (a.t_s, 1.0), xycoords=("data", "axes fraction"), rotation=90, fontsize=7,
-                          color=c, ha="right", va="top", xytext=(-2, -2), textcoords="offset points")
+    for k, group in enumerate(_alert_groups(alerts, ax_f)):
+        if k >= max_labels:
+            break
+        a = max(group, key=lambda m: m.severity)
+        text = a.label + (f" (+{len(group) - 1} within {group[-1].t_s - group[0].t_s:.0f} s)" if len(group) > 1 else "")
+        ax_f.annotate(text, (group[0].t_s, 1.0), xycoords=("data", "axes fraction"), rotation=90, fontsize=7,
+                      color=SEVERITY_COLOR.get(a.severity, "tab:gray"), ha="right", va="top", xytext=(-2, -2),
+                      textcoords="offset points")
     for ax, zoom, floor in ((ax_f, zoom_f, 0.5), (ax_z, zoom_z, 0.01)):
         lim = _zoom(zoom, floor)
         if lim is not None:

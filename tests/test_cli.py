@@ -1,6 +1,7 @@
 """The command line as a user runs it: simulate -> identify, and bad input."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -28,8 +29,8 @@ def bench_csv(tmp_path_factory):
 @pytest.mark.slow
 def test_simulate_then_identify_json_and_plot(bench_csv, tmp_path, capsys):
     capsys.readouterr()
-    png = tmp_path / "poles.png"
-    assert main(["identify", str(bench_csv), "--json", "--plot", str(png), "--J1", "0.8", "--na", "8", "10"]) == 0
+    figs = tmp_path / "figures"
+    assert main(["identify", str(bench_csv), "--json", "--plot", str(figs), "--J1", "0.8", "--na", "8", "10"]) == 0
     doc = json.loads(capsys.readouterr().out)
     truth = json.loads(bench_csv.with_suffix(".truth.json").read_text())
     d = doc["driveline"]
@@ -42,7 +43,16 @@ def test_simulate_then_identify_json_and_plot(bench_csv, tmp_path, capsys):
     classes = {q["class"] for p in doc["operating_points"] for q in p["poles"]}
     assert {"driveline", "speed_dependent"} <= classes
     assert set(doc["model"]) >= {"na", "nb", "nc", "fpe"}
-    assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
+    names = ["poles.png", "bode_1_1000rpm.png", "bode_2_1600rpm.png", "bode_3_2200rpm.png", "compare.png"]
+    assert [Path(f).name for f in doc["figures"]["files"]] == names
+    for name in names:
+        png = figs / name
+        assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
+    for point in doc["figures"]["points"]:  # the model explains the data it was fitted on (simulation: better than the mean)
+        assert point["fit_one_step_pct"] > 80 and point["fit_simulation_pct"] > 0 and point["coherence_at_f0"] > 0.5
+    assert doc["units"]["f0_hz"] == "Hz" and doc["units"]["c_s"] == "Nm/rad"
+    spurious = [q for p in doc["operating_points"] for q in p["poles"] if q["spurious"]]
+    assert all(q["note"] for q in spurious) and not any(q["class"] == "driveline" for q in spurious)
 
 
 @pytest.mark.slow

@@ -179,3 +179,36 @@ def test_out_is_a_file(tmp_path, cli_error):
     assert main(["report", str(state), "--out", str(tmp_path / "empty")]) == 0
     doc = json.loads((tmp_path / "empty" / "report.json").read_text())
     assert doc["counts"]["tracks"] == 0 and doc["baselines"] == [] and doc["active_alarm"] is None
+
+
+def test_final_estimate_is_not_valid_when_the_service_ended_in_input_timeout():
+    from online_id.cli.report_cmd import final_estimate
+    from online_id.report import EstimateSeries
+
+    t = np.arange(5.0)
+    est = EstimateSeries(t, np.full(5, 1500.0), np.full(5, 25.0), np.full(5, 0.05), np.array([1, 1, 1, 0, 0], bool))
+    drive = {"f0_hz": 25.0, "zeta": 0.05, "valid": True}
+    final = final_estimate({"driveline": drive, "state": "INPUT_TIMEOUT"}, est)
+    assert final["valid"] is False and "INPUT_TIMEOUT" in final["why"] and "t = 2.0 s" in final["why"]
+    assert final_estimate({"driveline": drive, "state": "TRACKING"}, est)["valid"] is True
+
+
+def test_state_report_units_and_no_validity_claim(tmp_path):
+    """A state file does not say whether the last estimate was valid; a 105 Hz "driveline" track is not called so."""
+    pipe = Pipeline(Settings())
+    for k in range(200):
+        poles = [Pole(complex(0.5, 0.8), 105.0, 0.05, "complex")]
+        pipe.tracker.update(t_s=0.1 * k, speed_rpm=1000.0 + 5.0 * k, poles=poles)
+    for _ in range(40):
+        pipe.baseline.learn(speed_rpm=1500.0, f0_hz=25.0, zeta=0.05)
+    assert pipe.tracker.driveline() is not None  # the tracker calls it driveline
+    state = tmp_path / "online-id-state.json"
+    save_state(state, pipe.get_state())
+    out = tmp_path / "report"
+    assert main(["report", str(state), "--out", str(out)]) == 0
+    doc = json.loads((out / "report.json").read_text())
+    assert doc["final_estimate"]["valid"] is None and doc["final_estimate"]["f0_hz"] is None
+    assert [t["class"] for t in doc["tracks"]] == ["unknown"] and doc["tracks_reclassed"][0]["f_hz"] == 105.0
+    assert {"f0_hz", "zeta", "residual_rms", "speed_rpm", "c_s"} <= doc["units"].keys()
+    assert doc["units"]["f0_hz"] == "Hz"
+    assert "| unknown |" in (out / "report.md").read_text()

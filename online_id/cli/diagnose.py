@@ -244,17 +244,14 @@ def plot_residuals(d: Diagnosis, out: Path) -> list[Path]:
     import matplotlib.pyplot as plt
 
     from online_id.diagnose.residual_tests import input_independence, spectrum, whiteness
+    from online_id.plots.residuals import psd_before_after
 
     n0, fs = d.n_est, d.data.fs_hz
     pairs = [("before", d.residual_before), ("after", d.residual_after)]
     fig, ax = plt.subplots(figsize=(8, 4.5))
-    for label, e in pairs:
-        s = spectrum(e[n0:], fs).curve
-        ax.semilogy(s["freq_hz"], s["psd"], label=f"{label} (RMS {np.sqrt(np.mean(e[n0:] ** 2)):.3g})")
-    ax.set_xlabel("frequency [Hz]")
-    ax.set_ylabel("residual PSD")
-    ax.grid(alpha=0.3)
-    ax.legend()
+    (sb, rb), (sa, ra) = ((spectrum(e[n0:], fs).curve, np.sqrt(np.mean(e[n0:] ** 2))) for _, e in pairs)
+    psd_before_after(ax, sb["freq_hz"], sb["psd"], sa["psd"], f"(unit of {d.data.output_name})^2/Hz",
+                     f"before (RMS {rb:.3g})", f"after (RMS {ra:.3g})")
     ax.set_title(f"held-out residual spectrum, {Path(d.data.source).name}")
     fig.tight_layout()
     spec = out / "residual_spectrum.png"
@@ -264,15 +261,16 @@ def plot_residuals(d: Diagnosis, out: Path) -> list[Path]:
     for label, e in pairs:
         w = whiteness(e[n0:]).curve
         x = input_independence(e[n0:], d.data.u[n0:], fs).curve
-        a1.plot(w["lags"], w["r"], "o-", ms=3, label=label)
-        a2.plot(x["lags"], x["r"], "o-", ms=3, label=label)
+        a1.plot(1e3 * np.asarray(w["lags"]) / fs, w["r"], "o-", ms=3, label=label)
+        a2.plot(1e3 * np.asarray(x["lags"]) / fs, x["r"], "o-", ms=3, label=label)
     for a, c, title in ((a1, w, "autocorrelation of the residual"),
                         (a2, x, f"cross-correlation residual / {d.data.input_name}")):
         a.axhspan(-c["bound"], c["bound"], color="0.85", label="99 % band")
         a.set_title(title)
+        a.set_ylabel("correlation [-]")
         a.grid(alpha=0.3)
         a.legend(fontsize=8)
-    a2.set_xlabel("lag [samples]")
+    a2.set_xlabel(f"lag [ms] (1 sample = {1e3 / fs:.3g} ms)")
     fig.tight_layout()
     corr = out / "residual_correlation.png"
     fig.savefig(corr, dpi=100)

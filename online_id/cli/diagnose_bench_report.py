@@ -67,17 +67,18 @@ def write_bench_report(b: BenchDiagnosis, out: Path) -> list[Path]:
     import matplotlib.pyplot as plt
     from scipy.signal import welch
 
+    from online_id.plots.residuals import psd_before_after
+
     fig, axes = plt.subplots(2, 1, figsize=(8, 6.5), sharex=True)
     fs = b.series.fs_hz
     for ax, eq in zip(axes, ("dyno", "engine")):
-        for label, fit in (("before", b.baseline), ("after", b.final)):
+        psd = []
+        for fit in (b.baseline, b.final):
             r = np.concatenate([x[p.val] for x, p in zip(fit.eqs[eq].residuals, fit.plateaus)])
             f, pxx = welch(r * RPM_PER_RAD_S, fs=fs, nperseg=min(r.size, int(2 * fs)))
-            ax.semilogy(f, pxx, label=label)
-        ax.set_ylabel(f"{eq} eq. residual PSD")
-        ax.grid(alpha=0.3)
-        ax.legend()
-    axes[-1].set_xlabel("frequency [Hz]")
+            psd.append(pxx)
+        psd_before_after(ax, f, psd[0], psd[1], "rpm^2/Hz")
+        ax.set_title(f"{eq} speed equation", fontsize=9)
     fig.suptitle(f"held-out residuals, {Path(b.series.source).name}")
     fig.tight_layout()
     fig.savefig(files[2], dpi=100)

@@ -12,7 +12,7 @@ from online_id.config import Settings, load_config
 from online_id.estimation.identification import IdentificationResult, identify
 from online_id.errors import ConfigError, EstimationError
 from online_id.io.outfile import check_output
-from online_id.report import TerminalProgress, fmt, identification_table, plot_identification
+from online_id.report import TerminalProgress, figures_text, fmt, identification_document, identification_table
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
@@ -27,7 +27,10 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("path", metavar="PATH", help="bench CSV file, or CAN log (.log, .asc, .blf)")
     p.add_argument("--config", metavar="FILE", help="YAML config (columns, units, inertias, identification)")
     p.add_argument("--json", action="store_true", help="print one JSON document instead of the table")
-    p.add_argument("--plot", metavar="FILE.png", help="plot pole frequency and damping against engine speed")
+    p.add_argument("--plot", metavar="FILE.png|DIR",
+                   help="FILE.png: pole frequency and damping against engine speed; DIR: that figure (poles.png), "
+                        "a Bode plot of the model over the measured response per operating point "
+                        "(bode_K_RPMrpm.png) and the simulated against the measured output (compare.png)")
     p.add_argument("--recursive", action="store_true",
                    help="run the service's streaming estimator (RELS with forgetting) over the file instead "
                         "of the per-operating-point batch identification; gives what `replay` gives on the "
@@ -149,22 +152,31 @@ def run_recursive(args: argparse.Namespace, s: Settings) -> int:
     return 0
 
 
+def plot_figures(args: argparse.Namespace, s: Settings, result: IdentificationResult) -> dict:
+    """Draw what ``--plot`` asks for (only then is matplotlib imported; a directory re-reads the data)."""
+    from online_id.plots.identification import write_plots
+
+    return write_plots(result, args.plot, lambda: read_bench(args.path, s, lambda _note: None),
+                       title=f"online-id identify {args.path}", pulses_per_rev=s.identification.pulses_per_rev)
+
+
 def run(args: argparse.Namespace) -> int:
     s = settings_from_args(args)
     if args.plot:
-        check_output(args.plot, "plot")  # before the work, not after it
+        check_output(args.plot, "plot", directory=not args.plot.lower().endswith(".png"))  # before the work
     if args.recursive:
         return run_recursive(args, s)
     result = run_identification(args.path, s, fit_s=_seconds(args.fit_seconds, "--fit-seconds"),
                                 refine_s=_seconds(args.refine_seconds, "--refine-seconds"))
+    doc = identification_document(result, s.identification.pulses_per_rev)
     if args.plot:
-        plot_identification(result, args.plot, title=f"online-id identify {args.path}")
+        doc["figures"] = plot_figures(args, s, result)
     if args.json:
-        json.dump(result.as_dict(), sys.stdout, indent=2)
+        json.dump(doc, sys.stdout, indent=2)
         sys.stdout.write("\n")
     else:
         print(f"online-id identify {args.path}")
-        print(identification_table(result))
-        if args.plot:
-            print(f"plot: {args.plot}")
+        print(identification_table(result, pulses_per_rev=s.identification.pulses_per_rev))
+        for line in figures_text(doc):
+            print(line)
     return 0

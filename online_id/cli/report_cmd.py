@@ -52,6 +52,17 @@ from online_id.runtime import OutFrame, Runtime
 STATE_SUFFIXES = (".json",)
 FIGURES = ("frequency_vs_speed.png", "damping_vs_speed.png", "tracks_over_time.png")
 SEVERITY = {0: "info", 1: "warning", 2: "fault"}
+# Units of the keys of report.json (written into it as "units"); keys without a unit are counts, names or flags.
+REPORT_UNITS = {
+    "t0_s": "s (stream time of the origin)", "t_s": "s", "t_first_s": "s", "t_last_s": "s",
+    "first_valid_t_s": "s", "since_t_s": "s", "detected_t_s": "s", "replay_s": "s (wall time)",
+    "speed_rpm": "rpm", "band_rpm": "rpm", "load_nm": "Nm", "f0_hz": "Hz", "f_hz": "Hz", "f0_std_hz": "Hz",
+    "f0_uncertainty_hz": "Hz", "zeta": "1", "zeta_std": "1", "c_s": "Nm/rad", "d_s": "Nm s/rad",
+    "J1": "kg m^2", "J2": "kg m^2", "value_pct": "%", "change_pct": "%", "spread_ratio": "1",
+    "residual_rms": "rad/s (one-step prediction error of the dyno speed, RMS)",
+    "fpe": "rad/s (square root of the final prediction error of the dyno speed)",
+    "excitation_nm": "Nm (RMS of the torque excitation)", "learned_t_s": "s",
+}
 EPOCH_S = 1e8  # stream times above this are Unix times (a live service), below: seconds from a log start
 
 
@@ -87,6 +98,7 @@ class ReportData:
     alerts: list[AlertOut]
     active_alarm: dict | None
     final: dict
+    learned_t_s: dict[tuple, float] | None = None  # per baseline cell (cell_key), when it was learned; None: unknown
     extra: dict = field(default_factory=dict)
 
 
@@ -107,6 +119,7 @@ class RecordingRuntime(Runtime):
         self.track_points: dict[int, list[tuple[float, float, float, float]]] = {}
         self.track_info: dict[int, tuple[str, float | None]] = {}
         self.notices: list[AlertOut] = []
+        self.learned_at: dict[tuple, float] = {}  # baseline cell -> stream time it was first learned
 
     def frames(self, pubs: list[Publication]) -> list[OutFrame]:
         for pub in pubs:
@@ -119,10 +132,18 @@ class RecordingRuntime(Runtime):
     def _observe_estimate(self, pub: EstimateOut) -> None:
         p = self.pipeline
         self.estimates.append((pub.t_s, p.estimator.speed_rpm, pub.f0_hz, pub.zeta, bool(pub.valid)))
+        for b in p.baseline.bands:
+            if b.count >= p.baseline.min_count:
+                self.learned_at.setdefault(cell_key(b), pub.t_s)
         for tr in p.tracker.tracks:
             self.track_info[tr.id] = (tr.cls, tr.order)
             if tr.last_seen_s == pub.t_s:  # matched (or started) at this publication
                 self.track_points.setdefault(tr.id, []).append((tr.last_seen_s, tr.speed_rpm, tr.f_hz, tr.zeta))
+
+
+def cell_key(b: BandStats) -> tuple:
+    """What identifies a baseline cell: its speed band and load."""
+    return (float(b.band[0]), float(b.band[1]), round(float(b.load_nm), 6) if math.isfinite(b.load_nm) else None)
 
 
 def _fin(x: Any) -> float | None:
@@ -160,17 +181,33 @@ def from_log(path: Path, settings: Settings) -> ReportData:
         a = _series(pts, t0)
         tracks.append(TrackSeries(tid, cls, order, a[:, 0], a[:, 1], a[:, 2], a[:, 3]))
     result = pipe.result()
-    final = dict(result["driveline"], state=result["state"], t_s=float(estimates.t_s[-1]), source="estimator")
+    final = final_estimate(result, estimates)
     alerts = sorted(list(pipe.alerts) + runtime.notices, key=lambda a: a.t_s)
     return ReportData(
         source=path, kind="can_log", t0_s=t0, estimates=estimates, tracks=tracks,
         baselines=pipe.baseline.bands, min_count=pipe.baseline.min_count,
         alerts=[dataclasses.replace(a, t_s=a.t_s - t0) for a in alerts],
         active_alarm=_alarm_dict(pipe.detector, t0), final=final,
+        learned_t_s={k: v - t0 for k, v in runtime.learned_at.items()},
         extra={"frames_in": runtime.frames_in, "frames_out": runtime.frames_out,
                "replay_s": round(time.monotonic() - t_wall, 3), "quality": result["quality"],
                "counters": result["counters"], "status_changes": result["status_changes"]},
     )
+
+
+def final_estimate(result: dict, estimates: EstimateSeries) -> dict:
+    """The last estimate of a replay (``result``: :meth:`Pipeline.result`): valid only if the service ended TRACKING.
+
+    A service that ended in INPUT_TIMEOUT, LEARNING, ... holds its last
+    estimate; the report says so instead of calling it valid.
+    """
+    final = dict(result["driveline"], state=result["state"], t_s=float(estimates.t_s[-1]), source="estimator")
+    if final.get("valid") and result["state"] != "TRACKING":
+        ok = estimates.valid
+        final["valid"] = False
+        final["why"] = f"the service ended in {result['state']}" + (
+            f"; the values are its last estimate, valid last at t = {estimates.t_s[ok][-1]:.1f} s" if ok.any() else "")
+    return final
 
 
 def _alarm_dict(detector: ChangeDetector, t0: float) -> dict | None:
@@ -205,22 +242,40 @@ def from_state(path: Path) -> ReportData:
     times = [float(t) for tr in tracker.tracks for t in tr.history.t_s if math.isfinite(t)]
     times += [a.t_s for a in raw_alerts]
     t0 = min(times) if times and min(times) > EPOCH_S else 0.0  # Unix times from a live service: from the oldest
-    tracks = []
+    tracks, reclassed = [], []
     for tr in tracker.tracks:
         h = tr.history
-        tracks.append(TrackSeries(tr.id, tr.cls, tr.order, h.t_s - t0, h.speed_rpm, h.f_hz, h.zeta))
+        cls = tr.cls
+        if cls == "driveline" and far_from_baselines(tr.f_hz, baseline.bands):
+            cls = "unknown"
+            reclassed.append({"id": tr.id, "f_hz": _fin(tr.f_hz), "why": "classed driveline by the tracker, but more "
+                              f"than {100 * FAR_FROM_BASELINE:.0f} % from every learned baseline frequency"})
+        tracks.append(TrackSeries(tr.id, cls, tr.order, h.t_s - t0, h.speed_rpm, h.f_hz, h.zeta))
     drive = tracker.driveline()
-    final = {"f0_hz": None, "zeta": None, "valid": False, "source": "no driveline track"}
+    if drive is not None and far_from_baselines(drive.f_hz, baseline.bands):
+        drive = None
+    final = {"f0_hz": None, "zeta": None, "valid": None, "source": "no driveline track"
+             + (" near the learned baselines" if reclassed else "")}
     if drive is not None:
         final = {"f0_hz": _fin(drive.f_hz), "zeta": _fin(drive.zeta), "speed_rpm": _fin(drive.speed_rpm),
-                 "t_s": _fin(drive.last_seen_s - t0), "valid": True,
+                 "t_s": _fin(drive.last_seen_s - t0), "valid": None,
                  "source": f"driveline track {drive.id} (confidence {drive.confidence:.2f})"}
+    final["why"] = ("a state file holds the pole tracks, not the service's last estimate nor its health state "
+                    "(e.g. INPUT_TIMEOUT): whether the estimate was valid is not known; replay the log for that")
     return ReportData(
         source=path, kind="state", t0_s=t0, estimates=None, tracks=tracks, baselines=baseline.bands,
         min_count=baseline.min_count, alerts=[dataclasses.replace(a, t_s=a.t_s - t0) for a in raw_alerts],
         active_alarm=_alarm_dict(detector, t0), final=final,
-        extra={"state_version": state.get("version")},
+        extra={"state_version": state.get("version"), "tracks_reclassed": reclassed},
     )
+
+
+FAR_FROM_BASELINE = 0.10  # a "driveline" track this far (relative) from every baseline frequency is not the driveline
+
+
+def far_from_baselines(f_hz: float, baselines: tuple[BandStats, ...]) -> bool:
+    """True when baselines exist and ``f_hz`` lies more than :data:`FAR_FROM_BASELINE` from all of them."""
+    return bool(baselines) and all(abs(f_hz - b.mean_f) > FAR_FROM_BASELINE * b.mean_f for b in baselines)
 
 
 def load_source(path: Path, config: str | None) -> ReportData:
@@ -272,8 +327,11 @@ def _stats(x: np.ndarray) -> dict | None:
     return {"median": float(np.median(x)), "min": float(x.min()), "max": float(x.max())}
 
 
-def _band_dict(b: BandStats, min_count: int) -> dict:
-    return b.as_dict() | {"learned": b.count >= min_count}
+def _band_dict(b: BandStats, min_count: int, learned_t_s: dict[tuple, float] | None) -> dict:
+    out = b.as_dict() | {"learned": b.count >= min_count}
+    if learned_t_s is not None:
+        out["learned_t_s"] = learned_t_s.get(cell_key(b))
+    return out
 
 
 def _alert_dict(a: AlertOut) -> dict:
@@ -307,7 +365,7 @@ def summary(data: ReportData) -> dict:
                             "first_valid_t_s": float(e.t_s[ok][0]) if ok.any() else None,
                             "speed_rpm": _stats(e.speed_rpm[ok]), "f0_hz": _stats(e.f0_hz[ok]),
                             "zeta": _stats(e.zeta[ok])}
-    out["baselines"] = [_band_dict(b, data.min_count) for b in data.baselines]
+    out["baselines"] = [_band_dict(b, data.min_count, data.learned_t_s) for b in data.baselines]
     out["tracks"] = [{"id": t.id, "class": t.cls, "order": t.order, "points": int(t.t_s.size),
                       "t_first_s": _fin(t.t_s[0]) if t.t_s.size else None,
                       "t_last_s": _fin(t.t_s[-1]) if t.t_s.size else None,
@@ -317,6 +375,7 @@ def summary(data: ReportData) -> dict:
     out["final_estimate"] = data.final
     out.update(data.extra)
     out["figures"] = list(FIGURES)
+    out["units"] = dict(REPORT_UNITS)
     return out
 
 
@@ -351,10 +410,13 @@ def markdown(data: ReportData, doc: dict) -> str:
     for name, title in zip(FIGURES, titles):
         lines.append(f"- [{title}]({name})")
     f = data.final
-    lines += ["", "## Final estimate", "", "| f0 [Hz] | zeta | valid | from |", "|---:|---:|:---:|---|",
+    valid = {True: "yes", False: "no", None: "unknown"}[f.get("valid")]
+    lines += ["", "## Final estimate", "", "| f0 [Hz] | zeta [-] | valid | from |", "|---:|---:|:---:|---|",
               f"| {fmt(f.get('f0_hz'), '.3f')} | {fmt(f.get('zeta'), '.4f')} "
-              f"| {'yes' if f.get('valid') else 'no'} | {f.get('source', '')} |"]
-    lines += _section("Baselines", "| band [rpm] | load [Nm] | f0 [Hz] | std f0 [Hz] | zeta | std zeta | count "
+              f"| {valid} | {f.get('source', '')} |"]
+    if f.get("why"):
+        lines += ["", f"Valid: {valid}: {f['why']}."]
+    lines += _section("Baselines", "| band [rpm] | load [Nm] | f0 [Hz] | std f0 [Hz] | zeta [-] | std zeta [-] | count "
                       "| status | learned from | spread / estimator uncertainty |",
                       "|---|---:|---:|---:|---:|---:|---:|:---:|---|---:|", "No baseline learned yet.", [
                           f"| {b['band_rpm'][0]:.0f}-{b['band_rpm'][1]:.0f} | {fmt(b['load_nm'], '.1f')} "
@@ -393,8 +455,10 @@ def write_report(data: ReportData, out: Path) -> list[Path]:
             marks.append(AlertMark(data.active_alarm["since_t_s"], 0, "onset of the active alarm"))
         label = ("time from the first sample [s]" if data.kind == "can_log" else
                  f"time from {summary_t0(data)} [s]" if data.t0_s > EPOCH_S else "stream time [s]")
+        learned = (None if data.learned_t_s is None else
+                   [data.learned_t_s.get(cell_key(b), math.inf) for b in data.baselines])
         plot_tracks_over_time(paths[2], data.estimates, data.tracks, data.baselines, marks, label,
-                              title=f"driveline estimate over time, {name}")
+                              title=f"driveline estimate over time, {name}", learned_t_s=learned)
         doc = summary(data)
         paths.append(out / "report.json")
         paths[-1].write_text(json.dumps(_plain(doc), indent=2, allow_nan=False) + "\n", encoding="utf-8")
