@@ -279,3 +279,15 @@ def test_fleet_says_in_one_line_when_the_broker_is_not_there(cli_error):
 
     err = cli_error(["fleet", "--broker", f"127.0.0.1:{free_port()}", "--once", "--wait", "1"])
     assert "cannot reach broker 127.0.0.1" in err
+
+
+def test_the_example_mqtt_section_of_deploy_config_is_valid(tmp_path):
+    from pathlib import Path
+
+    text = (Path(__file__).parent.parent / "deploy" / "config.yaml").read_text()
+    block = text[text.index("# mqtt:"):].splitlines()
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("\n".join(line.replace("# ", "", 1) for line in block if line.startswith("#")) + "\n")
+    m = load_config(cfg).mqtt
+    assert (m.host, m.port, m.bench, m.tls, m.password_file) == (
+        "broker.plant.local", 8883, "bench-07", True, "mqtt-password")
