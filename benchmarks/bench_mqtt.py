@@ -17,9 +17,10 @@ mosquitto).  Three runtimes process the same simulated bench (1 kHz samples,
 
 Enqueue: the hook alone, ``MqttTelemetry.publish`` with what the pipeline
 publishes at each 10 Hz tick (an estimate, a quality, a status), ``--calls``
-calls per sink in blocks of 100, the sinks taking turns (order rotating),
-20 ms between blocks so that the ``up`` sender keeps up as it would at the
-service's rates (the ``down`` buffer fills and then drops the oldest).
+calls per sink in blocks of 100, the sinks taking turns (order rotating);
+between blocks (not timed) the ``up`` sender empties its buffer, as it keeps
+up at the service's rates, while the ``down`` buffer fills and then drops
+the oldest.
 
 Receive loop: the frames go through ``Runtime.on_frame`` (what the
 service's receive loop calls) in blocks of ``--block`` frames, the three
@@ -110,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
                 for name in (("up", "down") if k % 2 == 0 else ("down", "up")):
                     for _ in range(100):
                         direct[name](tick)
-                time.sleep(0.02)
+                wait_for(lambda: sinks["up"].idle(), 10)  # not timed: the up sender empties its buffer
             runtimes, hooks, per_frame = {}, {}, {}
             for name in ("up", "down", "none"):
                 rt = Runtime(Settings(), worker=InlineWorker())

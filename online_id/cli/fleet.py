@@ -16,7 +16,7 @@ import sys
 import threading
 import time
 
-from online_id.errors import ConfigError, OnlineIdError, printable
+from online_id.errors import ConfigError, printable
 
 
 class Fleet:
@@ -146,11 +146,10 @@ def run(args: argparse.Namespace) -> int:
             while True:
                 if tty:
                     print("\x1b[H\x1b[2J", end="")
-                print(fleet.table(time.time()), flush=True)
-                if not tty:
-                    print()
+                print(fleet.table(time.time()))
+                if sub.fault:  # the view stays, with what is wrong under it; paho keeps reconnecting
+                    print(printable(sub.fault))
+                print("" if not tty else f"(every {args.interval:g} s; Ctrl-C ends)", flush=True)
                 time.sleep(max(0.1, args.interval))
-                if sub.fault:
-                    raise OnlineIdError(sub.fault)
         except KeyboardInterrupt:
             return 0
