@@ -20,7 +20,7 @@ from typing import Any, Literal
 import yaml
 
 from online_id.estimation.settings import IdentificationSettings, InertiaSettings
-from online_id.errors import ConfigError
+from online_id.errors import ConfigError, FieldError
 
 OUTPUT_MESSAGE_NAMES = ("OidEstimate", "OidShaft", "OidQuality", "OidStatus", "OidAlert", "OidExcitation")
 """Output messages whose IDs ``publish.frame_ids`` may change (those of ``online_id.io.dbc_output``)."""
@@ -28,7 +28,7 @@ OUTPUT_MESSAGE_NAMES = ("OidEstimate", "OidShaft", "OidQuality", "OidStatus", "O
 __all__ = [
     "ColumnSettings", "UnitSettings", "InertiaSettings", "IdentificationSettings", "BusSettings", "RoleSettings",
     "MappingSettings", "InputSettings", "ModelSettings", "PublishSettings", "StateSettings", "ExcitationSettings",
-    "DetectionSettings", "AlertSettings", "CommandSettings", "Settings", "load_config", "settings_from_dict",
+    "DetectionSettings", "AlertSettings", "CommandSettings", "MqttSettings", "Settings", "load_config", "settings_from_dict",
 ]
 
 
@@ -194,6 +194,63 @@ class AlertSettings:
     command_timeout_s: float = 10.0
 
 
+def _topic_level(key: str, value: str | None, slashes: bool = False) -> None:
+    if value is not None and (not value or any(c in value for c in "+#\0") or (not slashes and "/" in value)):
+        raise FieldError(key, value, "expected a non-empty MQTT topic level without '+', '#'"
+                         + ("" if slashes else " or '/'"))
+
+
+@dataclass(frozen=True)
+class MqttSettings:
+    """MQTT telemetry (``online_id.io.mqtt``): off unless ``host`` is set.
+
+    The password comes from one of ``password_file`` (a relative path is
+    looked up in ``$CREDENTIALS_DIRECTORY``, systemd's ``LoadCredential=``),
+    ``password_env`` (the name of an environment variable) or ``password``.
+    """
+
+    host: str | None = None
+    port: int | None = None  # default 1883, 8883 with tls
+    bench: str | None = None  # topic level of this bench; default: the host name
+    topic_prefix: str = "online-id"
+    client_id: str | None = None  # default online-id-<bench>
+    username: str | None = None
+    password: str | None = None
+    password_file: str | None = None
+    password_env: str | None = None
+    tls: bool = False
+    ca_file: str | None = None  # default: the system's CA certificates
+    cert_file: str | None = None  # client certificate (with key_file)
+    key_file: str | None = None
+    qos: int = 1  # estimate, quality, status; alerts are sent with at least QoS 1
+    keepalive_s: float = 30.0
+    buffer_messages: int = 10000
+    reconnect_max_s: float = 30.0
+
+    def __post_init__(self) -> None:
+        if self.port is not None and not 1 <= self.port <= 65535:
+            raise FieldError("port", self.port, "expected a TCP port 1..65535")
+        _topic_level("bench", self.bench)
+        _topic_level("topic_prefix", self.topic_prefix, slashes=True)
+        given = [k for k in ("password", "password_file", "password_env") if getattr(self, k) is not None]
+        if len(given) > 1:
+            raise FieldError(given[1], getattr(self, given[1]), f"give only one of password, password_file, "
+                             f"password_env (also set: {given[0]})")
+        if given and self.username is None:
+            raise FieldError("username", None, f"mqtt.{given[0]} needs a user name")
+        for key in ("ca_file", "cert_file", "key_file"):
+            if getattr(self, key) is not None and not self.tls:
+                raise FieldError(key, getattr(self, key), "needs mqtt.tls: true")
+        if (self.cert_file is None) != (self.key_file is None):
+            raise FieldError("key_file" if self.key_file is None else "cert_file", None,
+                             "a client certificate needs both mqtt.cert_file and mqtt.key_file")
+        if self.qos not in (0, 1, 2):
+            raise FieldError("qos", self.qos, "expected 0, 1 or 2")
+        for key in ("keepalive_s", "reconnect_max_s", "buffer_messages"):
+            if not getattr(self, key) > 0:
+                raise FieldError(key, getattr(self, key), "expected a number > 0")
+
+
 @dataclass(frozen=True)
 class Settings:
     """Everything a config file can set."""
@@ -213,6 +270,7 @@ class Settings:
     detection: DetectionSettings = field(default_factory=DetectionSettings)
     alerts: AlertSettings = field(default_factory=AlertSettings)
     commands: CommandSettings = field(default_factory=CommandSettings)
+    mqtt: MqttSettings = field(default_factory=MqttSettings)
 
 
 def _describe(tp: Any) -> str:

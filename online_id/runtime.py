@@ -66,9 +66,12 @@ class Runtime:
         self._remap = ids
         self.frames_in = 0
         self.frames_out = 0
+        self.on_publish: Any = None  # also hand every list of publications here (the service's telemetry)
 
     def frames(self, pubs: list[Publication]) -> list[OutFrame]:
         out: list[OutFrame] = []
+        if self.on_publish is not None:
+            self.on_publish(pubs)
         for pub in pubs:
             for ident, data in self.encoder.encode(pub):
                 out.append((self._remap.get(ident, ident), data))

@@ -84,6 +84,11 @@ class Service:
         self._restore()
         self._n_alerts = self.runtime.pipeline.alerts_total
         self.runtime.pipeline.warm_up()  # compiled code loaded before the bus opens, not on the first frames
+        self.telemetry = None
+        if settings.mqtt.host:  # MQTT telemetry: publications queued here, sent by its own threads
+            from online_id.io.mqtt import MqttTelemetry
+            self.telemetry = MqttTelemetry(settings.mqtt, self.say)
+            self.runtime.on_publish = self.telemetry.publish
 
     # -- state ---------------------------------------------------------------------------------------
     def say(self, text: str) -> None:
@@ -200,6 +205,10 @@ class Service:
             self.say(f"state {text}")
             self.notifier.status(text)
 
+    def _close_telemetry(self) -> None:
+        if self.telemetry is not None:
+            self.telemetry.close(self.runtime.pipeline.state.name)
+
     def _check_drops(self, bus: CanBus) -> None:
         """Add the kernel's new drops (full receive buffer) to the counters, and say so."""
         total = bus.dropped()
@@ -225,6 +234,7 @@ class Service:
         except BusError as err:
             self.say(f"bus down: {err}")
             self.runtime.pipeline.worker.close()
+            self._close_telemetry()
             return 2 if getattr(err, "permanent", False) else 1
         rcvbuf = getattr(bus, "receive_buffer_bytes", None)
         self.say(f"listening on {s.bus.interface}:{s.bus.channel}"
@@ -300,6 +310,7 @@ class Service:
             self.notifier.stopping()
             bus.close()
             self.runtime.pipeline.worker.close()
+            self._close_telemetry()
         self.save(final=True)
         c = self.runtime.pipeline.counters
         self.say(f"stopped: {self.runtime.frames_in} frames in, {self.runtime.frames_out} frames out, "
