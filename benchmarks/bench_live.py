@@ -5,7 +5,7 @@ Usage::
     python benchmarks/bench_live.py [--latency-s 60] [--rate-s 30] [--speeds 1,2,3,4] [--cpu 0] [--out DIR]
 
 ``online-id run`` runs as its own process, pinned to one core (``taskset -c
-CPU``; its worker process inherits the pin and runs there at SCHED_IDLE),
+CPU``; its worker process inherits the pin and runs there at nice +5),
 on python-can's ``udp_multicast`` bus: kernel UDP sockets between processes
 with a finite receive buffer, which drop frames when the reader falls behind
 (counted with SO_MEMINFO, as on SocketCAN).  A sender process (pinned to
