@@ -62,8 +62,8 @@ def test_huge_values_are_refused_at_the_input(tmp_path, cli_error, column, value
     cells[lines[0].split(",").index(column)] = repr(value)
     lines[5] = ",".join(cells)
     path.write_text("\n".join(lines) + "\n")
-    for argv in (["identify", str(path)], ["identify", str(path), "--recursive"]):
-        err = cli_error(argv)  # was: "std inf Nm", or exit 0 with --recursive
+    for argv in (["identify", str(path)], ["identify", str(path), "--recursive"], ["diagnose", str(path)]):
+        err = cli_error(argv)  # was: "std inf Nm", exit 0 with --recursive, a traceback from diagnose
         assert "b.csv:6" in err and column in err and "beyond any bench" in err
 
 
@@ -110,6 +110,7 @@ def test_output_paths_are_checked_before_the_work(tmp_path, cli_error):
     assert "afile" in cli_error(["identify", str(tmp_path / "none.csv"), "--plot", str(afile / "p.png")])
     assert "afile" in cli_error(["report", str(tmp_path / "none.log"), "--out", str(afile / "r")])
     assert "afile" in cli_error(["convert", str(tmp_path / "none.csv"), str(afile / "x.log")])
+    assert "afile" in cli_error(["diagnose", str(tmp_path / "none.csv"), "--report", str(afile / "d")])
     assert "afile" in cli_error(["simulate", "--out", str(tmp_path / "b.csv"), "--can-log", str(afile / "x.log")])
     assert not (tmp_path / "b.csv").exists()  # was: CSV and truth written, then the CAN log failed
 

@@ -26,6 +26,7 @@ from online_id.cli.diagnose_bench_report import bench_text, write_bench_report
 from online_id.diagnose.effects import shaft_angle
 from online_id.errors import ConfigError, InputDataError
 from online_id.io.table_csv import read_csv_columns
+from online_id.io.outfile import check_output
 from online_id.report import TerminalProgress
 
 BENCH_ORDERS = (8, 8, 8, 0)
@@ -279,6 +280,8 @@ def plot_residuals(d: Diagnosis, out: Path) -> list[Path]:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.report:
+        check_output(args.report, "report", directory=True)  # before the work, not after it
     if is_bench(args):
         result, text, writer = run_bench(args), bench_text, write_bench_report
     else:
