@@ -52,7 +52,7 @@ THRESHOLDS = {
     "fixed_frequency_disturbance": 0.005,
     "additional_mode": 0.1175,
     "backlash": 0.005,
-    "sensor_delay": 0.005,
+    "sensor_delay": 0.5,
     "coulomb_friction": 0.0136,
 }
 
