@@ -13,8 +13,9 @@ import pytest
 
 from online_id.bench import simulate_bench
 from online_id.bench.diagnose_cases import make_case
-from online_id.bench.scenario import (BenchScenario, Effects, OperatingPoint, OrderTorque,
-                                      SensorDelay, SinusoidalDisturbance, StructuralResonance)
+from online_id.bench.scenario import (BenchScenario, CouplingFriction, Effects, OperatingPoint,
+                                      OrderTorque, SensorDelay, SinusoidalDisturbance,
+                                      StructuralResonance, ThirdInertia)
 from online_id.cli import main
 from online_id.diagnose.bench_data import causal_path, filter_decimate, prepare
 from online_id.diagnose.bench_diagnosis import THRESHOLDS, diagnose_bench
@@ -102,7 +103,28 @@ def test_fixed_frequency_disturbance_is_not_a_mode(plant, seed, freq_hz, resonan
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", [11, 12])
+@pytest.mark.parametrize("plant, seed, f_hz", [("a", 13, 60.0), ("b", 14, 85.0)])
+def test_second_mode_is_a_mode(plant, seed, f_hz):
+    J2 = PLANTS[plant]["J2"]
+    J3 = 0.25 * J2
+    jr = J2 * J3 / (J2 + J3)
+    w = 2 * np.pi * f_hz
+    sc = BenchScenario(operating_points=POINTS, seed=seed, **PLANTS[plant],
+                       third_inertia=ThirdInertia(J3, w**2 * jr, 2 * 0.04 * w * jr))
+    c = first(diagnose_bench(series_of(sc), max_effects=1))
+    assert c.kind == "additional_mode"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("plant, seed", [("a", 15), ("b", 16)])
+def test_coupling_coulomb_friction(plant, seed):
+    sc = BenchScenario(operating_points=POINTS, seed=seed, **PLANTS[plant],
+                       effects=Effects(coupling_friction=CouplingFriction(3.0)))
+    assert first(diagnose_bench(series_of(sc), max_effects=1)).kind == "coulomb_friction"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [11, 12, 13])
 def test_clean_randomised_benches_report_nothing(seed):
     case = make_case("clean", seed, plateau_s=(12.0, 13.0))
     r = diagnose_bench(series_of(case.scenario), max_effects=1)
@@ -152,3 +174,29 @@ def test_speed_transfer_delay_fit(fa_hz, zeta, tau_s):
     tau, v1, v0 = fit_ratio_delay(f, T, np.ones(f.size), 0.012)
     assert tau == pytest.approx(tau_s, abs=2e-4)
     assert v1 <= v0
+
+
+def test_evaluate_diagnose_resummarises_earlier_cases(tmp_path, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    delay = {"gain": 0.3, "t": 9.0, "params": {"signal": "dyno_speed", "delay_s": 3e-4, "heldout_gain": 0.0}}
+    clean = {"case": "clean-100000", "kind": "clean", "magnitude": 0.0, "truth": {"kind": "clean"},
+             "best": {"backlash": {"gain": 0.02, "t": 4.0, "params": {"gap_rad": 1e-3}}}}
+    (run / "calibration.jsonl").write_text(json.dumps(clean) + "\n")
+    cases = [{**clean, "case": "clean-1", "best": {"sensor_delay": delay}},
+             {"case": "sensor_delay-1", "kind": "sensor_delay", "magnitude": 0.5,
+              "truth": {"kind": "sensor_delay", "signal": "dyno_speed", "delay_s": 0.004},
+              "best": {"sensor_delay": {**delay, "gain": 4.2,
+                                        "params": {**delay["params"], "delay_s": 0.0042}}}}]
+    (run / "cases.jsonl").write_text("".join(json.dumps(c) + "\n" for c in cases))
+    out = tmp_path / "final"
+    assert main(["evaluate-diagnose", "--cases", "0", "--include", str(run),
+                 "--calibration-from", str(run), "--out", str(out)]) == 0
+    thr = json.loads((out / "thresholds.json").read_text())
+    assert thr["backlash"] == pytest.approx(0.022) and thr["sensor_delay"] == 0.5  # 1.1 x; the ms floor
+    kinds = {r["case"]: r["named"] for r in json.loads((out / "diagnose_evaluation.json").read_text())
+             ["summary"]["cases"]}
+    assert kinds == {"clean-1": "clean", "sensor_delay-1": "sensor_delay"}  # 0.3 ms is below the floor
+    assert "2 test and 1 calibration cases" in capsys.readouterr().out
+    assert main(["evaluate-diagnose", "--cases", "0", "--out", str(out)]) != 0
+    assert "--cases (0 only with --include)" in capsys.readouterr().err
