@@ -30,7 +30,9 @@ _N_CHUNKS = 20
 class BenchRecord:
     """Measured bench signals (one value per sample) and the simulation truth.
 
-    ``dyno_torque_nm`` is the torque the dyno applies, positive = braking.
+    ``dyno_torque_nm`` is the torque the dyno applies, positive = braking;
+    ``test_torque_nm`` is the PRBS torque demand added to the controller's
+    output (a bench records it as the demand; not a CSV column).
     """
 
     time_s: np.ndarray
@@ -38,6 +40,7 @@ class BenchRecord:
     engine_speed_rpm: np.ndarray
     dyno_torque_nm: np.ndarray
     truth: dict[str, Any] = field(default_factory=dict)
+    test_torque_nm: np.ndarray | None = None
 
     def to_data(self, source: str) -> BenchData:
         """The signals in SI units (rad/s, Nm) as identification and the pipeline take them."""
@@ -232,6 +235,7 @@ def simulate_bench(
         engine_speed_rpm=_quantise(engine_rpm, res.speed_resolution_rpm),
         dyno_torque_nm=_quantise(torque, res.torque_resolution_nm),
         truth=bench_truth(s, plateaus, gains, delays),
+        test_torque_nm=u_test,
     )
 
 

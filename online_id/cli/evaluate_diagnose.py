@@ -28,6 +28,9 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--include", metavar="DIR", action="append", default=[],
                    help="also summarise the finished test cases of an earlier run (its cases.jsonl); "
                    "give the same --thresholds")
+    p.add_argument("--calibration-from", metavar="DIR",
+                   help="calibrate on the clean benches of an earlier run (its calibration.jsonl) "
+                   "with today's rule instead of simulating them")
     p.add_argument("--out", metavar="DIR", default="diagnose-eval", help="output directory")
     p.set_defaults(func=run)
 
@@ -48,13 +51,21 @@ def _progress(label: str, sink: Path):
     return report
 
 
+def _read_cases(path: Path) -> list[dict]:
+    try:
+        return [json.loads(x) for x in path.read_text(encoding="utf-8").splitlines() if x.strip()]
+    except (OSError, ValueError) as err:
+        raise ConfigError(f"{path}: cannot read earlier cases: {err}") from err
+
+
 def run(args: argparse.Namespace) -> int:
     from online_id import diagnose_evaluation as ev
     from online_id.bench.diagnose_cases import KINDS
 
     n_test, n_cal = (3, 6) if args.quick else (args.cases, args.calibration_cases)
-    if n_test < 1 or n_cal < 0 or args.jobs < 1:
-        raise ConfigError("--cases and --jobs must be >= 1, --calibration-cases >= 0")
+    if n_test < (0 if args.include else 1) or n_cal < 0 or args.jobs < 1:
+        raise ConfigError("--cases (0 only with --include) and --jobs must be >= 1, "
+                          "--calibration-cases >= 0")
     t0 = time.monotonic()
     calibration = []
     if args.thresholds:
@@ -62,6 +73,12 @@ def run(args: argparse.Namespace) -> int:
             thresholds = json.loads(Path(args.thresholds).read_text(encoding="utf-8"))
         except (OSError, ValueError) as err:
             raise ConfigError(f"{args.thresholds}: cannot read thresholds: {err}") from err
+    elif args.calibration_from:
+        calibration = _read_cases(Path(args.calibration_from) / "calibration.jsonl")
+        thresholds = ev.calibrate(calibration)
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+        (Path(args.out) / "thresholds.json").write_text(json.dumps(thresholds, indent=1) + "\n",
+                                                        encoding="utf-8")
     else:
         jobs = [("clean", ev.CALIBRATION_SEED0 + i) for i in range(n_cal)]
         calibration = ev.run_cases(jobs, args.jobs, _progress("calibration (clean benches)",
@@ -70,13 +87,10 @@ def run(args: argparse.Namespace) -> int:
         (Path(args.out) / "thresholds.json").write_text(json.dumps(thresholds, indent=1) + "\n",
                                                         encoding="utf-8")
     jobs = [(k, args.seed + i) for i in range(n_test) for k in KINDS]
-    results = ev.run_cases(jobs, args.jobs, _progress("test benches", Path(args.out) / "cases.jsonl"))
+    results = (ev.run_cases(jobs, args.jobs, _progress("test benches", Path(args.out) / "cases.jsonl"))
+               if jobs else [])
     for d in args.include:
-        try:
-            lines = (Path(d) / "cases.jsonl").read_text(encoding="utf-8").splitlines()
-            results += [json.loads(x) for x in lines if x.strip()]
-        except (OSError, ValueError) as err:
-            raise ConfigError(f"{d}/cases.jsonl: cannot read earlier cases: {err}") from err
+        results += _read_cases(Path(d) / "cases.jsonl")
     summary = ev.summarise(results, thresholds)
     summary["seconds"] = time.monotonic() - t0
     summary["command"] = " ".join(["online-id"] + sys.argv[1:]) if sys.argv else ""

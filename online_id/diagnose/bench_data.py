@@ -99,6 +99,7 @@ class BenchSeries:
     source: str = "<memory>"
     pulses_per_rev: float = 2.0
     meta: dict = field(default_factory=dict)
+    demand: np.ndarray | None = None  # the recorded test-torque demand (PRBS) [Nm], if any
 
     @property
     def fs_hz(self) -> float:
@@ -107,10 +108,17 @@ class BenchSeries:
 
 def prepare(time_s: np.ndarray, torque_nm: np.ndarray, dyno_rad_s: np.ndarray,
             engine_rad_s: np.ndarray, *, source: str = "<memory>", pulses_per_rev: float = 2.0,
-            target_hz: float = TARGET_FS_HZ) -> BenchSeries:
-    """Validate, filter causally, decimate and find the operating points of a bench record."""
+            target_hz: float = TARGET_FS_HZ, demand_nm: np.ndarray | None = None) -> BenchSeries:
+    """Validate, filter causally, decimate and find the operating points of a bench record.
+
+    ``demand_nm`` is the recorded test-torque demand (the PRBS), optional: an
+    external excitation the speed controller does not react to, used as the
+    instrument that tells a mode (excited by it) from a disturbance (not).
+    """
     t = np.asarray(time_s, dtype=float)
     cols = {"dyno torque": torque_nm, "dyno speed": dyno_rad_s, "engine speed": engine_rad_s}
+    if demand_nm is not None:
+        cols["torque demand"] = demand_nm
     arrays = {}
     for name, x in cols.items():
         x = np.asarray(x, dtype=float).ravel()
@@ -146,4 +154,4 @@ def prepare(time_s: np.ndarray, torque_nm: np.ndarray, dyno_rad_s: np.ndarray,
                              f"(dyno speed within {PLATEAU_TOL_RPM:g} rpm); a bench diagnosis "
                              "needs plateaus")
     return BenchSeries(dec[0], dec[1], dec[2], theta1[:n], theta2[:n], path, plateaus,
-                       source, pulses_per_rev)
+                       source, pulses_per_rev, demand=dec[3] if demand_nm is not None else None)

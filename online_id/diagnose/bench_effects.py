@@ -19,18 +19,26 @@ additional mode         one more pole pair (na, nb + 2) in one equation
 backlash                clip(twist - centre, +-gap/2) at the input lags in
                         both equations, judged against the linear twist
 coulomb friction        sign(y1 - y2) at the input lags in both equations
-sensor delay            one speed advanced by a fraction of a sample
+sensor delay            one speed advanced by a fraction of a sample; the
+                        delay is fitted to the engine-over-dyno speed
+                        transfer measured through the torque demand
 ======================  ==================================================
+
+A line fixed in Hz is told a mode or a disturbance by its coherence with
+the recorded torque demand (the PRBS): the speed controller reacts to a
+disturbance, so the measured torque is coherent with everything in the
+speeds, but the demand is not; a mode is excited by the demand, a
+disturbance is not (:func:`coherence_contrast`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import median_filter
+from scipy.ndimage import median_filter, uniform_filter1d
 from scipy.optimize import minimize_scalar
-from scipy.signal import coherence, find_peaks, iirpeak, lfilter, welch
+from scipy.signal import csd, find_peaks, iirpeak, lfilter, welch
 
 from online_id.diagnose.bench_model import (EQS, BenchFit, PlateauSignals, Spec, fit_plateau,
                                             fit_spec, plateau_signals)
@@ -42,6 +50,7 @@ WELCH_S = 2.0
 PEAK_MIN = 4.0      # average normalised PSD a line must reach to be screened
 N_LINES = 3         # lines of each type screened per equation
 BAND_Q = 8.0
+COH_SMOOTH_BINS = 5  # +-2 Hz at 1 Hz resolution
 LOCAL_BINS = {"hz": 121, "order": 41}  # running median over +-15 Hz, or +-0.2 orders
 
 
@@ -178,49 +187,63 @@ def order_candidates(lines: list[Line], fit: BenchFit) -> list[OrderTerm]:
     return out
 
 
-def input_coherence(fit: BenchFit, eq: str, freq_hz: float, half_width_hz: float = 2.0) -> float:
-    """Largest coherence between the residual of ``eq`` and the dyno torque near ``freq_hz``.
+def excitation_coherence(fit: BenchFit, eq: str) -> tuple[np.ndarray, np.ndarray]:
+    """Coherence between the residual of ``eq`` and the external excitation, pooled over plateaus.
 
-    A mode's line is driven by the measured motion, hence by the test torque;
-    an unmeasured narrow-band torque reaches the measured torque only through
-    the speed controller, weakly above its bandwidth.
+    The excitation is the recorded torque demand (the PRBS) when the series
+    has one, else the measured dyno torque.  Cross and auto spectra (Welch,
+    1 s segments) are summed over the plateaus, weighted by their length,
+    and smoothed over +-2 Hz before the ratio is formed.
     """
-    vals = []
+    sxy = sxx = syy = 0.0
     for p, r in zip(fit.plateaus, fit.eqs[eq].residuals):
-        f, c = coherence(r, p.u[p.rows], fs=p.fs_hz, nperseg=int(p.fs_hz))
-        band = np.abs(f - freq_hz) <= half_width_hz
-        if band.any():
-            vals.append(float(np.max(c[band])))
-    return float(np.mean(vals)) if vals else 0.0
+        x = (p.demand if p.demand is not None else p.u)[p.rows]
+        nper = int(p.fs_hz)
+        f, pxy = csd(x, r, fs=p.fs_hz, nperseg=nper)
+        _, pxx = welch(x, fs=p.fs_hz, nperseg=nper)
+        _, pyy = welch(r, fs=p.fs_hz, nperseg=nper)
+        sxy, sxx, syy = sxy + pxy * r.size, sxx + pxx * r.size, syy + pyy * r.size
+    sm = lambda a: uniform_filter1d(a, COH_SMOOTH_BINS)  # noqa: E731
+    return f, np.abs(sm(sxy.real) + 1j * sm(sxy.imag)) ** 2 / np.maximum(sm(sxx) * sm(syy), 1e-300)
+
+
+def driveline_resonance_hz(fit: BenchFit) -> float:
+    """The declared driveline mode: the peak of the excitation-to-twist-speed transfer.
+
+    ``|S_{x,y_1 - y_2}| / S_{xx}`` from Welch spectra pooled over the
+    plateaus (``x`` the excitation of :func:`excitation_coherence`), maximal
+    between 3 Hz and 0.4 ``fs``.  A residual line there is the baseline
+    misfitting the mode it already has, not an additional one.
+    """
+    sxz = sxx = 0.0
+    for p in fit.plateaus:
+        x = (p.demand if p.demand is not None else p.u)[p.rows]
+        z = (p.y1 - p.y2)[p.rows]
+        f, pxz = csd(x, z, fs=p.fs_hz, nperseg=int(p.fs_hz))
+        _, pxx = welch(x, fs=p.fs_hz, nperseg=int(p.fs_hz))
+        sxz, sxx = sxz + pxz * z.size, sxx + pxx * z.size
+    band = (f >= 3.0) & (f <= 0.4 * fit.plateaus[0].fs_hz)
+    h = np.abs(sxz) / np.maximum(sxx, 1e-300)
+    return float(f[band][np.argmax(h[band])])
+
+
+def coherence_contrast(f: np.ndarray, coh: np.ndarray, freq_hz: float) -> float:
+    """Coherence at ``freq_hz`` over the median coherence of its neighbourhood.
+
+    A mode's line is driven by the excitation through the measured motion:
+    the residual there stays as coherent with the excitation as around it
+    (contrast near or above 1).  An unmeasured narrow-band torque adds power
+    that the excitation does not explain: the coherence dips at the line
+    (contrast well below 1).  The neighbourhood is +-15 Hz without +-3 Hz.
+    """
+    i = int(np.argmin(np.abs(f - freq_hz)))
+    d = np.abs(f - freq_hz)
+    ring = (d > 3.0) & (d <= 15.0) & (f > 1.0)
+    ref = float(np.median(coh[ring])) if ring.any() else 0.0
+    return float(coh[i] / ref) if ref > 0 else 0.0
 
 
 # -- searches ---------------------------------------------------------------------
-
-def est_loss(series: BenchSeries, spec: Spec, base: BenchFit) -> float:
-    """Estimation-block loss of ``spec``: both equations, each relative to ``base``."""
-    fit = fit_spec(series, spec)
-    total = 0.0
-    for eq in EQS:
-        e_new = np.concatenate([r[p.est] for r, p in zip(fit.eqs[eq].residuals, fit.plateaus)])
-        e_old = np.concatenate([r[p.est] for r, p in zip(base.eqs[eq].residuals, base.plateaus)])
-        total += float(np.mean(e_new**2) / np.mean(e_old**2))
-    return total
-
-
-def search_delay(series: BenchSeries, spec: Spec, base: BenchFit, signal: str,
-                 max_samples: float) -> Spec:
-    """Fractional advance of one speed (``dyno`` or ``engine``) minimising the estimation loss."""
-    attr = "shift_dyno" if signal == "dyno" else "shift_engine"
-    start = getattr(spec, attr)
-    loss = lambda d: est_loss(series, replace(spec, **{attr: start + d}), base)  # noqa: E731
-    grid = np.arange(0.5, max_samples + 1e-9, 0.5)
-    values = [loss(d) for d in grid]
-    i = int(np.argmin(values))
-    res = minimize_scalar(loss, bounds=(max(grid[i] - 0.5, 0.05), grid[i] + 0.5), method="bounded",
-                          options={"xatol": 0.02})
-    d = float(res.x) if res.fun < values[i] else float(grid[i])
-    return replace(spec, **{attr: start + d})
-
 
 def search_backlash(series: BenchSeries, spec: Spec) -> TwistTerm:
     """Gap (shared) and dead-zone centre (per plateau) by grid search on the estimation blocks."""
@@ -245,3 +268,86 @@ def search_backlash(series: BenchSeries, spec: Spec) -> TwistTerm:
         best = min(best, (total, (float(gap), tuple(centers))), key=lambda b: b[0])
     gap, centers = best[1]
     return TwistTerm(gap, centers, spec.nb)
+
+
+# -- sensor delay from the excitation's transfers -----------------------------------
+
+DELAY_BAND_HZ = (2.0, 0.3)  # lowest frequency [Hz], highest as a fraction of fs
+DELAY_GRID_S = 2e-4
+
+
+def speed_ratio_frf(p: PlateauSignals) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``T = S_{x y_2} / S_{x y_1}`` (engine over dyno speed) with the excitation ``x`` as instrument.
+
+    Returns frequencies, ``T`` and a weight (the coherence of ``x`` with the
+    dyno speed).  Noise on either speed and the controller's reaction to it
+    are uncorrelated with the test-torque demand, so ``T`` is unbiased by
+    both; the causal FIR acts on both speeds alike and cancels.
+    """
+    x = (p.demand if p.demand is not None else p.u)[p.rows]
+    y1, y2 = p.y1[p.rows], p.y2[p.rows]
+    nper = int(p.fs_hz)
+    f, s1 = csd(x, y1, fs=p.fs_hz, nperseg=nper)
+    _, s2 = csd(x, y2, fs=p.fs_hz, nperseg=nper)
+    _, sxx = welch(x, fs=p.fs_hz, nperseg=nper)
+    _, s11 = welch(y1, fs=p.fs_hz, nperseg=nper)
+    band = (f >= DELAY_BAND_HZ[0]) & (f <= DELAY_BAND_HZ[1] * p.fs_hz)
+    w = np.abs(s1) ** 2 / np.maximum(sxx * s11, 1e-300)
+    return f[band], (s2 / np.where(s1 == 0, 1e-300, s1))[band], w[band]
+
+
+def _ratio_misfit(f: np.ndarray, T: np.ndarray, w: np.ndarray, tau: float) -> float:
+    """Weighted misfit of ``T e^{s tau}`` to the shaft's ``(b s + a) / (s^2 + b s + a)``.
+
+    Given ``tau`` the model is linear in ``a`` (``c_s / J_2``) and ``b``
+    (``d_s / J_2``): ``(tc - 1)(b s + a) = -tc s^2``.
+    """
+    s = 2j * np.pi * f
+    tc = T * np.exp(s * tau)
+    sw = np.sqrt(w)
+    m = np.column_stack(((tc - 1) * s, tc - 1)) * sw[:, None]
+    rhs = -tc * s**2 * sw
+    a_ri = np.vstack((m.real, m.imag))
+    b_ri = np.concatenate((rhs.real, rhs.imag))
+    scale = np.maximum(np.linalg.norm(a_ri, axis=0), 1e-300)
+    coef, *_ = np.linalg.lstsq(a_ri / scale, b_ri, rcond=None)
+    b, a = coef / scale
+    model = (b * s + a) / (s**2 + b * s + a)
+    return float(np.sum(w * np.abs(tc - model) ** 2) / np.sum(w * np.abs(tc) ** 2))
+
+
+def fit_ratio_delay(f: np.ndarray, T: np.ndarray, w: np.ndarray, max_s: float) -> tuple[float, float, float]:
+    """Delay ``tau`` [s] of the engine speed relative to the dyno speed; misfits at ``tau`` and 0.
+
+    ``tau > 0``: the engine speed lags (its sensor is late); ``tau < 0``: the
+    dyno speed lags by ``-tau``.  Grid search, then a bounded refinement.
+    """
+    grid = np.arange(-max_s, max_s + 1e-12, DELAY_GRID_S)
+    vals = np.array([_ratio_misfit(f, T, w, t) for t in grid])
+    i = int(np.argmin(vals))
+    res = minimize_scalar(lambda t: _ratio_misfit(f, T, w, t), method="bounded",
+                          bounds=(grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]),
+                          options={"xatol": 1e-6})
+    tau, v = (float(res.x), float(res.fun)) if res.fun < vals[i] else (float(grid[i]), float(vals[i]))
+    return tau, v, _ratio_misfit(f, T, w, 0.0)
+
+
+def transfer_delay(ps: list[PlateauSignals], max_s: float) -> dict:
+    """The relative speed delay from the transfer pooled over the plateaus, with a jackknife t.
+
+    ``t`` is ``|tau|`` over its leave-one-plateau-out (jackknife) standard
+    error; ``misfit_share`` the share of the transfer misfit the delay removes.
+    """
+    fr = [speed_ratio_frf(p) for p in ps]
+
+    def pooled(sel: list) -> tuple[float, float, float]:
+        wsum = np.sum([w for _, _, w in sel], axis=0)
+        T = np.sum([T * w for _, T, w in sel], axis=0) / np.maximum(wsum, 1e-300)
+        return fit_ratio_delay(sel[0][0], T, wsum / len(sel), max_s)
+
+    tau, v1, v0 = pooled(fr)
+    n = len(fr)
+    jk = np.array([pooled(fr[:i] + fr[i + 1:])[0] for i in range(n)]) if n > 2 else np.array([tau])
+    se = float(np.sqrt((n - 1) / n * np.sum((jk - jk.mean()) ** 2))) if n > 2 else np.inf
+    return {"tau_s": tau, "misfit_share": 1.0 - v1 / v0 if v0 > 0 else 0.0,
+            "t": abs(tau) / se if se > 0 else 0.0, "jackknife_s": jk.tolist()}

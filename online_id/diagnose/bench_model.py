@@ -96,6 +96,7 @@ class PlateauSignals:
     rev_hz: float
     fs_hz: float
     declared: list = field(default_factory=list)
+    demand: np.ndarray | None = None  # recorded torque demand (PRBS) on the series grid
     cache: dict = field(default_factory=dict)  # (eq, na, nb) -> base regressors
     residual: dict = field(default_factory=dict)  # eq -> baseline residual on the full plateau span
 
@@ -151,7 +152,8 @@ def plateau_signals(series: BenchSeries, spec: Spec) -> list[PlateauSignals]:
         tw[span] = seg - uniform_filter1d(seg, int(TWIST_HIGHPASS_S * fs), mode="nearest")
         out.append(PlateauSignals(i, rows, ~val, val, series.torque, y1, y2, series.theta_dyno,
                                   series.theta_engine, np.arange(series.dyno.size) / fs, tw,
-                                  float(np.mean(series.engine[span])) / (2 * np.pi), fs))
+                                  float(np.mean(series.engine[span])) / (2 * np.pi), fs,
+                                  demand=series.demand))
         out[-1].declared = declared_orders(series, out[-1].rev_hz)
     return out
 
