@@ -61,7 +61,6 @@ WINDOW = "window"  # worker lane of the window refits and multi-start checks
 PHYSICAL = "physical"  # worker lane of the physical-parameter fit
 PENDING = None  # a multi-start check is running in the worker: decide later
 VERIFY_FRESH_S = 5.0  # a multi-start check older than this is not used for a decision
-PROVISIONAL = 0.5  # share of min_count after which a cell still learning serves detection (nothing else does)
 SPREAD_RATIO_REPORTED = 5.0  # a learned spread this many times the estimator's own uncertainty is reported
 
 
@@ -431,13 +430,13 @@ class Pipeline:
 
     def _baseline_for(self, speed: float, load: float, learning: bool = False) -> BandStats | None:
         """What an estimate is compared with: a learned cell or the pooled baseline of the learned cells;
-        before any cell is learned, the cell's own first estimates once it holds ``PROVISIONAL`` of
-        ``min_count``, else the pool of such cells (provisional: for detection their spread is doubled,
+        before any cell is learned, the cell's own first ``freeze_count`` estimates (frozen) once it holds
+        them, else the pool of such cells (provisional: for detection their spread is doubled,
         for the learning check, ``learning``, it is not)."""
         stats = self.baseline.lookup(speed, load)
         if stats is None:
-            n = math.ceil(PROVISIONAL * self.baseline.min_count)
-            stats = self.baseline.cell(speed, load)
+            n = self.baseline.freeze_count
+            stats = self.baseline.cell(speed, load, frozen=True)
             if stats is None or stats.count < n:
                 stats = self.baseline.pooled(speed, load, min_n=n)
             elif not learning:
