@@ -59,6 +59,9 @@ def test_summary_counts_false_alarms_and_delays():
         rr("stiffness -10 %", 250.0, t_fault_s=120.0, warning_delay_s=8.0, fault_delay_s=12.0),
         rr("stiffness -10 %", 250.0, t_fault_s=120.0, warning_delay_s=14.0),
         rr("stiffness -10 %", 250.0, t_fault_s=120.0),
+        ev.RunResult("damping +50 %", 2, 250.0, 25.0, 0.05, ["backlash"], t_fault_s=120.0, warning_delay_s=40.0),
+        ev.RunResult("damping +50 %", 3, 250.0, 25.0, 0.05, ["backlash", "sensor_delay"], t_fault_s=120.0),
+        ev.RunResult("damping +50 %", 4, 250.0, 25.0, 0.05, ["sensor_delay"], t_fault_s=120.0, warning_delay_s=30.0),
     ]
     s = ev.summarize(results)
     assert s["fault_free"]["hours"] == pytest.approx(1.5)
@@ -66,6 +69,9 @@ def test_summary_counts_false_alarms_and_delays():
     row = next(r for r in s["faults"] if r["case"] == "stiffness -10 %")
     assert (row["runs"], row["detected"], row["missed"], row["fault_level_reached"]) == (3, 2, 1, 1)
     assert row["warning_delay_s_median"] == pytest.approx(11.0) and row["warning_delay_s_worst"] == 14.0
+    damp = next(r for r in s["faults"] if r["case"] == "damping +50 %")  # per plant type
+    assert (damp["by_plant"]["backlash"]["runs"], damp["by_plant"]["backlash"]["detected"]) == (2, 1)
+    assert damp["by_plant"]["no backlash"]["warning_delay_s_median"] == 30.0 and "backlash" not in row["by_plant"]
 
 
 def test_friction_drift_changes_the_load_like_warming_oil():

@@ -356,16 +356,26 @@ def summarize(results: list[RunResult]) -> dict[str, Any]:
         rs = [r for r in results if r.case == label and r.family == fam]
         if not rs:
             continue
-        warn = [r.warning_delay_s for r in rs if r.warning_delay_s is not None]
         fault = [r.fault_delay_s for r in rs if r.fault_delay_s is not None]
         out["faults"].append({
-            "family": fam, "case": label, "runs": len(rs),
-            "detected": len(warn), "missed": len(rs) - len(warn),
-            "warning_delay_s_median": float(np.median(warn)) if warn else None,
-            "warning_delay_s_worst": float(max(warn)) if warn else None,
+            "family": fam, "case": label, **_detections(rs),
             "fault_delay_s_median": float(np.median(fault)) if fault else None,
             "fault_delay_s_worst": float(max(fault)) if fault else None,
             "fault_level_reached": len(fault),
             "false_alarms_before_fault": sum(r.false_alarms for r in rs),
+            # per plant type: a linear model fitted to a shaft with backlash is a mismatched model
+            "by_plant": {kind: _detections(sub) for kind in PLANT_TYPES
+                         if (sub := [r for r in rs if ("backlash" in r.effects) == (kind == "backlash")])},
         })
     return out
+
+
+PLANT_TYPES = ("backlash", "no backlash")
+
+
+def _detections(rs: list[RunResult]) -> dict[str, Any]:
+    """Runs, detections and warning delays (median, worst) of ``rs``."""
+    warn = [r.warning_delay_s for r in rs if r.warning_delay_s is not None]
+    return {"runs": len(rs), "detected": len(warn), "missed": len(rs) - len(warn),
+            "warning_delay_s_median": float(np.median(warn)) if warn else None,
+            "warning_delay_s_worst": float(max(warn)) if warn else None}

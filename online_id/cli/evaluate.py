@@ -67,15 +67,19 @@ def table(summary: dict) -> str:
         + ".",
         "",
         "| family | fault | runs | detected | warning delay median / worst [s] "
-        "| fault-level delay median / worst [s] | false alarms before the fault |",
-        "|---|---|---:|---:|---:|---:|---:|",
+        "| fault-level delay median / worst [s] | false alarms before the fault "
+        "| with backlash: detected, median [s] | without backlash: detected, median [s] |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in summary["faults"]:
+        by = r.get("by_plant", {})
+        plants = " | ".join(f"{p['detected']}/{p['runs']}, {fmt(p['warning_delay_s_median'], '.1f')}" if p else "-"
+                            for p in (by.get(kind) for kind in ev.PLANT_TYPES))
         lines.append(
             f"| {r.get('family', 'c')} | {r['case']} | {r['runs']} | {r['detected']} | {fmt(r['warning_delay_s_median'], '.1f')} / "
             f"{fmt(r['warning_delay_s_worst'], '.1f')} | {fmt(r['fault_delay_s_median'], '.1f')} / "
             f"{fmt(r['fault_delay_s_worst'], '.1f')} ({r['fault_level_reached']}/{r['runs']}) "
-            f"| {r['false_alarms_before_fault']} |")
+            f"| {r['false_alarms_before_fault']} | {plants} |")
     return "\n".join(lines)
 
 
