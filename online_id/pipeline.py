@@ -30,7 +30,7 @@ import numpy as np
 from online_id.assembly import AssembledSample, SampleAssembler
 from online_id.config import Settings
 from online_id.monitoring.baseline import Baseline, BandStats
-from online_id.monitoring.detection import FREQUENCY, Alarm, ChangeDetector, correlation_for_window
+from online_id.monitoring.detection import DAMPING, FREQUENCY, Alarm, ChangeDetector, correlation_for_window
 from online_id.estimation.model import ArmaxOrders
 from online_id.estimation.online import OnlineDriveline, OnlineEstimate, physical_parameters
 from online_id.estimation.window import solve
@@ -289,7 +289,7 @@ class Pipeline:
     def _physical_done(self, phys: DrivelineParameters | None, error: str | None) -> None:
         self._physical = phys if error is None else None
 
-    def _verify(self, purpose, t_s: float, starts: tuple = ()) -> bool | None:
+    def _verify(self, purpose, t_s: float, starts: tuple = (), prefer_last_within: float = 0.0) -> bool | None:
         """A multi-start refit of the window for ``purpose``: True/False (a fit adopted or not), or PENDING.
 
         With the inline worker the check runs at once; with the process
@@ -302,7 +302,7 @@ class Pipeline:
         if purpose in self._verify_running or self.worker.busy(WINDOW):
             return PENDING
         estimator = self.estimator
-        job = estimator.verify_job(starts)
+        job = estimator.verify_job(starts, prefer_last_within)
         if job is None:
             return False
 
@@ -510,7 +510,10 @@ class Pipeline:
         key = self.baseline.key(0.5 * (stats.band[0] + stats.band[1]))
         near = sorted(self._references, key=lambda k: abs(k - key))  # a pooled baseline: the nearest learned band's
         ref = self._references[near[0]] if near else None
-        if self._verify(("confirm", kind), t_s, (ref,)) is PENDING:
+        # damping: where the baseline's own minimum fits the window nearly as well as the best, the data do not
+        # tell them apart (a mismatched model, backlash, has nearly equal minima whose damping differs by 30-40 %)
+        tie = self.settings.detection.damping_tie_pct / 100.0 if kind == DAMPING else 0.0
+        if self._verify(("confirm", kind), t_s, (ref,), tie) is PENDING:
             return None
         est = self.estimator.estimate()
         if kind == FREQUENCY:
