@@ -644,7 +644,7 @@ class Pipeline:
 
 
 def run_bench_data(data, settings: Settings, progress=None, on_output=None, state: dict | None = None,
-                   run_label: str = "", worker=None) -> Pipeline:
+                   run_label: str = "", worker=None, reference: bool = False) -> Pipeline:
     """Feed bench data (a :class:`~online_id.records.BenchData`) through the pipeline, sample by sample.
 
     The values go through the same assembler and estimator as decoded frames
@@ -655,6 +655,7 @@ def run_bench_data(data, settings: Settings, progress=None, on_output=None, stat
     ``state``: a state of an earlier run to start from (``load_state(state,
     new_run=True)``); ``run_label`` marks the cells learned in this run.
     ``worker``: where slow work runs (default: inline, see :mod:`online_id.offload`).
+    ``reference``: cells learned now are a reference run's (as ``relearn --from``).
     """
     import dataclasses
 
@@ -665,6 +666,7 @@ def run_bench_data(data, settings: Settings, progress=None, on_output=None, stat
     if state is not None:
         pipe.load_state(state, new_run=True)
     pipe.run_label = run_label
+    pipe.reference_run = reference
     t = data.time_s
     cols = (("dyno_speed", data.dyno_speed_rad_s), ("engine_speed", data.engine_speed_rad_s),
             ("dyno_torque", data.dyno_torque_nm))
