@@ -128,3 +128,13 @@ def test_families_a_and_b_follow_how_benches_run():
         before = {round(p.speed_rpm, -2) for p in s.earlier.operating_points}
         now = {round(p.speed_rpm, -2) for p in s.scenario.operating_points}
         assert 120.0 <= s.earlier.duration_s and not before & now
+
+
+@pytest.mark.parametrize("plant_type", ["backlash", "no backlash"])
+def test_fault_plants_of_one_type(plant_type):
+    specs = ev.plan(0.0, 2, seed=3, families=("a", "b", "c"), cases=("damping +50 %", "damping -50 %"),
+                    plant_type=plant_type)
+    assert len(specs) == 3 * 2 * 2 and len({(s.family, s.seed) for s in specs}) == 6
+    assert all((s.scenario.effects.backlash is not None) == (plant_type == "backlash") for s in specs)
+    with pytest.raises(ValueError, match="plant_type"):
+        ev.plan(0.0, 1, plant_type="linear")

@@ -233,11 +233,13 @@ def fault_spec(seed: int, case: str) -> RunSpec:
 
 
 def plan(hours: float, fault_plants: int, seed: int = 1, families: tuple[str, ...] = ("c",),
-         cases: tuple[str, ...] | None = None) -> list[RunSpec]:
+         cases: tuple[str, ...] | None = None, plant_type: str = "any") -> list[RunSpec]:
     """Fault-free runs of up to an hour each, making ``hours`` in total (long dwells and short plateaus
     alternating when families (a) or (b) are asked for), and each fault case of each family on each plant.
 
-    ``cases``: only the fault cases with these labels (default: all).
+    ``cases``: only the fault cases with these labels (default: all). ``plant_type``: ``"any"``, or only
+    fault plants ``"backlash"`` or ``"no backlash"`` (the first ``fault_plants`` random plants of that type
+    in each family; about 30 % of them have backlash).
     """
     runs = []
     left = hours * 3600.0
@@ -247,16 +249,25 @@ def plan(hours: float, fault_plants: int, seed: int = 1, families: tuple[str, ..
         runs.append(fault_free_spec(seed * 1000 + k, min(3600.0, left), short=short and k % 2 == 0))
         left -= 3600.0
         k += 1
-    for p in range(fault_plants):
-        if "c" in families:
-            for case in FAULT_CASES:
-                if cases is None or case[0] in cases:
-                    runs.append(fault_spec(seed * 1000 + 500 + p, case[0]))
-        for family in ("a", "b"):
-            if family in families:
-                for case in FAMILY_CASES:
-                    if cases is None or case[0] in cases:
-                        runs.append(family_spec(seed * 1000 + 700 + p, case[0], family))
+    if plant_type not in ("any",) + PLANT_TYPES:
+        raise ValueError(f"plan: expected plant_type in any, {', '.join(PLANT_TYPES)}, but got {plant_type!r}")
+
+    def of_type(spec: RunSpec) -> bool:
+        return plant_type == "any" or (spec.scenario.effects.backlash is not None) == (plant_type == "backlash")
+
+    for family in ("c", "a", "b"):
+        if family not in families:
+            continue
+        table = FAULT_CASES if family == "c" else FAMILY_CASES
+        labels = [c[0] for c in table if cases is None or c[0] in cases]
+        make = ((lambda p, c: fault_spec(seed * 1000 + 500 + p, c)) if family == "c" else
+                (lambda p, c, f=family: family_spec(seed * 1000 + 700 + p, c, f)))
+        p = found = 0
+        while found < fault_plants and labels and p < 200 * max(fault_plants, 1):
+            if of_type(make(p, labels[0])):  # the plant is the same for every case of a family
+                runs.extend(make(p, c) for c in labels)
+                found += 1
+            p += 1
     return runs
 
 
