@@ -138,3 +138,15 @@ def test_fault_plants_of_one_type(plant_type):
     assert all((s.scenario.effects.backlash is not None) == (plant_type == "backlash") for s in specs)
     with pytest.raises(ValueError, match="plant_type"):
         ev.plan(0.0, 1, plant_type="linear")
+
+
+def test_damping_spread_and_change_of_a_run():
+    rng = np.random.default_rng(4)
+    t = np.arange(0.0, 200.0)
+    z = 0.05 * (1 + 0.02 * rng.standard_normal(t.size)) * np.where(t > 120.0, 1.5, 1.0)
+    r = ev.RunResult("damping +50 %", 1, 200.0, 25.0, 0.05, [], t_fault_s=120.0,
+                     zeta_trace=[[a, b] for a, b in zip(t, z)])
+    s = r.zeta_summary()
+    assert 1.0 < s["spread_pct"] < 3.0 and 45.0 < s["change_pct"] < 55.0
+    assert ev.RunResult("fault-free", 1, 10.0, 25.0, 0.05, []).zeta_summary() == {"spread_pct": None,
+                                                                                   "change_pct": None}

@@ -117,6 +117,18 @@ class RunResult:
     elapsed_s: float = 0.0
     family: str = "c"
     cells: list[dict[str, Any]] = field(default_factory=list)  # the baseline cells at the end
+    zeta_trace: list[list[float]] = field(default_factory=list)  # [t_s, zeta] of the valid estimates, 1 Hz (fault runs)
+
+    def zeta_summary(self) -> dict[str, float | None]:
+        """Spread of the healthy damping estimates (after 40 s, before any fault) and the change they show
+        from 15 s after the fault on, both relative to the healthy mean [%] (None where there are none)."""
+        z = np.asarray(self.zeta_trace, dtype=float).reshape(-1, 2)
+        t_fault = np.inf if self.t_fault_s is None else self.t_fault_s
+        pre = z[(z[:, 0] > 40.0) & (z[:, 0] < t_fault), 1]
+        post = z[z[:, 0] > t_fault + 15.0, 1]
+        mean = float(np.mean(pre)) if pre.size > 1 else None
+        return {"spread_pct": 100.0 * float(np.std(pre)) / mean if mean else None,
+                "change_pct": 100.0 * (float(np.mean(post)) / mean - 1.0) if mean and post.size else None}
 
     def as_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -310,9 +322,12 @@ def run(spec: RunSpec, settings: Settings | None = None) -> RunResult:
         if est is not None and any(isinstance(o, EstimateOut) for o in out):
             n_pub[0] += 1
             n_pub[1] += int(est.valid)
-            if est.valid and t_s >= next_err[0] and (spec.t_fault_s is None or t_s < spec.t_fault_s):
+            if est.valid and t_s >= next_err[0]:
                 next_err[0] = t_s + 1.0
-                res.f0_err_pct.append(round(100.0 * (est.f0_hz / res.f0_hz - 1.0), 4))
+                if spec.t_fault_s is not None:  # fault runs only: an hour of them would fill results.json
+                    res.zeta_trace.append([round(t_s, 1), round(est.zeta, 5)])
+                if spec.t_fault_s is None or t_s < spec.t_fault_s:
+                    res.f0_err_pct.append(round(100.0 * (est.f0_hz / res.f0_hz - 1.0), 4))
         # the operator acknowledges a false alarm after a while (a fault run is left latched)
         if (spec.t_fault_s is None and open_since[0] is not None and pipe.detector.active is not None
                 and t_s - open_since[0] >= ACK_AFTER_S):
@@ -387,6 +402,13 @@ PLANT_TYPES = ("backlash", "no backlash")
 def _detections(rs: list[RunResult]) -> dict[str, Any]:
     """Runs, detections and warning delays (median, worst) of ``rs``."""
     warn = [r.warning_delay_s for r in rs if r.warning_delay_s is not None]
+    zs = [r.zeta_summary() for r in rs]
+
+    def median(key: str) -> float | None:
+        v = [z[key] for z in zs if z[key] is not None]
+        return float(np.median(v)) if v else None
+
     return {"runs": len(rs), "detected": len(warn), "missed": len(rs) - len(warn),
             "warning_delay_s_median": float(np.median(warn)) if warn else None,
-            "warning_delay_s_worst": float(max(warn)) if warn else None}
+            "warning_delay_s_worst": float(max(warn)) if warn else None,
+            "zeta_spread_pct_median": median("spread_pct"), "zeta_change_pct_median": median("change_pct")}
