@@ -166,7 +166,8 @@ class DetectionSettings:
     h_fault: float = 16.0
     min_excitation_nm: float = 2.0
     min_freq_change_pct: float = 0.5
-    min_damping_change_pct: float = 40.0
+    min_damping_change_pct: float = 20.0
+    damping_tie_pct: float = 1.0
     settle_s: float = 20.0
     settle_detect_s: float = 10.0
 
@@ -452,7 +453,7 @@ def _check_service(s: Settings, file: str) -> None:
     d = s.detection
     positive("detection", d, "band_rpm", "load_band_nm", "min_count", "k", "h_warning", "h_fault")
     nonnegative("detection", d, "min_freq_change_pct", "min_damping_change_pct", "settle_s", "settle_detect_s",
-                "pool_tolerance_pct")
+                "pool_tolerance_pct", "damping_tie_pct")
     if d.min_count < 2:
         raise ConfigError(f"{file}: detection.min_count: expected an integer >= 2, got {d.min_count!r}")
     if d.h_fault < d.h_warning:

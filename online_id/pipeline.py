@@ -31,7 +31,7 @@ import numpy as np
 from online_id.assembly import AssembledSample, SampleAssembler
 from online_id.config import Settings
 from online_id.monitoring.baseline import Baseline, BandStats
-from online_id.monitoring.detection import FREQUENCY, Alarm, ChangeDetector, correlation_for_window
+from online_id.monitoring.detection import DAMPING, FREQUENCY, Alarm, ChangeDetector, correlation_for_window
 from online_id.estimation.model import ArmaxOrders
 from online_id.estimation.online import OnlineDriveline, OnlineEstimate, physical_parameters
 from online_id.estimation.window import RefitJob, solve
@@ -62,7 +62,6 @@ WINDOW = "window"  # worker lane of the window refits and multi-start checks
 PHYSICAL = "physical"  # worker lane of the physical-parameter fit
 PENDING = None  # a multi-start check is running in the worker: decide later
 VERIFY_FRESH_S = 5.0  # a multi-start check older than this is not used for a decision
-PROVISIONAL = 0.5  # share of min_count after which a cell still learning serves detection (nothing else does)
 SPREAD_RATIO_REPORTED = 5.0  # a learned spread this many times the estimator's own uncertainty is reported
 
 
@@ -307,7 +306,7 @@ class Pipeline:
     def _physical_done(self, phys: DrivelineParameters | None, error: str | None) -> None:
         self._physical = phys if error is None else None
 
-    def _verify(self, purpose, t_s: float, starts: tuple = ()) -> bool | None:
+    def _verify(self, purpose, t_s: float, starts: tuple = (), prefer_last_within: float = 0.0) -> bool | None:
         """A multi-start refit of the window for ``purpose``: True/False (a fit adopted or not), or PENDING.
 
         With the inline worker the check runs at once; with the process
@@ -320,7 +319,7 @@ class Pipeline:
         if purpose in self._verify_running or self.worker.busy(WINDOW):
             return PENDING
         estimator = self.estimator
-        job = estimator.verify_job(starts)
+        job = estimator.verify_job(starts, prefer_last_within)
         if job is None:
             return False
 
@@ -448,13 +447,13 @@ class Pipeline:
 
     def _baseline_for(self, speed: float, load: float, learning: bool = False) -> BandStats | None:
         """What an estimate is compared with: a learned cell or the pooled baseline of the learned cells;
-        before any cell is learned, the cell's own first estimates once it holds ``PROVISIONAL`` of
-        ``min_count``, else the pool of such cells (provisional: for detection their spread is doubled,
+        before any cell is learned, the cell's own first ``freeze_count`` estimates (frozen) once it holds
+        them, else the pool of such cells (provisional: for detection their spread is doubled,
         for the learning check, ``learning``, it is not)."""
         stats = self.baseline.lookup(speed, load)
         if stats is None:
-            n = math.ceil(PROVISIONAL * self.baseline.min_count)
-            stats = self.baseline.cell(speed, load)
+            n = self.baseline.freeze_count
+            stats = self.baseline.cell(speed, load, frozen=True)
             if stats is None or stats.count < n:
                 stats = self.baseline.pooled(speed, load, min_n=n)
             elif not learning:
@@ -528,7 +527,10 @@ class Pipeline:
         key = self.baseline.key(0.5 * (stats.band[0] + stats.band[1]))
         near = sorted(self._references, key=lambda k: abs(k - key))  # a pooled baseline: the nearest learned band's
         ref = self._references[near[0]] if near else None
-        if self._verify(("confirm", kind), t_s, (ref,)) is PENDING:
+        # damping: where the baseline's own minimum fits the window nearly as well as the best, the data do not
+        # tell them apart (a mismatched model, backlash, has nearly equal minima whose damping differs by 30-40 %)
+        tie = self.settings.detection.damping_tie_pct / 100.0 if kind == DAMPING else 0.0
+        if self._verify(("confirm", kind), t_s, (ref,), tie) is PENDING:
             return None
         est = self.estimator.estimate()
         if kind == FREQUENCY:
@@ -659,7 +661,7 @@ class Pipeline:
 
 
 def run_bench_data(data, settings: Settings, progress=None, on_output=None, state: dict | None = None,
-                   run_label: str = "", worker=None) -> Pipeline:
+                   run_label: str = "", worker=None, reference: bool = False) -> Pipeline:
     """Feed bench data (a :class:`~online_id.records.BenchData`) through the pipeline, sample by sample.
 
     The values go through the same assembler and estimator as decoded frames
@@ -670,6 +672,7 @@ def run_bench_data(data, settings: Settings, progress=None, on_output=None, stat
     ``state``: a state of an earlier run to start from (``load_state(state,
     new_run=True)``); ``run_label`` marks the cells learned in this run.
     ``worker``: where slow work runs (default: inline, see :mod:`online_id.offload`).
+    ``reference``: cells learned now are a reference run's (as ``relearn --from``).
     """
     import dataclasses
 
@@ -680,6 +683,7 @@ def run_bench_data(data, settings: Settings, progress=None, on_output=None, stat
     if state is not None:
         pipe.load_state(state, new_run=True)
     pipe.run_label = run_label
+    pipe.reference_run = reference
     t = data.time_s
     cols = (("dyno_speed", data.dyno_speed_rad_s), ("engine_speed", data.engine_speed_rad_s),
             ("dyno_torque", data.dyno_torque_nm))

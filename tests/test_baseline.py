@@ -199,3 +199,39 @@ def test_sources_reference_and_spread_ratio_round_trip():
     assert again.lookup(2000.0, 3.0) == stats
     d = stats.as_dict()
     assert d["kind"] == "reference" and d["spread_ratio"] == pytest.approx(stats.std_f / 0.01)
+
+
+@pytest.mark.parametrize("seed,f0,drop", [(3, 19.9, 0.025), (4, 31.0, 0.05)])
+def test_a_change_while_learning_cannot_creep_into_what_it_is_checked_with(seed, f0, drop):
+    """A learning cell is checked against its first freeze_count estimates, frozen: a change that comes
+    while it learns (the fit window lags it, so the estimates creep) is rejected once it passes the
+    tolerance, instead of being learned step by step with a tolerance that widens as it goes."""
+    rng = np.random.default_rng(seed)
+    base = Baseline(min_count=20)
+    assert base.freeze_count == 10
+    healthy = f0 * (1 + 0.001 * rng.standard_normal(10))
+    creep = f0 * (1 - drop * np.clip(np.arange(1, 21) / 10.0, 0, 1))  # over 10 s to the new value, then stays
+    learned = rejected = 0
+    for f in np.concatenate([healthy, creep]):
+        ref = base.cell(1500.0, 0.0, frozen=True)
+        if ref is not None and ref.count >= base.freeze_count and base.disagrees(ref, f, 0.05, 0.005, 0.4):
+            base.reject(speed_rpm=1500.0)
+            rejected += 1
+            continue
+        base.learn(speed_rpm=1500.0, f0_hz=f, zeta=0.05)
+        learned += 1
+    frozen = base.cell(1500.0, 0.0, frozen=True)
+    assert frozen.count == 10 and frozen.mean_f == pytest.approx(healthy.mean(), rel=1e-12)
+    assert base.lookup(1500.0) is None  # never completed with the changed driveline
+    assert rejected >= 12 and base.cell(1500.0).mean_f > f0 * (1 - 0.3 * drop)
+    # the same stream checked against the running statistics absorbs the change (why they are frozen)
+    run = Baseline(min_count=20)
+    for f in np.concatenate([healthy, creep]):
+        ref = run.cell(1500.0, 0.0)
+        if ref is not None and ref.count >= 10 and run.disagrees(ref, f, 0.05, 0.005, 0.4):
+            continue
+        run.learn(speed_rpm=1500.0, f0_hz=f, zeta=0.05)
+    assert run.lookup(1500.0) is not None  # learned, fault included
+    # the frozen statistics survive a save
+    again = Baseline.from_dict(json.loads(json.dumps(base.to_dict())))
+    assert again.cell(1500.0, 0.0, frozen=True).as_dict() == frozen.as_dict()

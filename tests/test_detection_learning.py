@@ -17,6 +17,7 @@ from online_id.bench.scenario import BenchScenario, Fault, OperatingPoint
 from online_id.bench.simulate import simulate_bench
 from online_id.cli import main
 from online_id.cli.simulate import write_can_log
+from online_id.io.statefile import load_state, save_state
 from online_id.pipeline import run_bench_data
 from online_id.records import AlertKind
 
@@ -100,3 +101,35 @@ def test_replay_state_errors_are_one_line(tmp_path, cli_error):
     assert "online-id-state.json" in msg
     msg = cli_error(["relearn", "--state", str(bad)])
     assert "--from" in msg
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [41, 42])
+def test_a_reference_run_carried_into_later_runs_on_several_plants(seed, tmp_path):
+    """A healthy reference run's state (saved as JSON, as replay --state keeps it) serves later runs: a healthy
+    one raises nothing and learns nothing into the reference cell, a 10 % stiffness loss is alarmed against
+    the reference baseline and named so."""
+    plant, (a, _) = _plant(seed)
+
+    def day(k, fault, duration_s):
+        sc = dataclasses.replace(BenchScenario(), seed=seed * 10 + k, **plant,
+                                 operating_points=(OperatingPoint(a + 5.0 * k, duration_s),),
+                                 faults=(Fault(0.0, stiffness_factor=0.90),) if fault else ())
+        return simulate_bench(sc).to_data(f"day {k}")
+
+    settings = ev.settings_for(ev.RunSpec("x", seed, dataclasses.replace(BenchScenario(), **plant)))
+    ref = run_bench_data(day(1, False, 58.0), settings, run_label="reference run day1", reference=True)
+    cells = [c for c in ref.baseline.bands if c.kind == "reference"]
+    assert cells and cells[0].source == "reference run day1", ref.baseline.bands
+    save_state(tmp_path / "state.json", ref.get_state())  # the state file replay --state keeps
+    state = load_state(tmp_path / "state.json")
+    healthy = run_bench_data(day(2, False, 45.0), settings, state=state, run_label="day2")
+    assert not [x for x in healthy.alerts if x.kind in (AlertKind.FREQ_DRIFT, AlertKind.DAMPING_DRIFT)]
+    faulty = run_bench_data(day(3, True, 45.0), settings, state=state, run_label="day3")
+    drift = [x for x in faulty.alerts if x.kind == AlertKind.FREQ_DRIFT]
+    assert drift, f"plant {seed}: no alarm; {list(faulty.events)[-6:]}"
+    assert drift[0].t_s - faulty.t_first <= 30.0  # detection resumes 10 s after the start, then the CUSUM
+    assert "lower" in drift[0].message and "reference baseline" in drift[0].message
+    assert "reference run day1" in drift[0].message
+    kept = [c for c in faulty.baseline.bands if c.kind == "reference"]
+    assert kept[0].count == cells[0].count and kept[0].mean_f == pytest.approx(cells[0].mean_f, rel=1e-12)

@@ -59,6 +59,9 @@ def test_summary_counts_false_alarms_and_delays():
         rr("stiffness -10 %", 250.0, t_fault_s=120.0, warning_delay_s=8.0, fault_delay_s=12.0),
         rr("stiffness -10 %", 250.0, t_fault_s=120.0, warning_delay_s=14.0),
         rr("stiffness -10 %", 250.0, t_fault_s=120.0),
+        ev.RunResult("damping +50 %", 2, 250.0, 25.0, 0.05, ["backlash"], t_fault_s=120.0, warning_delay_s=40.0),
+        ev.RunResult("damping +50 %", 3, 250.0, 25.0, 0.05, ["backlash", "sensor_delay"], t_fault_s=120.0),
+        ev.RunResult("damping +50 %", 4, 250.0, 25.0, 0.05, ["sensor_delay"], t_fault_s=120.0, warning_delay_s=30.0),
     ]
     s = ev.summarize(results)
     assert s["fault_free"]["hours"] == pytest.approx(1.5)
@@ -66,6 +69,9 @@ def test_summary_counts_false_alarms_and_delays():
     row = next(r for r in s["faults"] if r["case"] == "stiffness -10 %")
     assert (row["runs"], row["detected"], row["missed"], row["fault_level_reached"]) == (3, 2, 1, 1)
     assert row["warning_delay_s_median"] == pytest.approx(11.0) and row["warning_delay_s_worst"] == 14.0
+    damp = next(r for r in s["faults"] if r["case"] == "damping +50 %")  # per plant type
+    assert (damp["by_plant"]["backlash"]["runs"], damp["by_plant"]["backlash"]["detected"]) == (2, 1)
+    assert damp["by_plant"]["no backlash"]["warning_delay_s_median"] == 30.0 and "backlash" not in row["by_plant"]
 
 
 def test_friction_drift_changes_the_load_like_warming_oil():
@@ -122,3 +128,25 @@ def test_families_a_and_b_follow_how_benches_run():
         before = {round(p.speed_rpm, -2) for p in s.earlier.operating_points}
         now = {round(p.speed_rpm, -2) for p in s.scenario.operating_points}
         assert 120.0 <= s.earlier.duration_s and not before & now
+
+
+@pytest.mark.parametrize("plant_type", ["backlash", "no backlash"])
+def test_fault_plants_of_one_type(plant_type):
+    specs = ev.plan(0.0, 2, seed=3, families=("a", "b", "c"), cases=("damping +50 %", "damping -50 %"),
+                    plant_type=plant_type)
+    assert len(specs) == 3 * 2 * 2 and len({(s.family, s.seed) for s in specs}) == 6
+    assert all((s.scenario.effects.backlash is not None) == (plant_type == "backlash") for s in specs)
+    with pytest.raises(ValueError, match="plant_type"):
+        ev.plan(0.0, 1, plant_type="linear")
+
+
+def test_damping_spread_and_change_of_a_run():
+    rng = np.random.default_rng(4)
+    t = np.arange(0.0, 200.0)
+    z = 0.05 * (1 + 0.02 * rng.standard_normal(t.size)) * np.where(t > 120.0, 1.5, 1.0)
+    r = ev.RunResult("damping +50 %", 1, 200.0, 25.0, 0.05, [], t_fault_s=120.0,
+                     zeta_trace=[[a, b] for a, b in zip(t, z)])
+    s = r.zeta_summary()
+    assert 1.0 < s["spread_pct"] < 3.0 and 45.0 < s["change_pct"] < 55.0
+    assert ev.RunResult("fault-free", 1, 10.0, 25.0, 0.05, []).zeta_summary() == {"spread_pct": None,
+                                                                                   "change_pct": None}

@@ -117,6 +117,18 @@ class RunResult:
     elapsed_s: float = 0.0
     family: str = "c"
     cells: list[dict[str, Any]] = field(default_factory=list)  # the baseline cells at the end
+    zeta_trace: list[list[float]] = field(default_factory=list)  # [t_s, zeta] of the valid estimates, 1 Hz (fault runs)
+
+    def zeta_summary(self) -> dict[str, float | None]:
+        """Spread of the healthy damping estimates (after 40 s, before any fault) and the change they show
+        from 15 s after the fault on, both relative to the healthy mean [%] (None where there are none)."""
+        z = np.asarray(self.zeta_trace, dtype=float).reshape(-1, 2)
+        t_fault = np.inf if self.t_fault_s is None else self.t_fault_s
+        pre = z[(z[:, 0] > 40.0) & (z[:, 0] < t_fault), 1]
+        post = z[z[:, 0] > t_fault + 15.0, 1]
+        mean = float(np.mean(pre)) if pre.size > 1 else None
+        return {"spread_pct": 100.0 * float(np.std(pre)) / mean if mean else None,
+                "change_pct": 100.0 * (float(np.mean(post)) / mean - 1.0) if mean and post.size else None}
 
     def as_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -233,11 +245,13 @@ def fault_spec(seed: int, case: str) -> RunSpec:
 
 
 def plan(hours: float, fault_plants: int, seed: int = 1, families: tuple[str, ...] = ("c",),
-         cases: tuple[str, ...] | None = None) -> list[RunSpec]:
+         cases: tuple[str, ...] | None = None, plant_type: str = "any") -> list[RunSpec]:
     """Fault-free runs of up to an hour each, making ``hours`` in total (long dwells and short plateaus
     alternating when families (a) or (b) are asked for), and each fault case of each family on each plant.
 
-    ``cases``: only the fault cases with these labels (default: all).
+    ``cases``: only the fault cases with these labels (default: all). ``plant_type``: ``"any"``, or only
+    fault plants ``"backlash"`` or ``"no backlash"`` (the first ``fault_plants`` random plants of that type
+    in each family; about 30 % of them have backlash).
     """
     runs = []
     left = hours * 3600.0
@@ -247,16 +261,25 @@ def plan(hours: float, fault_plants: int, seed: int = 1, families: tuple[str, ..
         runs.append(fault_free_spec(seed * 1000 + k, min(3600.0, left), short=short and k % 2 == 0))
         left -= 3600.0
         k += 1
-    for p in range(fault_plants):
-        if "c" in families:
-            for case in FAULT_CASES:
-                if cases is None or case[0] in cases:
-                    runs.append(fault_spec(seed * 1000 + 500 + p, case[0]))
-        for family in ("a", "b"):
-            if family in families:
-                for case in FAMILY_CASES:
-                    if cases is None or case[0] in cases:
-                        runs.append(family_spec(seed * 1000 + 700 + p, case[0], family))
+    if plant_type not in ("any",) + PLANT_TYPES:
+        raise ValueError(f"plan: expected plant_type in any, {', '.join(PLANT_TYPES)}, but got {plant_type!r}")
+
+    def of_type(spec: RunSpec) -> bool:
+        return plant_type == "any" or (spec.scenario.effects.backlash is not None) == (plant_type == "backlash")
+
+    for family in ("c", "a", "b"):
+        if family not in families:
+            continue
+        table = FAULT_CASES if family == "c" else FAMILY_CASES
+        labels = [c[0] for c in table if cases is None or c[0] in cases]
+        make = ((lambda p, c: fault_spec(seed * 1000 + 500 + p, c)) if family == "c" else
+                (lambda p, c, f=family: family_spec(seed * 1000 + 700 + p, c, f)))
+        p = found = 0
+        while found < fault_plants and labels and p < 200 * max(fault_plants, 1):
+            if of_type(make(p, labels[0])):  # the plant is the same for every case of a family
+                runs.extend(make(p, c) for c in labels)
+                found += 1
+            p += 1
     return runs
 
 
@@ -299,9 +322,12 @@ def run(spec: RunSpec, settings: Settings | None = None) -> RunResult:
         if est is not None and any(isinstance(o, EstimateOut) for o in out):
             n_pub[0] += 1
             n_pub[1] += int(est.valid)
-            if est.valid and t_s >= next_err[0] and (spec.t_fault_s is None or t_s < spec.t_fault_s):
+            if est.valid and t_s >= next_err[0]:
                 next_err[0] = t_s + 1.0
-                res.f0_err_pct.append(round(100.0 * (est.f0_hz / res.f0_hz - 1.0), 4))
+                if spec.t_fault_s is not None:  # fault runs only: an hour of them would fill results.json
+                    res.zeta_trace.append([round(t_s, 1), round(est.zeta, 5)])
+                if spec.t_fault_s is None or t_s < spec.t_fault_s:
+                    res.f0_err_pct.append(round(100.0 * (est.f0_hz / res.f0_hz - 1.0), 4))
         # the operator acknowledges a false alarm after a while (a fault run is left latched)
         if (spec.t_fault_s is None and open_since[0] is not None and pipe.detector.active is not None
                 and t_s - open_since[0] >= ACK_AFTER_S):
@@ -356,16 +382,33 @@ def summarize(results: list[RunResult]) -> dict[str, Any]:
         rs = [r for r in results if r.case == label and r.family == fam]
         if not rs:
             continue
-        warn = [r.warning_delay_s for r in rs if r.warning_delay_s is not None]
         fault = [r.fault_delay_s for r in rs if r.fault_delay_s is not None]
         out["faults"].append({
-            "family": fam, "case": label, "runs": len(rs),
-            "detected": len(warn), "missed": len(rs) - len(warn),
-            "warning_delay_s_median": float(np.median(warn)) if warn else None,
-            "warning_delay_s_worst": float(max(warn)) if warn else None,
+            "family": fam, "case": label, **_detections(rs),
             "fault_delay_s_median": float(np.median(fault)) if fault else None,
             "fault_delay_s_worst": float(max(fault)) if fault else None,
             "fault_level_reached": len(fault),
             "false_alarms_before_fault": sum(r.false_alarms for r in rs),
+            # per plant type: a linear model fitted to a shaft with backlash is a mismatched model
+            "by_plant": {kind: _detections(sub) for kind in PLANT_TYPES
+                         if (sub := [r for r in rs if ("backlash" in r.effects) == (kind == "backlash")])},
         })
     return out
+
+
+PLANT_TYPES = ("backlash", "no backlash")
+
+
+def _detections(rs: list[RunResult]) -> dict[str, Any]:
+    """Runs, detections and warning delays (median, worst) of ``rs``."""
+    warn = [r.warning_delay_s for r in rs if r.warning_delay_s is not None]
+    zs = [r.zeta_summary() for r in rs]
+
+    def median(key: str) -> float | None:
+        v = [z[key] for z in zs if z[key] is not None]
+        return float(np.median(v)) if v else None
+
+    return {"runs": len(rs), "detected": len(warn), "missed": len(rs) - len(warn),
+            "warning_delay_s_median": float(np.median(warn)) if warn else None,
+            "warning_delay_s_worst": float(max(warn)) if warn else None,
+            "zeta_spread_pct_median": median("spread_pct"), "zeta_change_pct_median": median("change_pct")}

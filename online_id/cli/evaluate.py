@@ -41,6 +41,9 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    "c (long dwells at one point); default c")
     p.add_argument("--cases", metavar="LIST",
                    help="only these fault cases, comma-separated labels (e.g. 'stiffness -10 %%,damping +50 %%')")
+    p.add_argument("--plant-type", choices=("any",) + ev.PLANT_TYPES, default="any",
+                   help="fault plants of this type only: backlash or 'no backlash' (default any; about 30 %% of "
+                   "the random plants have backlash)")
     p.add_argument("--quick", action="store_true",
                    help="a bounded check: --hours 0.5 --fault-plants 2 --families a,b --jobs 2 unless given")
     p.add_argument("--from-results", type=Path, metavar="results.json",
@@ -67,15 +70,19 @@ def table(summary: dict) -> str:
         + ".",
         "",
         "| family | fault | runs | detected | warning delay median / worst [s] "
-        "| fault-level delay median / worst [s] | false alarms before the fault |",
-        "|---|---|---:|---:|---:|---:|---:|",
+        "| fault-level delay median / worst [s] | false alarms before the fault "
+        "| with backlash: detected, median [s] | without backlash: detected, median [s] |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in summary["faults"]:
+        by = r.get("by_plant", {})
+        plants = " | ".join(f"{p['detected']}/{p['runs']}, {fmt(p['warning_delay_s_median'], '.1f')}" if p else "-"
+                            for p in (by.get(kind) for kind in ev.PLANT_TYPES))
         lines.append(
             f"| {r.get('family', 'c')} | {r['case']} | {r['runs']} | {r['detected']} | {fmt(r['warning_delay_s_median'], '.1f')} / "
             f"{fmt(r['warning_delay_s_worst'], '.1f')} | {fmt(r['fault_delay_s_median'], '.1f')} / "
             f"{fmt(r['fault_delay_s_worst'], '.1f')} ({r['fault_level_reached']}/{r['runs']}) "
-            f"| {r['false_alarms_before_fault']} |")
+            f"| {r['false_alarms_before_fault']} | {plants} |")
     return "\n".join(lines)
 
 
@@ -153,7 +160,7 @@ def run(args: argparse.Namespace) -> int:
             raise InputDataError(f"{args.out}: cannot create the output directory ({err.strerror})") from None
     if args.from_results is not None:
         return _from_results(args)
-    specs = ev.plan(args.hours, args.fault_plants, args.seed, args.families, args.cases)
+    specs = ev.plan(args.hours, args.fault_plants, args.seed, args.families, args.cases, args.plant_type)
     specs.sort(key=lambda s: -s.scenario.duration_s)  # longest first: the pool finishes together
     total_s = sum(s.scenario.duration_s for s in specs)
     print(f"online-id evaluate: {len(specs)} runs, {total_s / 3600:.1f} simulated hours, {args.jobs} processes",
@@ -172,7 +179,8 @@ def run(args: argparse.Namespace) -> int:
                   f"seed {r.seed:5d}  "
                   f"{r.duration_s / 60:5.1f} min simulated in {r.elapsed_s:5.1f} s  {what}", file=sys.stderr)
     elapsed = time.monotonic() - t0
-    settings = {"hours": args.hours, "fault_plants": args.fault_plants, "seed": args.seed,
+    settings = {"hours": args.hours, "fault_plants": args.fault_plants, "plant_type": args.plant_type,
+                "seed": args.seed,
                 "families": list(args.families), "cases": list(args.cases) if args.cases else None,
                 "jobs": args.jobs, "elapsed_s": round(elapsed, 1),
                 "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"}

@@ -205,9 +205,9 @@ class OnlineDriveline:
         """The due window refit as a job for :func:`~online_id.estimation.window.solve` (None: nothing to fit)."""
         return self.window.prepare()
 
-    def verify_job(self, starts: tuple = ()) -> RefitJob | None:
+    def verify_job(self, starts: tuple = (), prefer_last_within: float = 0.0) -> RefitJob | None:
         """A multi-start refit of the current window as a job (None: the window is not full or not current)."""
-        return self.window.prepare_verify(starts)
+        return self.window.prepare_verify(starts, prefer_last_within)
 
     def complete(self, job: RefitJob, fit, error: str | None = None) -> bool:
         """Adopt the result of a refit or verify job; True when a fit was adopted."""

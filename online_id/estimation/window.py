@@ -53,21 +53,27 @@ FIT_ERRORS = (EstimationError, FloatingPointError, ValueError, np.linalg.LinAlgE
 
 
 def fit_two_starts(y: np.ndarray, u: np.ndarray, orders: ArmaxOrders, recursive_start: bool = True,
-                   starts: tuple = ()) -> ArmaxFit:
+                   starts: tuple = (), prefer_last_within: float = 0.0) -> ArmaxFit:
     """PEM fit from two starts (Hannan-Rissanen, and the recursive estimate); the lower loss wins.
 
     The prediction-error criterion of an over-parametrised ARMAX model has
     local minima: one start alone can settle where the compression oscillator
     is missing from the model. ``starts`` (e.g. earlier solutions; None
     entries are skipped) are tried as further starts; one that fails is
-    left out.
+    left out. ``prefer_last_within`` > 0: the fit from the last of
+    ``starts`` wins if its loss is within that share of the lowest,
+    ``V_last <= (1 + prefer_last_within) V_min`` -- where the
+    criterion has nearly equal minima, the data do not tell them apart, and
+    the caller's own solution (a baseline's) is kept.
     """
     fits = [fit_armax(y, u, orders)]
-    for theta0 in starts:
+    last = None
+    for k, theta0 in enumerate(starts):
         if theta0 is None:
             continue
         try:
             fits.append(fit_armax(y, u, orders, theta0=np.asarray(theta0, dtype=float)))
+            last = fits[-1] if k == len(starts) - 1 else None
         except FIT_ERRORS:
             pass
     if recursive_start:
@@ -78,7 +84,10 @@ def fit_two_starts(y: np.ndarray, u: np.ndarray, orders: ArmaxOrders, recursive_
                 fits.append(fit_armax(y, u, orders, theta0=est.theta))
             except EstimationError:
                 pass
-    return min(fits, key=lambda f: f.V)
+    best = min(fits, key=lambda f: f.V)
+    if last is not None and prefer_last_within > 0.0 and last.V <= (1.0 + prefer_last_within) * best.V:
+        return last
+    return best
 
 
 def _finite(fit: ArmaxFit) -> bool:
@@ -104,6 +113,7 @@ class RefitJob:
     generation: int
     warm_iterations: int = 40
     warm_tol: float = 1e-3
+    prefer_last_within: float = 0.0  # verify: see fit_two_starts
 
 
 def solve(job: RefitJob) -> ArmaxFit:
@@ -111,7 +121,7 @@ def solve(job: RefitJob) -> ArmaxFit:
     if job.mode == "warm":
         return fit_armax(job.y, job.u, job.orders, theta0=job.starts[0], max_iter=job.warm_iterations,
                          start_radius=0.999, tol=job.warm_tol)
-    return fit_two_starts(job.y, job.u, job.orders, starts=job.starts)
+    return fit_two_starts(job.y, job.u, job.orders, starts=job.starts, prefer_last_within=job.prefer_last_within)
 
 
 class SlidingPem:
@@ -218,12 +228,14 @@ class SlidingPem:
         return RefitJob(y, u, self.orders, mode, starts, float(np.mean(load)), speed_rpm, self._generation,
                         self.warm_iterations, self.warm_tol)
 
-    def prepare_verify(self, starts: tuple = ()) -> RefitJob | None:
+    def prepare_verify(self, starts: tuple = (), prefer_last_within: float = 0.0) -> RefitJob | None:
         """A multi-start refit of the current window as a job (None if the window is not full or not current).
 
         The starts: Hannan-Rissanen, the recursive estimate, the current
         solution and ``starts`` (e.g. the solution the baseline was learned
-        with); the fit of lowest loss is adopted by :meth:`complete`. Used
+        with); the fit of lowest loss is adopted by :meth:`complete`, or the
+        one from the last of ``starts`` if its loss is within
+        ``prefer_last_within`` of it (:func:`fit_two_starts`). Used
         before a baseline cell is learned and before an alarm is raised (see
         :class:`~online_id.monitoring.detection.ChangeDetector`, *confirm*);
         about 0.5 s, rare.
@@ -232,7 +244,7 @@ class SlidingPem:
             return None
         y, u, n, load = self.window()
         return RefitJob(y, u, self.orders, "verify", (self._start, *starts), float(np.mean(load)),
-                        float(np.mean(n)) * 30.0 / np.pi, self._generation)
+                        float(np.mean(n)) * 30.0 / np.pi, self._generation, prefer_last_within=prefer_last_within)
 
     def complete(self, job: RefitJob, fit: ArmaxFit | None, error: str | None = None) -> bool:
         """Adopt the result of ``job`` (from :func:`solve`); returns True when a fit was adopted.

@@ -53,7 +53,13 @@ unknown dependence on speed and load; where the learned cells disagree, a
 least-squares fit against speed (and load) gives its mean. The caller keeps
 a change out of the baseline with :meth:`Baseline.disagrees`: an estimate
 that deviates from what serves its cell beyond the dead band plus three
-spreads is not learned (:meth:`Baseline.reject` counts it).
+spreads is not learned (:meth:`Baseline.reject` counts it). A cell still
+learning is checked against its own first ``freeze_count`` estimates, frozen
+(:meth:`Baseline.cell` with ``frozen``; the pool of learning cells alike),
+not against its running statistics: a change that comes while it learns
+would otherwise creep into them estimate by estimate (each within the
+tolerance of those before, the fit window lags the change by up to 10 s)
+and widen the tolerance as it goes.
 """
 
 from __future__ import annotations
@@ -129,17 +135,19 @@ class BandStats:
 class _Welford:
     """Running statistics of one cell: frequency, damping and the mean load."""
 
-    __slots__ = ("n", "mean_f", "m2_f", "mean_z", "m2_z", "load", "unc_f", "source", "reference", "rejected")
+    __slots__ = ("n", "mean_f", "m2_f", "mean_z", "m2_z", "load", "unc_f", "source", "reference", "rejected",
+                 "frozen")
 
     def __init__(self, n: int = 0, mean_f: float = 0.0, m2_f: float = 0.0, mean_z: float = 0.0, m2_z: float = 0.0,
                  load: float = 0.0, unc_f: float = float("nan"), source: str = "", reference: bool = False,
-                 rejected: int = 0):
+                 rejected: int = 0, frozen: list | None = None):
         self.n, self.mean_f, self.m2_f, self.mean_z, self.m2_z = int(n), mean_f, m2_f, mean_z, m2_z
         self.load = load
         self.unc_f = unc_f  # running mean of the estimator's own f0 uncertainty
         self.source = source  # the run it was learned from
         self.reference = reference  # learned from a reference run (relearn --from)
         self.rejected = rejected  # estimates not learned: they disagreed with the baselines
+        self.frozen = frozen  # [n, mean_f, m2_f, mean_z, m2_z] at freeze_count: what later estimates are checked with
 
     def distance(self, load_nm: float) -> float:
         """How far ``load_nm`` is from the cell's load (0 for a cell without one)."""
@@ -158,9 +166,13 @@ class _Welford:
         self.mean_z += d / self.n
         self.m2_z += d * (z - self.mean_z)
 
+    def freeze(self) -> None:
+        """Keep the statistics as they are now (the reference of the estimates still to be learned)."""
+        self.frozen = [self.n, self.mean_f, self.m2_f, self.mean_z, self.m2_z]
+
     def as_list(self) -> list:
         return [self.n, self.mean_f, self.m2_f, self.mean_z, self.m2_z, self.load, self.unc_f, self.source,
-                self.reference, self.rejected]
+                self.reference, self.rejected, self.frozen]
 
 
 class Baseline:
@@ -196,6 +208,7 @@ class Baseline:
         load_band_nm: float = 2.0,
         pool_tolerance_f: float = 0.005,
         pool_tolerance_zeta: float = 0.10,
+        freeze_count: int | None = None,
     ) -> None:
         self.band_rpm = _positive("band_rpm", band_rpm)
         self.min_count = integer("Baseline", "min_count", min_count, minimum=2)
@@ -204,6 +217,8 @@ class Baseline:
         self.load_band_nm = _positive("load_band_nm", load_band_nm)
         self.pool_tolerance_f = number("Baseline", "pool_tolerance_f", pool_tolerance_f, strict=False)
         self.pool_tolerance_zeta = number("Baseline", "pool_tolerance_zeta", pool_tolerance_zeta, strict=False)
+        self.freeze_count = integer("Baseline", "freeze_count",
+                                    math.ceil(self.min_count / 2) if freeze_count is None else freeze_count, minimum=2)
         self._bands: dict[int, list[_Welford]] = {}
 
     def key(self, speed_rpm: float) -> int:
@@ -245,6 +260,8 @@ class Baseline:
         elif source and source not in cell.source.split(", ") and cell.n < self.min_count:
             cell.source = f"{cell.source}, {source}" if cell.source else source
         cell.add(float(f0_hz), float(zeta), float(load_nm), float(f0_std_hz))
+        if cell.frozen is None and cell.n >= self.freeze_count:
+            cell.freeze()
 
     def reject(self, *, speed_rpm: float, load_nm: float = 0.0) -> None:
         """Count an estimate that was not learned into its cell because it disagreed with the baselines."""
@@ -253,27 +270,35 @@ class Baseline:
             if cell is not None:
                 cell.rejected += 1
 
-    def cell(self, speed_rpm: float, load_nm: float = 0.0) -> BandStats | None:
+    def cell(self, speed_rpm: float, load_nm: float = 0.0, frozen: bool = False) -> BandStats | None:
         """Statistics of the cell an estimate at ``speed_rpm`` and ``load_nm`` would be learned into.
 
         None if there is none yet (or fewer than two estimates in it).
+        ``frozen``: for a cell still learning that holds ``freeze_count``
+        estimates, its statistics as they were then (see :meth:`_stats`).
         """
         if not (math.isfinite(speed_rpm) and math.isfinite(load_nm)):
             return None
         i = self.key(speed_rpm)
         c = self._learning_cell(i, load_nm)
-        return self._stats(i, c) if c is not None and c.n >= 2 else None
+        return self._stats(i, c, frozen) if c is not None and c.n >= 2 else None
 
-    def _stats(self, i: int, b: _Welford) -> BandStats:
-        std_f = math.sqrt(max(b.m2_f, 0.0) / (b.n - 1))
-        std_z = math.sqrt(max(b.m2_z, 0.0) / (b.n - 1))
+    def _stats(self, i: int, b: _Welford, frozen: bool = False) -> BandStats:
+        """Statistics of cell ``b`` of band ``i``; ``frozen``: of a learning cell, those of its first
+        ``freeze_count`` estimates, which the estimates still to be learned are checked against (a change
+        that comes while the cell learns must neither widen nor move what it is compared with)."""
+        n, mean_f, m2_f, mean_z, m2_z = b.n, b.mean_f, b.m2_f, b.mean_z, b.m2_z
+        if frozen and b.frozen is not None and n < self.min_count:
+            n, mean_f, m2_f, mean_z, m2_z = b.frozen
+        std_f = math.sqrt(max(m2_f, 0.0) / (n - 1))
+        std_z = math.sqrt(max(m2_z, 0.0) / (n - 1))
         kind = "learning" if b.n < self.min_count else "reference" if b.reference else "learned"
         return BandStats(
-            b.mean_f,
-            max(std_f, self.min_rel_std_f * abs(b.mean_f)),
-            b.mean_z,
-            max(std_z, self.min_rel_std_zeta * abs(b.mean_z)),
-            b.n,
+            mean_f,
+            max(std_f, self.min_rel_std_f * abs(mean_f)),
+            mean_z,
+            max(std_z, self.min_rel_std_zeta * abs(mean_z)),
+            int(n),
             self._edges(i),
             b.load,
             kind,
@@ -333,7 +358,7 @@ class Baseline:
         cells = [(i, c) for i, cs in self._bands.items() for c in cs if c.n >= min_n]
         if not cells or not (math.isfinite(speed_rpm) and math.isfinite(load_nm)):
             return None
-        stats = [self._stats(i, c) for i, c in cells]
+        stats = [self._stats(i, c, frozen=True) for i, c in cells]
         w = [s.count for s in stats]
         mean_f, sb_f = self._pool([s.mean_f for s in stats], [s.std_f for s in stats], w, cells, speed_rpm,
                                   load_nm, self.pool_tolerance_f)
@@ -422,6 +447,7 @@ class Baseline:
             "load_band_nm": self.load_band_nm,
             "pool_tolerance_f": self.pool_tolerance_f,
             "pool_tolerance_zeta": self.pool_tolerance_zeta,
+            "freeze_count": self.freeze_count,
             "bands": {str(i): [[None if isinstance(x, float) and not math.isfinite(x) else x for x in c.as_list()]
                                for c in cells]
                       for i, cells in sorted(self._bands.items())},
@@ -435,7 +461,8 @@ class Baseline:
                        min_rel_std_f=data["min_rel_std_f"], min_rel_std_zeta=data["min_rel_std_zeta"],
                        load_band_nm=data.get("load_band_nm", 2.0),
                        pool_tolerance_f=data.get("pool_tolerance_f", 0.005),
-                       pool_tolerance_zeta=data.get("pool_tolerance_zeta", 0.10))
+                       pool_tolerance_zeta=data.get("pool_tolerance_zeta", 0.10),
+                       freeze_count=data.get("freeze_count"))
             for key, v in data["bands"].items():
                 cells = v if v and isinstance(v[0], list) else [list(v) + [None]]  # one cell, no load
                 base._bands[int(key)] = [_cell_from_list(c) for c in cells]
@@ -449,9 +476,10 @@ def _cell_from_list(c: list) -> _Welford:
     def num(x: Any) -> float:
         return float("nan") if x is None else float(x)
 
-    extra = list(c[6:10]) + [None] * (4 - len(c[6:10]))
+    extra = list(c[6:11]) + [None] * (5 - len(c[6:11]))
+    frozen = None if extra[4] is None else [int(extra[4][0])] + [float(x) for x in extra[4][1:5]]
     return _Welford(int(c[0]), *(float(x) for x in c[1:5]), num(c[5]), num(extra[0]), str(extra[1] or ""),
-                    bool(extra[2]), int(extra[3] or 0))
+                    bool(extra[2]), int(extra[3] or 0), frozen)
 
 
 def _positive(name: str, value: float) -> float:
