@@ -103,7 +103,7 @@ def latency(args, work: Path) -> dict:
     # a larger one would have the service answer frames not yet sent.
     cand = sorted({i + 3 * m for i in marks for m in range(PHASE_MAX + 1) if i + 3 * m < len(frames)})
     run = run_live(frames, _config(record.truth, work / "state-lat"), work / "lat", GROUP, speed=1.0, marks=cand,
-                   cpu=args.cpu)
+                   cpu=args.cpu, rt_priority=args.rt)
     got = run.estimates
     out = {"frames": len(frames), "estimates_expected": len(marks), "estimates_received": len(got),
            "counts": run.counts, "service_cpu_s": run.cpu_s}
@@ -136,15 +136,18 @@ def rates(args, work: Path) -> list[dict]:
         # frames are stamped on arrival, so at ``speed`` x real time the bench's samples come at speed x 1 kHz:
         # the service is told so, and every frame goes into a sample, as on a bench sampled that fast
         run = run_live(frames, _config(record.truth, work / f"state-{speed:g}", 1000.0 * speed),
-                       work / f"rate-{speed:g}", GROUP, speed=speed, cpu=args.cpu)
+                       work / f"rate-{speed:g}", GROUP, speed=speed, cpu=args.cpu,
+                       rt_priority=args.rt)
         n = run.counts
+        # lossless: every frame sent was taken (the service's own frames, looped back, are "foreign")
         lossless = (bool(n) and n["dropped"] == 0 and n["missing"] == 0
-                    and n["samples"] >= len(record.time_s) - 2)  # the last sample waits for a next frame
+                    and n["frames_in"] - n["foreign"] == len(frames))
         rows.append({"speed": speed, "frames_per_s": 3000.0 * speed, "frames": len(frames), "counts": n,
                      "lossless": lossless, "wall_s": time.perf_counter() - t0,
                      "service_cpu_us_per_frame": 1e6 * run.cpu_s / max(n.get("frames_in", 0), 1)})
         print(f"  {3000 * speed:7.0f} frames/s: {'lossless' if lossless else 'LOST'} "
-              f"(kernel dropped {n.get('dropped')}, missing {n.get('missing')}, samples {n.get('samples')} of "
+              f"(kernel dropped {n.get('dropped')}, missing {n.get('missing')}, frames taken "
+              f"{n.get('frames_in', 0) - n.get('foreign', 0)} of {len(frames)}, samples {n.get('samples')} of "
               f"{len(record.time_s)})", flush=True)
     return rows
 
@@ -155,6 +158,8 @@ def main() -> int:
     ap.add_argument("--rate-s", type=float, default=30.0)
     ap.add_argument("--speeds", type=lambda s: [float(x) for x in s.split(",")], default=[1.0, 2.0, 3.0, 4.0])
     ap.add_argument("--cpu", type=int, default=0)
+    ap.add_argument("--rt", type=int, default=None, metavar="PRIO",
+                    help="run the service's receive loop at SCHED_FIFO priority PRIO (its worker stays normal)")
     ap.add_argument("--skip-latency", action="store_true")
     ap.add_argument("--out", default="bench-live-out")
     args = ap.parse_args()

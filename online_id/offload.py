@@ -82,8 +82,16 @@ WORKER_NICE = 5  # see module notes
 
 
 def _lower_priority() -> None:
-    """This process yields to the receive loop (see module notes)."""
+    """This process yields to the receive loop (see module notes).
+
+    A receive loop run at a real-time priority (the unit's
+    ``CPUSchedulingPolicy=fifo``) passes it to this child; a refit at that
+    priority would hold the loop off its core, so the child goes back to the
+    normal policy first.
+    """
     try:
+        if os.sched_getscheduler(0) in (os.SCHED_FIFO, os.SCHED_RR):
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
         os.nice(WORKER_NICE)
     except OSError:
         pass

@@ -25,7 +25,8 @@ from online_id.io.dbc import load_dbc
 from online_id.io.dbc_output import OutputEncoder
 
 STOPPED = re.compile(r"stopped: (?P<frames_in>\d+) frames in, (?P<frames_out>\d+) frames out, (?P<samples>\d+) samples, "
-                     r"(?P<bad>\d+) bad frames, (?P<missing>\d+) missing frames, (?P<dropped>\d+) dropped by the kernel")
+                     r"(?P<bad>\d+) bad frames, (?P<missing>\d+) missing frames, (?P<dropped>\d+) dropped by the kernel, "
+                     r"(?P<foreign>\d+) foreign frames")
 
 
 def _send(group: str, frames: list, speed: float, marks: list[int], out) -> None:
@@ -77,7 +78,8 @@ class LiveRun:
 
 
 def run_live(frames: list, config_text: str, workdir: Path, group: str, speed: float = 1.0,
-             marks: list[int] = (), cpu: int | None = None, start_timeout_s: float = 120.0) -> LiveRun:
+             marks: list[int] = (), cpu: int | None = None, start_timeout_s: float = 120.0,
+             rt_priority: int | None = None) -> LiveRun:
     """Start the service with ``config_text`` (its bus set to ``group``), send ``frames``, stop it, collect.
 
     ``cpu``: pin the service (and its worker) to this core.  The service is
@@ -88,6 +90,8 @@ def run_live(frames: list, config_text: str, workdir: Path, group: str, speed: f
     config = workdir / "config.yaml"
     config.write_text(f"bus: {{interface: udp_multicast, channel: '{group}'}}\n" + config_text)
     argv = [sys.executable, "-m", "online_id", "run", "--config", str(config), "--max-seconds", "3600"]
+    if rt_priority is not None:  # the receive loop at a real-time priority (SCHED_FIFO), as the unit can run it
+        argv = ["chrt", "-f", str(rt_priority), *argv]
     if cpu is not None:
         argv = ["taskset", "-c", str(cpu), *argv]
     service = subprocess.Popen(argv, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True,
