@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
 def relearn_from(log: str, directory: Path | None, settings) -> int:
     """Learn the baselines from a reference log into the state of ``directory`` (see module notes)."""
     from online_id.cli.replay import keep, replay, restore, state_file
-    from online_id.report import TerminalProgress
+    from online_id.progress import Progress
     from online_id.runtime import Runtime
     from online_id.service import state_path
 
@@ -92,11 +92,8 @@ def relearn_from(log: str, directory: Path | None, settings) -> int:
     pipe.alerts.clear()
     pipe.run_label = f"reference run {Path(log).name}"
     pipe.reference_run = True
-    progress = TerminalProgress("relearn")
-    try:
+    with Progress("relearn", unit="frames") as progress:
         replay(log, runtime, progress=progress)
-    finally:
-        progress.close()
     drift = [a for a in pipe.alerts if a.kind.name in ("FREQ_DRIFT", "DAMPING_DRIFT")]
     pipe.detector.reset()  # the reference run's own statistics are no change
     pipe.alerts.clear()
