@@ -58,7 +58,11 @@ def _send_outputs(channel):
             AlertOut(1.1, AlertKind.FREQ_DRIFT, 1, -5.2, 1400.0, "f0 down")]
     frames = [f for p in pubs for f in enc.encode(p)]
     frames.append((0x303, bytes(8)))  # a status frame with a bad CRC
-    time.sleep(0.4)
+    from can.interfaces.virtual import channels  # python-can's in-process virtual buses
+
+    deadline = time.monotonic() + 10
+    while not channels.get(channel) and time.monotonic() < deadline:  # until the monitor listens
+        time.sleep(0.01)
     with CanBus("virtual", channel) as bus:
         for ident, data in frames:
             bus.send(ident, data)

@@ -50,7 +50,7 @@ class Seen:
     """What was received of one output message."""
 
     count: int = 0
-    t_s: float = 0.0  # wall time of the last frame
+    t_s: float = 0.0  # when the last frame came (s since the start)
     values: dict = field(default_factory=dict)
     counter: int | None = None
     counter_jumps: int = 0
@@ -105,20 +105,20 @@ def line(record: dict) -> str:
     return f"{head}  {_fmt(record['signals'])}{jump}"
 
 
-def screen(watch: Watch, now: float, t0: float, where: str) -> str:
-    """The live view: one block per output message, alerts, health."""
+def screen(watch: Watch, now: float, where: str) -> str:
+    """The live view at ``now`` s since the start: one row per output message, alerts, health."""
     status = watch.seen.get("OidStatus")
     silent = status is None or status.count == 0 or now - status.t_s > SILENT_S
     health = ("SILENT: no status frame for " + (f"{now - status.t_s:.1f} s" if status and status.count else
                                                  "the whole time") if silent else "alive")
-    rows = [f"online-id monitor  {where}  {now - t0:6.1f} s  {watch.frames} frames  service {health}",
+    rows = [f"online-id monitor  {where}  {now:6.1f} s  {watch.frames} frames  service {health}",
             f"checks: {watch.crc_errors} CRC errors, "
             f"{sum(s.counter_jumps for s in watch.seen.values())} alive-counter jumps", ""]
     for name, s in watch.seen.items():
         age = f"{now - s.t_s:5.1f} s ago" if s.count else "never seen"
         rows.append(f"{name:<14} {s.count:7d} frames  {age}  {_fmt(s.values)}")
     rows += ["", f"last alerts ({len(watch.alerts)}):"]
-    rows += [f"  {a['t_s'] - t0:7.1f} s  {_fmt({k: v for k, v in a.items() if k != 't_s'})}" for a in watch.alerts]
+    rows += [f"  {a['t_s']:7.1f} s  {_fmt({k: v for k, v in a.items() if k != 't_s'})}" for a in watch.alerts]
     return "\n".join(rows)
 
 
@@ -136,23 +136,23 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--max-seconds: expected a number > 0, but got {args.max_seconds!r}")
     s, watch, interface, channel = open_watch(args)
     live = sys.stdout.isatty() and not args.json
-    t0 = time.time()
+    t0 = time.monotonic()
     end = None if args.max_seconds is None else time.monotonic() + args.max_seconds
-    drawn = 0.0
+    drawn = -1.0
     with CanBus(interface, channel, s.bus.bitrate) as bus:
         while end is None or time.monotonic() < end:
             frame = bus.recv(0.1)
-            now = time.time()
+            now = time.monotonic() - t0  # seconds since the start (the frames' times are the bus's own)
             if frame is not None and not frame.is_error:
                 record = watch.take(now, frame.arbitration_id, frame.data)
                 if record is not None and not live:
                     print(json.dumps(record) if args.json else line(record), flush=True)
             if live and now - drawn >= 0.5:
                 drawn = now
-                sys.stdout.write("\x1b[H\x1b[J" + screen(watch, now, t0, f"{interface}:{channel}") + "\n")
+                sys.stdout.write("\x1b[H\x1b[J" + screen(watch, now, f"{interface}:{channel}") + "\n")
                 sys.stdout.flush()
     if watch.frames == 0:
-        print(f"no output frame of the service in {time.time() - t0:.1f} s on {interface}:{channel} "
+        print(f"no output frame of the service in {time.monotonic() - t0:.1f} s on {interface}:{channel} "
               f"(is it running there? IDs {', '.join(f'0x{i:X}' for i in sorted(watch.ids))})", file=sys.stderr)
         return 1
     return 0

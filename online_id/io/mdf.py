@@ -198,7 +198,7 @@ def read_mdf_columns(path: str | Path, names: Mapping[str, str]) -> MdfColumns:
             if not t1 > t0:
                 raise InputDataError(f"{path}: the channels {', '.join(map(repr, names.values()))} do not "
                                      f"overlap in time; nothing to resample")
-            grid = t0 + np.arange(int(np.floor((t1 - t0) * fastest + 1e-9)) + 1) / fastest
+            grid = t0 + np.arange(int(np.floor((t1 - t0) * fastest + 1e-6)) + 1) / fastest
             columns = {role: np.asarray(s.interp(grid, IntegerInterpolation.LINEAR_INTERPOLATION,
                                                  FloatInterpolation.LINEAR_INTERPOLATION).samples, dtype=float)
                        for role, s in signals.items()}
