@@ -21,12 +21,14 @@ import numpy as np
 
 from online_id.assembly import AssembledSample, AssemblyCounters, SampleAssembler
 from online_id.config import Settings
+from online_id.progress import Progress
 from online_id.errors import InputDataError
-from online_id.io.canlog import SUFFIXES, read_log
+from online_id.io.canlog import SUFFIXES, count_frames, read_log
 from online_id.io.dbc import CommandSample
+from online_id.io.mdf import is_bus_log, is_mdf
 from online_id.records import ROLES, BenchData, FrameFault
 from online_id.runtime import input_decoder
-from online_id.signals import MIN_SAMPLES, read_bench_csv
+from online_id.signals import MIN_SAMPLES, read_bench_csv, read_bench_mdf
 
 
 @dataclass
@@ -56,16 +58,17 @@ class LogBench:
 
 
 def is_can_log(path: str | Path) -> bool:
-    """True when the suffix is that of a CAN log python-can reads."""
+    """True when the file is a CAN log python-can reads: by the suffix, and for ``.mf4`` by its content."""
+    if is_mdf(path):
+        return is_bus_log(path)
     return Path(path).suffix.lower() in SUFFIXES
 
 
-def read_bench_log(path: str | Path, s: Settings,
-                   progress: Callable[[float, str], None] | None = None) -> LogBench:
+def read_bench_log(path: str | Path, s: Settings, progress: Progress | None = None) -> LogBench:
     """Decode and assemble a CAN log (see module notes).
 
-    ``progress(0.0, message)`` (a :class:`~online_id.report.TerminalProgress`)
-    is called every 5000 frames, as ``replay`` does.
+    ``progress`` (a :class:`~online_id.progress.Progress`) is given the
+    frames read every 2000 frames, as ``replay`` does.
 
     Raises
     ------
@@ -80,9 +83,10 @@ def read_bench_log(path: str | Path, s: Settings,
     stretches: list[list[AssembledSample]] = []
     frames = 0
     cut: list[str] = []
+    total = count_frames(path) if progress is not None and progress.enabled else None
     for t_s, ident, data, is_ext, is_err in read_log(path, cut.append):
-        if progress is not None and frames % 5000 == 0:
-            progress(0.0, f"{frames} frames, t = {t_s:.1f} s")
+        if progress is not None and frames % 2000 == 0:
+            progress.count(frames, total, f"t = {t_s:.1f} s")
         frames += 1
         res = FrameFault.MALFORMED if is_err else decoder.decode(ident, data, t_s, is_ext)
         if isinstance(res, FrameFault):
@@ -114,6 +118,8 @@ def read_bench_log(path: str | Path, s: Settings,
 def read_bench(path: str | Path, s: Settings, notify: Callable[[str], None] | None = None) -> BenchData:
     """A bench CSV or a CAN log (by the suffix) as bench data; ``notify`` gets the log's note."""
     if not is_can_log(path):
+        if is_mdf(path):
+            return read_bench_mdf(path, s.columns, s.units, notify)
         return read_bench_csv(path, s.columns, s.units)
     log = read_bench_log(path, s)
     note = log.note()

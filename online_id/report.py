@@ -1,19 +1,17 @@
-"""Human-readable tables, progress on a terminal, and plots."""
+"""Human-readable tables and plots (the progress bar lives in :mod:`online_id.progress`)."""
 
 from __future__ import annotations
 
-import sys
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TextIO
 
 import numpy as np
 
 from online_id.monitoring.baseline import BandStats
 from online_id.estimation.identification import IdentificationResult
 from online_id.analysis.poles import DRIVELINE, INVARIANT, OTHER, REAL, SPEED_DEPENDENT
+from online_id.progress import Progress
 
 CLASS_LABEL = {
     DRIVELINE: "driveline",
@@ -24,36 +22,8 @@ CLASS_LABEL = {
 }
 
 
-class TerminalProgress:
-    """A one-line progress bar on a terminal; silent when the stream is not a TTY."""
-
-    def __init__(self, label: str, stream: TextIO | None = None, enabled: bool | None = None) -> None:
-        self.stream = stream or sys.stderr
-        self.enabled = self.stream.isatty() if enabled is None else enabled
-        self.label = label
-        self.t0 = time.monotonic()
-        self._last = 0.0
-
-    def __call__(self, fraction: float, message: str = "") -> None:
-        if not self.enabled:
-            return
-        now = time.monotonic()
-        if fraction < 1.0 and now - self._last < 0.1:
-            return
-        self._last = now
-        width = 28
-        filled = int(round(width * min(max(fraction, 0.0), 1.0)))
-        bar = "#" * filled + "-" * (width - filled)
-        line = f"\r{self.label} [{bar}] {100 * fraction:5.1f}% {now - self.t0:5.1f}s {message}"
-        self.stream.write(line[:120].ljust(120))
-        if fraction >= 1.0:
-            self.stream.write("\n")
-        self.stream.flush()
-
-    def close(self) -> None:
-        if self.enabled:
-            self.stream.write("\r" + " " * 120 + "\r")
-            self.stream.flush()
+TerminalProgress = Progress
+"""The one progress bar of the commands (:class:`online_id.progress.Progress`), by its former name."""
 
 
 def fmt(x: float | None, spec: str) -> str:

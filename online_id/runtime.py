@@ -18,6 +18,8 @@ from online_id.pipeline import Pipeline
 from online_id.records import FrameFault, Publication
 
 OutFrame = tuple[int, bytes]
+ACCEPTED, AWAITING_CONFIRMATION, REFUSED = 1, 2, 3
+"""Values of the status frame's CommandResult signal (see the DBC)."""
 
 
 def _sign(role: str, rs: RoleSettings) -> int:
@@ -90,15 +92,26 @@ class Runtime:
             self.pipeline.on_fault(res)
             if res is FrameFault.COMMAND_REFUSED:
                 self.commands.refuse(arbitration_id, data, self.decoder.last_fault)
+                return self._answer(t_s, 0, REFUSED, None)
             return []
         if isinstance(res, CommandSample):
+            awaiting = self.commands.awaiting
             if not self.commands.admit(res, arbitration_id, data):
-                return []
-            return self.frames(self.pipeline.on_command(int(res.command), t_s))
+                if int(res.command) == 0:
+                    return []
+                result = AWAITING_CONFIRMATION if self.commands.awaiting > awaiting else REFUSED
+                return self._answer(t_s, int(res.command), result, res.counter)
+            out = self.frames(self.pipeline.on_command(int(res.command), t_s))
+            return out + self._answer(t_s, int(res.command), ACCEPTED, res.counter)
         pubs: list[Publication] = []
         for sample in res:
             pubs.extend(self.pipeline.on_signal(sample))
         return self.frames(pubs) if pubs else []
+
+    def _answer(self, t_s: float, command: int, result: int, counter: int | None) -> list[OutFrame]:
+        """A status frame at once, answering a command frame (signals LastCommand, CommandResult, CommandCounterEcho)."""
+        self.encoder.answer_command(command, result, counter)
+        return self.frames([self.pipeline.status(t_s)])
 
     def tick_worker(self) -> list[OutFrame]:
         """No stream clock yet: only adopt finished slow work."""

@@ -73,3 +73,55 @@ def read_bench_csv(path: str | Path, names: ColumnSettings | None = None, units:
     units = units or UnitSettings()
     cols = read_csv_columns(path, [names.time, names.dyno_speed, names.engine_speed, names.dyno_torque])
     return bench_data_from_columns(cols, names, units, str(path))
+
+
+def read_bench_mdf(path: str | Path, names: ColumnSettings | None = None, units: UnitSettings | None = None,
+                   notify=None) -> BenchData:
+    """Read a signal ``.mf4`` recording into SI units (channels named like CSV columns; see :mod:`online_id.io.mdf`).
+
+    The time is the channels' master time (seconds); a channel's own unit,
+    when it has one, overrides ``units.speed`` (``rpm``, ``1/min``, ``rad/s``;
+    ``deg`` or ``rad`` for cumulative angles) and is scaled to Nm for torque
+    (``Nm``, ``kNm``).  ``notify`` gets one line per thing done (resampling,
+    units taken from the file).
+    """
+    import dataclasses
+
+    from online_id.io.mdf import read_mdf_columns, speed_unit, torque_factor
+
+    names = names or ColumnSettings()
+    units = units or UnitSettings()
+    roles = ("dyno_speed", "engine_speed", "dyno_torque")
+    got = read_mdf_columns(path, {role: getattr(names, role) for role in roles})
+    notes = list(got.notes)
+    speed = {role: speed_unit(got.units[role]) for role in roles[:2]}
+    for role in roles[:2]:
+        if got.units[role].strip() and speed[role] is None:
+            raise InputDataError(f"{path}: channel {getattr(names, role)!r} has unit {got.units[role]!r}; expected "
+                                 f"a speed (rpm, 1/min, rad/s) or a cumulative angle (deg, rad)")
+    kinds = {u for u in speed.values() if u is not None}
+    if len(kinds) > 1 and kinds & {"deg", "rad"}:
+        raise InputDataError(f"{path}: channels {names.dyno_speed!r} and {names.engine_speed!r} mix a speed and an "
+                             f"angle ({', '.join(sorted(kinds))}); expected two speeds or two angles")
+    columns = {names.time: got.time_s}
+    unit = units.speed
+    for role in roles[:2]:
+        x = got.columns[role]
+        if speed[role] == "rad/s" and "rpm" in kinds:
+            x = x * (30.0 / np.pi)  # one unit for both speeds: rpm
+        columns[getattr(names, role)] = x
+    if kinds:
+        unit = "rpm" if "rpm" in kinds else kinds.pop()
+        if unit != units.speed:
+            notes.append(f"{path}: speeds in {unit} as the channels' units say (config units.speed "
+                         f"{units.speed!r} not used)")
+    factor = torque_factor(got.units["dyno_torque"])
+    if got.units["dyno_torque"].strip() and factor is None:
+        raise InputDataError(f"{path}: channel {names.dyno_torque!r} has unit {got.units['dyno_torque']!r}; "
+                             f"expected a torque (Nm, kNm)")
+    columns[names.dyno_torque] = got.columns["dyno_torque"] * (factor or 1.0)
+    data = bench_data_from_columns(columns, names, dataclasses.replace(units, time="s", speed=unit), str(path))
+    for text in notes:
+        if notify is not None:
+            notify(text)
+    return data

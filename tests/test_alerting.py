@@ -69,7 +69,7 @@ def test_ack_and_relearn_send_the_command_frame(capsys):
     listener = CanBus("virtual", channel)
     dec = InputDecoder(load_dbc(None))
     for k, (name, cmd) in enumerate((("ack", BenchCommand.ACK_ALERT), ("relearn", BenchCommand.RELEARN_BASELINE))):
-        assert main([name, "--interface", "virtual", "--channel", channel]) == 0
+        assert main([name, "--interface", "virtual", "--channel", channel, "--wait", "0"]) == 0
         # relearn sends the frame twice (confirmation), with consecutive counters
         for j in range(1 + (cmd == BenchCommand.RELEARN_BASELINE)):
             f = listener.recv(2.0)

@@ -145,7 +145,7 @@ def test_simulate_writes_a_can_log_matching_the_csv(tmp_path, capsys):
     dec = InputDecoder(load_dbc())
     torque = [s.value for f in read_log(log) for s in dec.decode(f[1], f[2], f[0]) if s.role == "dyno_torque"]
     assert np.allclose(torque, csv[:, 3], atol=0.6e-4, rtol=0)
-    assert main(["simulate", "--config", str(cfg), "--out", str(tmp_path / "x.csv"), "--can-log", "x.mf4"]) == 2
+    assert main(["simulate", "--config", str(cfg), "--out", str(tmp_path / "x.csv"), "--can-log", "x.trc"]) == 2
     assert "--can-log: expected a file ending in .log" in capsys.readouterr().err
     assert main(["simulate", "--config", str(cfg), "--out", str(tmp_path / "none" / "x.csv")]) == 2
     assert "x.csv: cannot write" in capsys.readouterr().err

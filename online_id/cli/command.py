@@ -8,6 +8,12 @@ apart with consecutive counters: the service's default policy
 counter follows the clock (20 per second), so that commands sent one after
 another never repeat a counter the service has just accepted.
 
+Both then wait (``--wait``, 2 s) for the service's answer: the status
+frame it sends at once after a command frame, whose ``CommandResult`` says
+what it did (accepted, awaiting confirmation, refused) and whose
+``CommandCounterEcho`` names the frame; they exit 1 when it was not
+accepted or no answer came.
+
 ``online-id relearn --from LOG [--state DIR]`` sends nothing: it learns the
 baselines from a healthy reference log (an acceptance run after a shaft
 change, a run of an earlier day) through the service pipeline and writes
@@ -23,7 +29,7 @@ import time
 from pathlib import Path
 
 from online_id.config import load_config
-from online_id.errors import ConfigError
+from online_id.errors import ConfigError, DbcError
 from online_id.io.bus import CanBus
 from online_id.io.dbc import BenchCommand, encode_command, load_dbc
 
@@ -40,6 +46,9 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
         p.add_argument("--config", metavar="FILE", help="the service's YAML configuration (bus, DBC, mapping)")
         p.add_argument("--interface", help="override bus.interface")
         p.add_argument("--channel", help="override bus.channel")
+        p.add_argument("--wait", type=float, default=2.0, metavar="S",
+                       help="wait up to S seconds for the service's answer on its status frame (default 2; 0: "
+                            "send only)")
         if name == "relearn":
             p.add_argument("--from", dest="from_log", metavar="LOG",
                            help="send nothing: learn the baselines from this healthy reference log (.log, .asc, "
@@ -68,15 +77,44 @@ def run(args: argparse.Namespace) -> int:
             if k:
                 time.sleep(0.2)
             bus.send(ident, data)
-    sent = ", ".join(data.hex().upper() for _, data in frames)
-    print(f"sent {command.name} (ID 0x{frames[0][0]:X} data {sent}) on {interface}:{channel}")
-    return 0
+        sent = ", ".join(data.hex().upper() for _, data in frames)
+        print(f"sent {command.name} (ID 0x{frames[0][0]:X} data {sent}) on {interface}:{channel}")
+        if not args.wait > 0:
+            return 0
+        answer = await_answer(bus, s, (counter + repeats - 1) % 256, args.wait)
+    if answer is None:
+        print(f"no answer from the service within {args.wait:g} s on {interface}:{channel} (is it running there? "
+              f"it answers on its status frame, signal CommandCounterEcho)")
+        return 1
+    print(f"service answered: {answer['LastCommand']} {answer['CommandResult']} (state {answer['State']})"
+          + ("; its log says why" if answer["CommandResult"] != "ACCEPTED" else ""))
+    return 0 if answer["CommandResult"] == "ACCEPTED" else 1
+
+
+def await_answer(bus: CanBus, s, counter: int, wait_s: float) -> dict | None:
+    """The service's status frame answering the command frame of alive counter ``counter``, or None."""
+    from online_id.io.dbc_output import OutputEncoder
+
+    codec = OutputEncoder(load_dbc(s.dbc), source=s.dbc or "online_id.dbc")
+    status_id = next(fid for fid, name in codec.output_ids(s.publish.frame_ids).items() if name == "OidStatus")
+    end = time.monotonic() + wait_s
+    while time.monotonic() < end:
+        frame = bus.recv(0.05)
+        if frame is None or frame.arbitration_id != status_id:
+            continue
+        try:
+            values, _ = codec.decode_named("OidStatus", frame.data)
+        except DbcError:
+            continue
+        if values.get("CommandCounterEcho") == counter % 64 and values.get("CommandResult") != "NONE":
+            return values
+    return None
 
 
 def relearn_from(log: str, directory: Path | None, settings) -> int:
     """Learn the baselines from a reference log into the state of ``directory`` (see module notes)."""
     from online_id.cli.replay import keep, replay, restore, state_file
-    from online_id.report import TerminalProgress
+    from online_id.progress import Progress
     from online_id.runtime import Runtime
     from online_id.service import state_path
 
@@ -92,11 +130,8 @@ def relearn_from(log: str, directory: Path | None, settings) -> int:
     pipe.alerts.clear()
     pipe.run_label = f"reference run {Path(log).name}"
     pipe.reference_run = True
-    progress = TerminalProgress("relearn")
-    try:
+    with Progress("relearn", unit="frames") as progress:
         replay(log, runtime, progress=progress)
-    finally:
-        progress.close()
     drift = [a for a in pipe.alerts if a.kind.name in ("FREQ_DRIFT", "DAMPING_DRIFT")]
     pipe.detector.reset()  # the reference run's own statistics are no change
     pipe.alerts.clear()

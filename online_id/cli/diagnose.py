@@ -27,7 +27,7 @@ from online_id.diagnose.effects import shaft_angle
 from online_id.errors import ConfigError, InputDataError
 from online_id.io.table_csv import read_csv_columns
 from online_id.io.outfile import check_output
-from online_id.report import TerminalProgress
+from online_id.progress import progress_for
 
 BENCH_ORDERS = (8, 8, 8, 0)
 DEFAULT_PULSES_PER_REV = 2.0  # four-stroke four-cylinder
@@ -164,7 +164,7 @@ def run_bench(args: argparse.Namespace) -> BenchDiagnosis:
     series = prepare(d.time_s, d.dyno_torque_nm, d.dyno_speed_rad_s, d.engine_speed_rad_s,
                      source=str(path), pulses_per_rev=ppr,
                      target_hz=args.sample_rate or TARGET_FS_HZ)
-    progress = TerminalProgress("diagnose")
+    progress = progress_for(args, "diagnose")
     try:
         return diagnose_bench(series, na=args.na or 6, nb=args.nb or 6,
                               max_effects=args.max_effects, progress=progress)
@@ -180,7 +180,7 @@ def run_diagnosis(args: argparse.Namespace) -> Diagnosis:
     nc = args.nc if args.nc is not None else nc
     nk = args.nk if args.nk is not None else nk
     horizon = args.sim_horizon if args.sim_horizon is not None else (0.5 if bench else None)
-    progress = TerminalProgress("diagnose")
+    progress = progress_for(args, "diagnose")
     try:
         return diagnose(data, na=na, nb=nb, nc=nc, nk=nk, input_lead=1 if bench else 0,
                         estimation_fraction=args.estimation_fraction,

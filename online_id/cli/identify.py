@@ -12,25 +12,30 @@ from online_id.config import Settings, load_config
 from online_id.estimation.identification import IdentificationResult, identify
 from online_id.errors import ConfigError, EstimationError
 from online_id.io.outfile import check_output
-from online_id.report import TerminalProgress, figures_text, fmt, identification_document, identification_table
+from online_id.progress import Progress, add_quiet_option, progress_for
+from online_id.report import figures_text, fmt, identification_document, identification_table
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "identify",
-        help="identify the driveline from a bench CSV file or a CAN log",
+        help="identify the driveline from a bench CSV or MDF 4 file, or a CAN log",
         description="Identify the driveline (resonance, damping, c_s, d_s, inertias) from a bench "
         "CSV with columns time_s, dyno_speed_rpm, engine_speed_rpm, dyno_torque_nm "
-        "(torque positive = braking), or from a CAN log (.log, .asc, .blf) decoded with the "
-        "config's DBC and mapping. Prints the poles per operating point with their class.",
+        "(torque positive = braking), an MDF 4 (.mf4) signal recording with channels of those names "
+        "(or as the config's columns name them; units from the channels; channels at different rates "
+        "resampled onto one grid), or from a CAN log (.log, .asc, .blf, MDF 4 bus logging .mf4) decoded "
+        "with the config's DBC and mapping. Prints the poles per operating point with their class.",
     )
-    p.add_argument("path", metavar="PATH", help="bench CSV file, or CAN log (.log, .asc, .blf)")
+    p.add_argument("path", metavar="PATH", help="bench CSV or .mf4 signal recording, or CAN log "
+                   "(.log, .asc, .blf, .mf4 bus logging)")
     p.add_argument("--config", metavar="FILE", help="YAML config (columns, units, inertias, identification)")
     p.add_argument("--json", action="store_true", help="print one JSON document instead of the table")
     p.add_argument("--plot", metavar="FILE.png|DIR",
                    help="FILE.png: pole frequency and damping against engine speed; DIR: that figure (poles.png), "
                         "a Bode plot of the model over the measured response per operating point "
                         "(bode_K_RPMrpm.png) and the simulated against the measured output (compare.png)")
+    add_quiet_option(p)
     p.add_argument("--recursive", action="store_true",
                    help="run the service's streaming estimator (RELS with forgetting) over the file instead "
                         "of the per-operating-point batch identification; gives what `replay` gives on the "
@@ -107,15 +112,12 @@ def _note(text: str) -> None:
 
 
 def run_identification(path: str, s: Settings, label: str = "identify", *, fit_s: float | None = 40.0,
-                       refine_s: float | None = None) -> IdentificationResult:
+                       refine_s: float | None = None, quiet: bool = False) -> IdentificationResult:
     """Read ``path`` and identify, with progress on a terminal (``fit_s``, ``refine_s``: see :func:`identify`)."""
-    progress = TerminalProgress(label)
-    try:
+    with Progress(label, quiet=quiet) as progress:
         progress(0.0, f"reading {path}")
         data = read_bench(path, s, _note)
         return identify(data, s.identification, s.inertias, progress=progress, fit_s=fit_s, refine_s=refine_s)
-    finally:
-        progress.close()
 
 
 def _seconds(value: float, flag: str) -> float | None:
@@ -129,11 +131,8 @@ def run_recursive(args: argparse.Namespace, s: Settings) -> int:
     from online_id.pipeline import run_bench_data
 
     data = read_bench(args.path, s, _note)
-    progress = TerminalProgress("identify --recursive")
-    try:
+    with progress_for(args, "identify --recursive") as progress:
         pipe = run_bench_data(data, s, progress)
-    finally:
-        progress.close()
     result = pipe.result()
     if result["driveline"]["f0_hz"] is None:  # nothing identified: an error, not a table of blanks
         changes = result["status_changes"]
@@ -167,7 +166,8 @@ def run(args: argparse.Namespace) -> int:
     if args.recursive:
         return run_recursive(args, s)
     result = run_identification(args.path, s, fit_s=_seconds(args.fit_seconds, "--fit-seconds"),
-                                refine_s=_seconds(args.refine_seconds, "--refine-seconds"))
+                                refine_s=_seconds(args.refine_seconds, "--refine-seconds"),
+                                quiet=args.json or args.quiet)
     doc = identification_document(result, s.identification.pulses_per_rev)
     if args.plot:
         doc["figures"] = plot_figures(args, s, result)

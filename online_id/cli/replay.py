@@ -10,21 +10,23 @@ from pathlib import Path
 
 from online_id.config import load_config
 from online_id.errors import EstimationError, InputDataError
-from online_id.io.canlog import read_log
+from online_id.io.canlog import count_frames, read_log
 from online_id.io.statefile import load_state, save_state
-from online_id.report import TerminalProgress, fmt
+from online_id.progress import Progress, add_quiet_option, progress_for
+from online_id.records import FrameFault
+from online_id.report import fmt
 from online_id.runtime import Runtime
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "replay",
-        help="replay a CAN log (.log, .asc, .blf) through the service pipeline",
-        description="Feed a candump .log, .asc or .blf file through the same decoder, assembler, estimator "
+        help="replay a CAN log (.log, .asc, .blf, .mf4) through the service pipeline",
+        description="Feed a candump .log, .asc, .blf or MDF 4 bus logging .mf4 file through the same decoder, assembler, estimator "
         "and encoder as the live service, as fast as possible (or in real time), and report the final "
         "estimate, the status changes and the alerts (times in seconds from the start of the log).",
     )
-    p.add_argument("log", metavar="LOG", help="CAN log file (.log, .asc or .blf)")
+    p.add_argument("log", metavar="LOG", help="CAN log file (.log, .asc, .blf or MDF 4 bus logging .mf4)")
     p.add_argument("--config", metavar="FILE", help="YAML configuration (DBC, mapping, model)")
     p.add_argument("--realtime", action="store_true", help="pace the frames by their timestamps")
     p.add_argument("--state", metavar="DIR", type=Path,
@@ -32,6 +34,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    "start and save it there at the end, as online-id run keeps it (replay a day of logs one "
                    "after another)")
     p.add_argument("--json", action="store_true", help="print one JSON document")
+    add_quiet_option(p)
     p.set_defaults(func=run)
 
 
@@ -64,17 +67,21 @@ def keep(runtime: Runtime, path: Path) -> None:
         raise InputDataError(f"{path}: cannot save the state ({err.strerror or err})") from None
 
 
-def replay(path: str, runtime: Runtime, realtime: bool = False, progress=None) -> int:
+def replay(path: str, runtime: Runtime, realtime: bool = False, progress: Progress | None = None) -> int:
     """Feed every frame of the log; returns the number of frames published.
 
-    Raises :class:`InputDataError` when the log holds no frame; a log that
-    ends early is used up to the cut, with a warning on stderr.
+    Raises :class:`InputDataError` when the log holds no frame, or none of
+    an ID the config maps; a log that ends early is used up to the cut, with
+    a warning on stderr.
     """
     published = 0
     t_first = None
     wall0 = time.monotonic()
     cut: list[str] = []
+    total = count_frames(path) if progress is not None and progress.enabled else None
+    ids: set[int] = set()
     for k, (t_s, ident, data, is_ext, is_err) in enumerate(read_log(path, cut.append)):
+        ids.add(ident)
         if t_first is None:
             t_first = t_s
         if realtime:
@@ -82,14 +89,25 @@ def replay(path: str, runtime: Runtime, realtime: bool = False, progress=None) -
             if delay > 0:
                 time.sleep(delay)
         published += len(runtime.on_frame(t_s, ident, data, is_ext, is_err))
-        if progress is not None and k % 5000 == 0:
-            progress(0.0, f"{k} frames, t = {t_s - t_first:.1f} s")
+        if progress is not None and k % 2000 == 0:
+            progress.count(k, total, f"t = {t_s - t_first:.1f} s")
     if t_first is None:
         raise InputDataError(f"{path}: no CAN frames in the log" + (" (it ends early)" if cut else ""))
+    if runtime.pipeline.counters.faults[FrameFault.UNKNOWN_ID] == runtime.frames_in:
+        raise InputDataError(no_match(path, runtime, ids))
     for text in cut:
         print(text, file=sys.stderr)
     published += len(runtime.tick(runtime.pipeline.t_s))
     return published
+
+
+def no_match(path: str, runtime: Runtime, ids: set[int]) -> str:
+    """The error for a log none of whose frames has an ID the config maps."""
+    wanted = ", ".join(f"0x{fid:X}" for fid in sorted(runtime.decoder.frame_ids))
+    seen = sorted(ids)
+    shown = ", ".join(f"0x{fid:X}" for fid in seen[:8]) + (f" and {len(seen) - 8} more" if len(seen) > 8 else "")
+    return (f"{path}: none of its {runtime.frames_in} frames has an ID the config maps ({wanted}; "
+            f"{runtime.decoder.source}, config keys dbc and mapping); the log holds IDs {shown}")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -98,12 +116,9 @@ def run(args: argparse.Namespace) -> int:
     path = state_file(args.state) if args.state is not None else None
     restored = restore(runtime, path) if path is not None else False
     runtime.pipeline.run_label = Path(args.log).name
-    progress = TerminalProgress("replay")
     t0 = time.monotonic()
-    try:
+    with progress_for(args, "replay", "frames") as progress:
         published = replay(args.log, runtime, args.realtime, progress)
-    finally:
-        progress.close()
     elapsed = time.monotonic() - t0
     result = runtime.pipeline.result()
     result["frames_in"] = runtime.frames_in

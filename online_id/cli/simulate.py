@@ -5,14 +5,16 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import sys
 from pathlib import Path
+
+import numpy as np
 
 from online_id.bench.scenario import BenchScenario, load_scenario
 from online_id.bench.simulate import BenchRecord, simulate_bench
 from online_id.errors import ConfigError
 from online_id.io.outfile import atomic_output, check_output
 from online_id.io.table_csv import write_csv_columns
+from online_id.progress import add_quiet_option, progress_for
 
 CSV_FORMATS = ("%.6f", "%.4f", "%.4f", "%.4f")
 
@@ -29,18 +31,32 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                         help="scenario file (default: the built-in paper-like bench)")
     parser.add_argument("--seed", type=int, help="random seed (overrides the scenario)")
     parser.add_argument("--out", type=Path, default=Path("bench.csv"),
-                        help="CSV file to write (default: bench.csv)")
+                        help="CSV file to write (default: bench.csv), or an MDF 4 signal recording (.mf4) with "
+                             "the same channels")
     parser.add_argument("--truth", type=Path,
                         help="truth JSON file (default: <out stem>.truth.json next to --out)")
-    parser.add_argument("--can-log", type=Path, metavar="FILE.{log,asc,blf}",
+    parser.add_argument("--can-log", type=Path, metavar="FILE.{log,asc,blf,mf4}",
                         help="also write the measured signals as CAN input frames (online_id.dbc) "
                              "to this log; the format follows the suffix")
+    add_quiet_option(parser)
     parser.set_defaults(func=run)
 
 
 def write_csv(record: BenchRecord, path: Path) -> None:
-    """Write the record's columns with a header line."""
+    """Write the record's columns with a header line; a ``.mf4`` path gets an MDF 4 signal recording.
+
+    The ``.mf4`` channels hold the values the CSV holds (rounded to its
+    decimals), so that the two are twins sample for sample.
+    """
     columns = record.columns()
+    if Path(path).suffix.lower() == ".mf4":
+        from online_id.io.mdf import write_mdf_signals  # asammdf only when asked for
+
+        rounded = {name: np.round(np.asarray(x, dtype=float), int(f[2:-1]))
+                   for (name, x), f in zip(columns.items(), CSV_FORMATS)}
+        units = {"dyno_speed_rpm": "rpm", "engine_speed_rpm": "rpm", "dyno_torque_nm": "Nm"}
+        write_mdf_signals(path, rounded["time_s"], {name: (rounded[name], unit) for name, unit in units.items()})
+        return
     write_csv_columns(path, columns, dict(zip(columns, CSV_FORMATS)))
 
 
@@ -52,10 +68,6 @@ def write_can_log(record: BenchRecord, path: Path) -> int:
     frames = encode_inputs(record.time_s, record.dyno_speed_rpm, record.engine_speed_rpm,
                            record.dyno_torque_nm, source="simulated bench")
     return write_log(path, frames)
-
-
-def _progress(fraction: float) -> None:
-    print(f"\rsimulating ... {100 * fraction:5.1f} %", end="", file=sys.stderr, flush=True)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -76,10 +88,8 @@ def run(args: argparse.Namespace) -> int:
     for path, what in ((out, "bench CSV"), (truth_path, "truth file"), (args.can_log, "CAN log")):
         if path is not None:
             check_output(path, what)  # before simulating, not after
-    show = sys.stderr.isatty()
-    record = simulate_bench(scenario, progress=_progress if show else None)
-    if show:
-        print(file=sys.stderr)
+    with progress_for(args, "simulate") as progress:
+        record = simulate_bench(scenario, progress=progress)
     # every output under a temporary name, all renamed only when all are written
     with atomic_output(out) as out_tmp, atomic_output(truth_path) as truth_tmp:
         write_csv(record, out_tmp)

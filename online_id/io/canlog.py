@@ -1,4 +1,4 @@
-"""CAN log files: candump ``.log``, Vector ``.asc`` and ``.blf`` through python-can.
+"""CAN log files: candump ``.log``, Vector ``.asc``, ``.blf`` and MDF 4 bus logging ``.mf4`` through python-can.
 
 Frames are plain tuples so that nothing outside :mod:`online_id.io` sees a
 python-can object: :func:`write_log` takes ``(t_s, arbitration_id, data)``
@@ -9,7 +9,11 @@ Timestamps are written as given and read back as the file holds them:
 ``.log`` keeps absolute seconds (1 us resolution); ``.asc`` stores times
 relative to its first frame (1 us), so they come back shifted by the first
 frame's time; ``.blf`` keeps nanoseconds relative to a start time that is only
-stored for Unix timestamps (times before 1990 come back as written).
+stored for Unix timestamps (times before 1990 come back as written); ``.mf4``
+(python-can's ``MF4Writer``/``MF4Reader``, ASAM MDF bus logging through
+asammdf) keeps times relative to the measurement's start time.  A ``.mf4``
+that holds signals rather than CAN frames is refused with a note on what reads
+it (:mod:`online_id.io.mdf`).
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ import can
 from online_id.errors import InputDataError
 from online_id.io.outfile import atomic_output
 
-SUFFIXES = (".log", ".asc", ".blf")
+SUFFIXES = (".log", ".asc", ".blf", ".mf4")
 """Log formats :func:`write_log` and :func:`read_log` support."""
 
 Frame = tuple[float, int, bytes]
@@ -45,6 +49,8 @@ def _writer(path: Path, suffix: str, channel: str) -> can.io.generic.MessageWrit
         return can.CanutilsLogWriter(path, channel=channel)
     if suffix == ".asc":
         return can.ASCWriter(path)
+    if suffix == ".mf4":
+        return can.io.MF4Writer(path)
     return can.BLFWriter(path)
 
 
@@ -84,6 +90,40 @@ def write_log(path: str | Path, frames: Iterable[tuple], channel: str = "can0") 
             except OSError as err:
                 raise InputDataError(f"{path}: cannot write: {err.strerror or err}") from err
     return count
+
+
+def count_frames(path: str | Path) -> int | None:
+    """About how many frames the log holds (for a progress bar), cheaply; None when it cannot tell.
+
+    ``.log``: its lines; ``.asc``: its lines (a few header lines too many);
+    ``.blf``: the object count of its header; ``.mf4``: the cycles of its CAN
+    channel groups.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    try:
+        if suffix in (".log", ".asc"):
+            with path.open("rb") as raw:
+                return sum(block.count(b"\n") for block in iter(lambda: raw.read(1 << 22), b""))
+        if suffix == ".blf":
+            reader = can.BLFReader(path)
+            reader.stop()
+            return int(reader.object_count) or None
+        if suffix == ".mf4":
+            from asammdf import MDF
+
+            from online_id.io.mdf import _quiet
+
+            with _quiet():
+                mdf = MDF(path)
+                try:
+                    return sum(int(g.channel_group.cycles_nr) for g in mdf.groups
+                               if any(ch.name.startswith("CAN_") for ch in g.channels)) or None
+                finally:
+                    mdf.close()
+    except Exception:  # only a hint: the reading proper reports what is wrong with the file
+        return None
+    return None
 
 
 _READ_ERRORS = (OSError, ValueError, EOFError, IndexError, KeyError, struct.error, zlib.error,
@@ -150,6 +190,9 @@ def read_log(path: str | Path, on_truncated: Callable[[str], None] | None = None
     if not path.is_file():
         raise InputDataError(f"{path}: cannot read the CAN log: no such file")
     count = 0
+    if suffix == ".mf4":
+        yield from _read_mf4(path)
+        return
     try:
         cut = _cut_text_log(path, suffix) if suffix != ".blf" else None
         reader = can.LogReader(path)
@@ -189,3 +232,29 @@ def read_log(path: str | Path, on_truncated: Callable[[str], None] | None = None
         reader.stop()
     if cut and on_truncated is not None:
         on_truncated(_cut_note(path, cut, count))
+
+
+def _read_mf4(path: Path) -> Iterator[LoggedFrame]:
+    """Frames of an MDF 4 bus logging file (python-can's ``MF4Reader``); one-line errors for bad files."""
+    from online_id.io.mdf import _quiet, is_bus_log, read_error
+
+    if not is_bus_log(path):
+        raise InputDataError(f"{path}: an MDF 4 signal recording, not CAN bus logging (no CAN_DataFrame "
+                             f"channel group); identify and diagnose read its channels")
+    with _quiet():
+        try:
+            reader = can.io.MF4Reader(path)
+            messages = iter(reader)
+        except Exception as err:  # asammdf raises MdfException, ValueError, ... on a bad file
+            raise read_error(path, err, "CAN log") from None
+    count = 0
+    try:
+        for msg in messages:
+            data = b"" if msg.is_remote_frame or msg.data is None else bytes(msg.data)
+            yield (float(msg.timestamp), int(msg.arbitration_id), data, bool(msg.is_extended_id),
+                   bool(msg.is_error_frame))
+            count += 1
+    except Exception as err:  # a data block cut short or corrupt (asammdf raises many kinds)
+        raise InputDataError(f"{read_error(path, err, 'CAN log')} (after {count} frames)") from None
+    finally:
+        reader.stop()

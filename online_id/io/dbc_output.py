@@ -69,6 +69,14 @@ class OutputEncoder:
             self._specs[key] = spec
             self._by_id[int(msg.frame_id)] = spec
             self._count[key] = 0
+        self.command_answer: dict[str, int] = {}
+        """The status frame's answer to the last command frame (signals LastCommand, CommandResult,
+        CommandCounterEcho; a DBC without them leaves them out), set by :meth:`answer_command`."""
+
+    def answer_command(self, command: int, result: int, counter: int | None) -> None:
+        """Carry the answer to a command frame on the status frames from now on (see the DBC's comments)."""
+        self.command_answer = {"LastCommand": command, "CommandResult": result,
+                               "CommandCounterEcho": (counter or 0) % 64}
 
     def encode(self, pub: Publication) -> list[tuple[int, bytes]]:
         """Frames ``(arbitration_id, data)`` of one publication (EstimateOut gives two)."""
@@ -89,7 +97,7 @@ class OutputEncoder:
             })]
         if isinstance(pub, StatusOut):
             return [self._encode("status", {"State": int(pub.state), "BadFrames": pub.bad_frames,
-                                            "MissingFrames": pub.missing_frames})]
+                                            "MissingFrames": pub.missing_frames, **self.command_answer})]
         if isinstance(pub, AlertOut):
             return [self._encode("alert", {"AlertKind": int(pub.kind), "Severity": pub.severity,
                                            "DriftPct": pub.value_pct, "SpeedRpm": pub.speed_rpm})]
@@ -120,6 +128,22 @@ class OutputEncoder:
         """True when ``data`` is an 8-byte output frame of this DBC with a correct CRC."""
         return (arbitration_id in self._by_id and data is not None and len(data) == 8
                 and crc8_j1850(bytes(data[:7])) == data[7])
+
+    def output_ids(self, frame_ids: Mapping[str, int] | None = None) -> dict[int, str]:
+        """Arbitration ID -> message name of every output (``frame_ids``: the config's ``publish.frame_ids``)."""
+        remap = dict(frame_ids or {})
+        return {int(remap.get(spec.message.name, fid)): spec.message.name for fid, spec in self._by_id.items()}
+
+    def decode_named(self, name: str, data: bytes | bytearray) -> tuple[dict[str, float | str], int]:
+        """Values of output message ``name`` (choices as their names, e.g. ``State: TRACKING``) and its
+        alive counter; the CRC signal is left out.  DbcError when the length or the CRC is wrong."""
+        spec = next(sp for sp in self._specs.values() if sp.message.name == name)
+        if data is None or len(data) != 8 or crc8_j1850(bytes(data[:7])) != data[7]:
+            raise DbcError(f'Expected message "{name}" with a valid CRC-8 in byte 7, but got data '
+                           f"{bytes(data or b'').hex().upper()}.")
+        raw = spec.message.decode(bytes(data), decode_choices=True)
+        values = {k: (str(v) if not isinstance(v, int | float) else v) for k, v in raw.items() if k != spec.crc}
+        return values, int(values.pop(spec.counter))
 
     def decode(self, arbitration_id: int, data: bytes | bytearray) -> dict[str, float]:
         """Physical values of an output frame (for consumers and tests); DbcError if it does not verify."""
