@@ -131,7 +131,7 @@ def relearn_from(log: str, directory: Path | None, settings) -> int:
     pipe.run_label = f"reference run {Path(log).name}"
     pipe.reference_run = True
     with Progress("relearn", unit="frames") as progress:
-        replay(log, runtime, progress=progress)
+        replay(log, runtime, progress=progress, require_match=True)
     drift = [a for a in pipe.alerts if a.kind.name in ("FREQ_DRIFT", "DAMPING_DRIFT")]
     pipe.detector.reset()  # the reference run's own statistics are no change
     pipe.alerts.clear()

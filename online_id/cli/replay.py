@@ -67,12 +67,13 @@ def keep(runtime: Runtime, path: Path) -> None:
         raise InputDataError(f"{path}: cannot save the state ({err.strerror or err})") from None
 
 
-def replay(path: str, runtime: Runtime, realtime: bool = False, progress: Progress | None = None) -> int:
+def replay(path: str, runtime: Runtime, realtime: bool = False, progress: Progress | None = None,
+           require_match: bool = False) -> int:
     """Feed every frame of the log; returns the number of frames published.
 
-    Raises :class:`InputDataError` when the log holds no frame, or none of
-    an ID the config maps; a log that ends early is used up to the cut, with
-    a warning on stderr.
+    Raises :class:`InputDataError` when the log holds no frame, or (with
+    ``require_match``) none of an ID the config maps; a log that ends early
+    is used up to the cut, with a warning on stderr.
     """
     published = 0
     t_first = None
@@ -93,7 +94,7 @@ def replay(path: str, runtime: Runtime, realtime: bool = False, progress: Progre
             progress.count(k, total, f"t = {t_s - t_first:.1f} s")
     if t_first is None:
         raise InputDataError(f"{path}: no CAN frames in the log" + (" (it ends early)" if cut else ""))
-    if runtime.pipeline.counters.faults[FrameFault.UNKNOWN_ID] == runtime.frames_in:
+    if require_match and runtime.pipeline.counters.faults[FrameFault.UNKNOWN_ID] == runtime.frames_in:
         raise InputDataError(no_match(path, runtime, ids))
     for text in cut:
         print(text, file=sys.stderr)
@@ -118,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
     runtime.pipeline.run_label = Path(args.log).name
     t0 = time.monotonic()
     with progress_for(args, "replay", "frames") as progress:
-        published = replay(args.log, runtime, args.realtime, progress)
+        published = replay(args.log, runtime, args.realtime, progress, require_match=True)
     elapsed = time.monotonic() - t0
     result = runtime.pipeline.result()
     result["frames_in"] = runtime.frames_in
