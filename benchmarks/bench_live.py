@@ -115,8 +115,12 @@ def latency(args, work: Path) -> dict:
         return np.array([1e3 * (p - run.send_stamps[i + 3 * m]) for (_t, p, _d), i in zip(got, marks)
                          if i + 3 * m in run.send_stamps])
 
-    shift = next((m for m in range(PHASE_MAX, -1, -1) if lat_at(m).size and np.mean(lat_at(m) > 0) >= 0.999), 0)
-    lat_ms = lat_at(shift)
+    shift, lat_ms = 0, lat_at(0)
+    for m in range(PHASE_MAX, 0, -1):
+        lat = lat_at(m)
+        if lat.size and np.mean(lat > 0) >= 0.999:
+            shift, lat_ms = m, lat
+            break
     valid = np.array([bool(d.get("Valid")) for (_t, _p, d), i in zip(got, marks) if i + 3 * shift in run.send_stamps])
     out["grid_phase_samples"] = shift
     out.update({"latency_ms": {"n": int(lat_ms.size), "p50": _pct(lat_ms, 50), "p90": _pct(lat_ms, 90),

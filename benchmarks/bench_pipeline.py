@@ -405,6 +405,19 @@ def latency_bus(settings: Settings, frames: list, n_warm: int, reference: list, 
 # --- memory -------------------------------------------------------------------------------------
 
 
+def counter_bytes(db, settings: Settings) -> dict[int, int]:
+    """Input frame ID -> byte of its alive counter (one little-endian byte each), to continue the counters."""
+    m = role_mapping(settings.mapping)
+    out = {}
+    for rs in m.dyno_speed, m.engine_speed, m.dyno_torque:
+        msg = db.get_message_by_name(rs.message)
+        sig = msg.get_signal_by_name(rs.counter)
+        if sig.start % 8 or sig.length != 8 or sig.byte_order != "little_endian":
+            raise SystemExit(f"counter {sig.name} is not one little-endian byte; cannot continue it")
+        out[int(msg.frame_id)] = sig.start // 8
+    return out
+
+
 _chunk_db = None
 
 
@@ -421,14 +434,7 @@ def make_chunk(k: int) -> bytes:
     if _chunk_db is None:
         _chunk_db = load_dbc(None)
     db = _chunk_db
-    m = role_mapping(Settings().mapping)
-    counter_byte: dict[int, int] = {}
-    for rs in m.dyno_speed, m.engine_speed, m.dyno_torque:
-        msg = db.get_message_by_name(rs.message)
-        sig = msg.get_signal_by_name(rs.counter)
-        if sig.start % 8 or sig.length != 8 or sig.byte_order != "little_endian":
-            raise SystemExit(f"counter {sig.name} is not one little-endian byte; cannot continue it")
-        counter_byte[int(msg.frame_id)] = sig.start // 8
+    counter_byte = counter_bytes(db, Settings())
     a, b = SPEEDS_RPM[k % len(SPEEDS_RPM)], SPEEDS_RPM[(k + 1) % len(SPEEDS_RPM)]
     rec = bench_record(CHUNK_S, (a, b), seed=1000 + k)
     frames = frames_of(rec, db)

@@ -29,8 +29,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -40,6 +38,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
 
+from bench_pipeline import counter_bytes, machine, proc_status_mb  # noqa: E402
 from hostile_input import HostileEvents, new_expectation  # noqa: E402
 
 from online_id.bench.scenario import BenchScenario, OperatingPoint  # noqa: E402
@@ -49,7 +48,7 @@ from online_id.io.dbc import encode_inputs, load_dbc  # noqa: E402
 from online_id.io.dbc_output import OutputEncoder  # noqa: E402
 from online_id.offload import InlineWorker, ProcessWorker  # noqa: E402
 from online_id.records import FrameFault, ServiceState  # noqa: E402
-from online_id.runtime import Runtime, role_mapping  # noqa: E402
+from online_id.runtime import Runtime  # noqa: E402
 
 CHUNK_S = 120.0
 N_CHUNKS = 6
@@ -73,26 +72,6 @@ def make_chunks(db) -> tuple[list[list[tuple[float, int, bytes]]], dict]:
                                     rec.dyno_torque_nm[:n], db=db))
         print(f"  chunk {k + 1}/{N_CHUNKS} simulated ({mid:.0f} rpm)", file=sys.stderr, flush=True)
     return chunks, truth
-
-
-def counter_bytes(db, settings: Settings) -> dict[int, int]:
-    """Input frame ID -> byte of its alive counter (one little-endian byte each)."""
-    m = role_mapping(settings.mapping)
-    out = {}
-    for rs in m.dyno_speed, m.engine_speed, m.dyno_torque:
-        msg = db.get_message_by_name(rs.message)
-        sig = msg.get_signal_by_name(rs.counter)
-        if sig.start % 8 or sig.length != 8 or sig.byte_order != "little_endian":
-            raise SystemExit(f"counter {sig.name} is not one little-endian byte; cannot continue it")
-        out[int(msg.frame_id)] = sig.start // 8
-    return out
-
-
-def rss_mb() -> float:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024.0
-    return float("nan")
 
 
 def main() -> int:
@@ -167,7 +146,7 @@ def main() -> int:
                 "tracking_last_10min_pct": round(100.0 * float(last.mean()), 1) if last.size else None,
                 "f0_error_pct": None if err is None else round(err, 3),
                 "state": rt.pipeline.state.name,
-                "rss_mb": round(rss_mb(), 1),
+                "rss_mb": round(proc_status_mb("VmRSS"), 1),
                 "cpu_s": round(time.process_time() - cpu0, 1),
                 "wall_s": round(time.monotonic() - t_wall0, 1),
             }
@@ -183,7 +162,7 @@ def main() -> int:
             hours.append(row)
             print(json.dumps(row), flush=True)
     worker.close()
-    doc = {"machine": f"{platform.node()} {os.cpu_count()} cores, Python {platform.python_version()}",
+    doc = {"machine": machine(),
            "hours": args.hours, "every_s": args.every_s, "worker": "inline" if args.inline else "process",
            "truth_f0_hz": truth["f0_hz"], "rows": hours, "ok": ok_all}
     (args.out / "soak-hostile.json").write_text(json.dumps(doc, indent=2))
