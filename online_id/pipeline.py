@@ -199,13 +199,15 @@ class Pipeline:
     def on_signal(self, sample: SignalSample) -> list[Publication]:
         """One decoded value from a frame."""
         samples = self.assembler.push(sample)  # checks the timestamp (see online_id.assembly)
-        if self.t_first is None and samples:
-            self.t_first = samples[0].t_s
+        if samples:
+            if self.t_first is None:
+                self.t_first = samples[0].t_s
+            self.worker.poll()  # adopt finished slow work before the samples use the model
         return self._consume(samples, self.assembler.now_s)
 
     def tick(self, now_s: float) -> list[Publication]:
         """The stream clock moved without a frame (silence on the bus)."""
-        self.worker.poll()
+        self.worker.poll()  # adopt finished slow work (also before the samples this may complete)
         return self._consume(self.assembler.poll(now_s), self.assembler.now_s)
 
     def on_command(self, command: int, t_s: float) -> list[Publication]:
@@ -238,8 +240,6 @@ class Pipeline:
     def _consume(self, samples: list[AssembledSample], now_s: float) -> list[Publication]:
         out: list[Publication] = []
         self.t_s = now_s
-        if samples and self.worker.asynchronous:
-            self.worker.poll()  # adopt finished slow work before the samples use the model
         jump = self.assembler.take_time_jump()
         if jump is not None:
             self._time_jumped(jump, now_s, out)
