@@ -101,7 +101,8 @@ def figures_text(doc: dict) -> list[str]:
     fig = doc.get("figures")
     if not fig:
         return []
-    lines = ["", "Model against the data (compare: held-out part of each plateau)"] if fig["points"] else [""]
+    head = "Model against the data (compare: held-out part of each plateau, or its fit window where it has none)"
+    lines = ["", head] if fig["points"] else [""]
     for c in fig["points"]:
         lines.append(f"  {c['engine_speed_rpm']:6.0f} rpm  simulation fit {fmt(c['fit_simulation_pct'], '6.1f')} %  "
                      f"one-step fit {fmt(c['fit_one_step_pct'], '6.1f')} %  coherence at f0 "
