@@ -74,6 +74,16 @@ def make_chunks(db) -> tuple[list[list[tuple[float, int, bytes]]], dict]:
     return chunks, truth
 
 
+def write_doc(args, truth: dict, hours: list[dict], ok_all: bool, *, done: bool) -> None:
+    """``soak-hostile.json`` with the hours so far (``complete`` false until the last), written atomically."""
+    doc = {"machine": machine(),
+           "hours": args.hours, "every_s": args.every_s, "worker": "inline" if args.inline else "process",
+           "truth_f0_hz": truth["f0_hz"], "complete": done, "rows": hours, "ok": ok_all}
+    tmp = args.out / "soak-hostile.json.tmp"
+    tmp.write_text(json.dumps(doc, indent=2))
+    tmp.replace(args.out / "soak-hostile.json")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--hours", type=float, default=24.0)
@@ -161,11 +171,8 @@ def main() -> int:
             ok_all &= row["ok"]
             hours.append(row)
             print(json.dumps(row), flush=True)
+            write_doc(args, truth, hours, ok_all, done=k == n_chunks - 1)  # a long run leaves its hours so far
     worker.close()
-    doc = {"machine": machine(),
-           "hours": args.hours, "every_s": args.every_s, "worker": "inline" if args.inline else "process",
-           "truth_f0_hz": truth["f0_hz"], "rows": hours, "ok": ok_all}
-    (args.out / "soak-hostile.json").write_text(json.dumps(doc, indent=2))
     print(f"soak: {args.hours:g} h of stream, {'every hour right' if ok_all else 'SOME HOURS FAILED'}; "
           f"wrote {args.out / 'soak-hostile.json'}")
     return 0 if ok_all else 1
