@@ -115,6 +115,7 @@ class Pipeline:
         self._next_physical: float | None = None
         self._physical: DrivelineParameters | None = None
         self._refit_pending = False
+        self._detect_pending: tuple[OnlineEstimate, float, float] | None = None  # see _publish
         self._estimate: OnlineEstimate | None = None
         self._resets_seen = 0
         self._reset_times: list[float] = []
@@ -218,6 +219,7 @@ class Pipeline:
             self.estimator = self._new_estimator()
             self._estimate = None
             self._physical = None
+            self._detect_pending = None
             self.events.append(Event(t_s, "command", "estimator reset on command"))
         elif command == COMMAND_ACK:
             self.detector.acknowledge()
@@ -271,6 +273,9 @@ class Pipeline:
                 if self._next_publish <= a.t_s:  # after a gap: no burst of publications
                     self._next_publish = a.t_s + 1.0 / self.settings.publish.rate_hz
                 out.extend(self._publish(a.t_s))
+            elif self._detect_pending is not None:
+                self._track_and_detect(*self._detect_pending, out)
+                self._detect_pending = None
             # slow work starts on a sample that publishes nothing, so it never delays an estimate; with the
             # process worker it runs beside the stream and is adopted when it is back (``worker.poll``)
             elif self.estimator.refit_due and not self.worker.busy(WINDOW):
@@ -389,20 +394,25 @@ class Pipeline:
             self._next_physical = t_s + self.settings.publish.physical_interval_s
             self._refit_pending = True
         if self.settings.detection.enabled:
-            self._track_and_detect(est, t_s, out)
+            # pole tracking, learning and detection (about 1 ms) run on the next sample, after this
+            # publication has gone out: an estimate never waits for them, an alert comes 1 sample later
+            self._detect_pending = (est, t_s, self.estimator.speed_rpm)
         phys = self._physical
         nan = float("nan")
-        out.append(EstimateOut(t_s, est.f0_hz, est.zeta, phys.c_s if phys and phys.c_s else nan,
-                               phys.d_s if phys and phys.d_s else nan, est.valid))
+        # the estimate first: its frame goes out before the others of this publication
+        out.insert(0, EstimateOut(t_s, est.f0_hz, est.zeta, phys.c_s if phys and phys.c_s else nan,
+                                  phys.d_s if phys and phys.d_s else nan, est.valid))
         out.append(QualityOut(t_s, est.residual_rms, est.fpe, est.excitation_nm, est.samples_used))
         out.append(self.status(t_s))
         return out
 
     # -- wear and fault detection ------------------------------------------------------------------
-    def _track_and_detect(self, est: OnlineEstimate, t_s: float, out: list[Publication]) -> None:
-        """Pole tracks, baseline learning (1 Hz) and change detection, at the publish rate."""
+    def _track_and_detect(self, est: OnlineEstimate, t_s: float, speed: float, out: list[Publication]) -> None:
+        """Pole tracks, baseline learning (1 Hz) and change detection, at the publish rate.
+
+        ``est``, ``t_s`` and ``speed`` are those of the publication (it runs on the sample after it).
+        """
         d = self.settings.detection
-        speed = self.estimator.speed_rpm
         load = est.load_nm
         self.tracker.update(t_s=t_s, speed_rpm=speed, poles=est.poles)
         healthy = (est.valid and not est.frozen and self.state == ServiceState.TRACKING

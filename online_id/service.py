@@ -44,6 +44,7 @@ from online_id.io.statefile import save_state
 from online_id.io.journal import Journal
 from online_id.io.systemd import Notifier
 from online_id.offload import ProcessWorker
+from online_id.reaction import ReactionTimes
 from online_id.records import AlertKind, AlertOut, FrameFault
 from online_id.restore import restore_pipeline
 from online_id.runtime import Runtime
@@ -80,6 +81,7 @@ class Service:
         self.state_file = state_path(settings)
         self.last_frame_wall = 0.0
         self.last_frame_ts: float | None = None
+        self.reaction = ReactionTimes()  # input frame arrival -> its first output sent (see online_id.reaction)
         self._last_state = None
         self._restore()
         self._n_alerts = self.runtime.pipeline.alerts_total
@@ -246,7 +248,7 @@ class Service:
         ping_every = (self.notifier.watchdog_s or 10.0) / 3
         draining_until = None
         next_chores = 0.0
-        runtime, monotonic = self.runtime, time.monotonic
+        runtime, monotonic, wall, reaction = self.runtime, time.monotonic, time.time, self.reaction
         try:
             while True:
                 # the hot path: one frame in, its outputs out; everything else at most every CHORES_S
@@ -266,8 +268,13 @@ class Service:
                         out = runtime.tick(self.last_frame_ts + now - self.last_frame_wall)
                     else:
                         out = runtime.tick_worker()
-                    for ident, data in out:
+                    if out:
+                        ident, data = out[0]  # a publication's first frame is its OidEstimate
                         bus.send(ident, data)
+                        if frame is not None:
+                            reaction.add(wall() - frame.t_s)
+                        for ident, data in out[1:]:
+                            bus.send(ident, data)
                 except BusError as err:
                     self.say(f"bus failed: {err}; reopening")
                     bus.close()
@@ -316,7 +323,8 @@ class Service:
         self.say(f"stopped: {self.runtime.frames_in} frames in, {self.runtime.frames_out} frames out, "
                  f"{c.samples} samples, {c.bad_frames} bad frames, {c.missing_frames} missing frames, "
                  f"{self.runtime.pipeline.dropped_frames} dropped by the kernel, "
-                 f"{c.faults[FrameFault.UNKNOWN_ID]} foreign frames, state {self.runtime.pipeline.state.name}")
+                 f"{c.faults[FrameFault.UNKNOWN_ID]} foreign frames, state {self.runtime.pipeline.state.name}; "
+                 f"{self.reaction.summary()}")
         return 0
 
 

@@ -147,3 +147,19 @@ def test_modal_residue_tells_the_mode_from_a_nearly_cancelled_pole(f0, zeta, dt)
     b = np.concatenate(([0.0], 1e-3 * b_zero))
     assert modal_residue(a, b, z_mode) > 10 * modal_residue(a, b, z_spur)
     assert modal_residue(a, b, 0j) == 0.0
+
+
+def test_fast_roots_equal_numpys_roots():
+    """poles_of's companion-matrix roots (the service's per-publication path) agree with np.roots."""
+    from online_id.analysis.poles import _roots
+
+    rng = np.random.default_rng(5)
+    for k in range(500):
+        a = np.r_[rng.normal(), rng.normal(size=int(rng.integers(0, 14)))]
+        if k % 5 == 0:
+            a = np.r_[0.0, a]  # leading zero: a lower degree
+        if k % 7 == 0:
+            a = np.r_[a, 0.0, 0.0]  # trailing zeros: roots at 0
+        want, got = np.sort_complex(np.roots(a)), np.sort_complex(_roots(a))
+        assert want.shape == got.shape
+        assert np.allclose(want, got, atol=1e-7 * max(1.0, np.abs(want).max(initial=0.0)))

@@ -23,6 +23,8 @@ found at the same frequency at (nearly) every operating point is the
 
 from __future__ import annotations
 
+import cmath
+import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -84,17 +86,40 @@ def damp(z: np.ndarray | complex, dt: float) -> tuple[np.ndarray, np.ndarray]:
     return freq, zeta
 
 
+def _roots(a: np.ndarray) -> np.ndarray:
+    """Roots of polynomial ``a``, as ``np.roots`` gives them (eigenvalues of the companion matrix), without
+    its argument checks: the service computes them at every publication."""
+    nz = np.flatnonzero(a)
+    if nz.size == 0:
+        return np.array([], dtype=complex)
+    trailing = len(a) - 1 - int(nz[-1])  # each trailing zero coefficient is a root at 0
+    a = a[nz[0]:nz[-1] + 1]
+    n = len(a) - 1
+    roots = np.zeros(trailing, dtype=complex)
+    if n < 1:
+        return roots
+    comp = np.zeros((n, n))
+    comp[0, :] = -a[1:] / a[0]
+    comp[np.arange(1, n), np.arange(n - 1)] = 1.0
+    return np.concatenate([np.linalg.eigvals(comp).astype(complex), roots])
+
+
 def poles_of(a: np.ndarray, dt: float, tol_imag: float = 1e-9) -> list[Pole]:
     """Poles of ``A(q^-1)`` (coefficients in powers of q^-1), one per conjugate pair."""
-    roots = np.roots(np.asarray(a, dtype=float)) if len(a) > 1 else np.array([], dtype=complex)
+    roots = _roots(np.asarray(a, dtype=float))
     out: list[Pole] = []
-    for z in roots:
+    for z in roots.tolist():  # the service computes this at every publication: scalar math, no numpy per root
         if z.imag < -tol_imag:
             continue
         real = abs(z.imag) <= tol_imag
-        f, zt = damp(z, dt)
+        if z == 0:
+            f, zt = math.inf, 1.0
+        else:
+            s = cmath.log(z) / dt
+            mag = abs(s)
+            f, zt = mag / (2.0 * math.pi), (-s.real / mag if mag > 0 else -1.0)
         kind = "real" if real and z.real >= 0 else "complex"
-        out.append(Pole(complex(z.real, 0.0) if real else complex(z), float(f[0]), float(zt[0]), kind, REAL if kind == "real" else OTHER))
+        out.append(Pole(complex(z.real, 0.0) if real else z, f, zt, kind, REAL if kind == "real" else OTHER))
     out.sort(key=lambda p: (p.kind != "complex", p.f_hz))
     return out
 

@@ -84,13 +84,16 @@ class CanBus:
 
     ``receive_buffer_bytes``: the kernel receive buffer asked for on socket
     interfaces (8 MiB, which the kernel doubles: about two seconds of a full
-    1 Mbit/s bus at ~1 KiB of kernel memory per frame).
+    1 Mbit/s bus at ~1 KiB of kernel memory per frame).  ``send_timeout_s``:
+    how long a send may block on a full transmit queue before it fails.
     """
 
     def __init__(self, interface: str, channel: str, bitrate: int | None = None,
-                 receive_own_messages: bool = False, receive_buffer_bytes: int = 8 << 20, **kwargs) -> None:
+                 receive_own_messages: bool = False, receive_buffer_bytes: int = 8 << 20,
+                 send_timeout_s: float = 0.1, **kwargs) -> None:
         self.interface = interface
         self.channel = channel
+        self.send_timeout_s = send_timeout_s
         opts = dict(kwargs)
         if bitrate is not None:
             opts["bitrate"] = bitrate
@@ -174,7 +177,7 @@ class CanBus:
         if t_s is not None:
             msg.timestamp = t_s
         try:
-            self._bus.send(msg, timeout=0.1)
+            self._bus.send(msg, timeout=self.send_timeout_s)
         except (can.CanError, OSError, ValueError) as err:
             raise BusError(f"CAN bus {self.interface}:{self.channel}: send of ID 0x{arbitration_id:X} failed: {err}") from err
 

@@ -29,7 +29,7 @@ STOPPED = re.compile(r"stopped: (?P<frames_in>\d+) frames in, (?P<frames_out>\d+
                      r"(?P<foreign>\d+) foreign frames")
 
 
-def _send(group: str, frames: list, speed: float, marks: list[int], out) -> None:
+def _send(group: str, frames: list, speed: float, marks: list[int], out, min_sleep_s: float = 0.001) -> None:
     """The bench: a separate process sending at ``speed`` x real time; reports the send times of ``marks``."""
     from online_id.io.player import send_paced
 
@@ -46,15 +46,22 @@ def _send(group: str, frames: list, speed: float, marks: list[int], out) -> None
     wanted = set(marks)
     stamps: dict[int, float] = {}
 
+    last = [0.0, 0.0]  # perf_counter of the previous send, the longest gap between two sends
+
     def on_sent(i: int, t: float) -> None:
         if i in wanted:
             stamps[i] = t
+        if last[0] and t - last[0] > last[1]:
+            last[1] = t - last[0]
+        last[0] = t
 
-    bus = CanBus("udp_multicast", group)
+    # a send that blocks (the loopback's queue full on a loaded machine) delays the bench, it is not a failure
+    # of the service under test: the gap is reported (``sender_max_gap_s``) instead of aborting the run
+    bus = CanBus("udp_multicast", group, send_timeout_s=5.0)
     try:
         out.put(("start", time.time(), time.perf_counter()))
-        sent = send_paced(bus, frames, speed=speed, on_sent=on_sent)
-        out.put(("done", sent, stamps))
+        sent = send_paced(bus, frames, speed=speed, on_sent=on_sent, min_sleep_s=min_sleep_s)
+        out.put(("done", sent, stamps, last[1]))
     finally:
         bus.close()
 
@@ -67,10 +74,12 @@ class LiveRun:
     log: list[str]
     counts: dict[str, int]
     t_bench0: float  # time.time() when the sender started
-    estimates: list[tuple[float, float, dict]] = field(default_factory=list)  # (time.time, perf_counter, signals)
+    # (time.time, perf_counter, signals, kernel arrival stamp (CLOCK_REALTIME)) per OidEstimate received
+    estimates: list[tuple[float, float, dict, float]] = field(default_factory=list)
     send_stamps: dict[int, float] = field(default_factory=dict)  # frame index -> sender's perf_counter
     sent: int = 0
     cpu_s: float = float("nan")  # CPU time of the service's receive process (its worker excluded)
+    sender_max_gap_s: float = float("nan")  # the longest pause between two of the sender's frames
 
     @property
     def text(self) -> str:
@@ -79,7 +88,7 @@ class LiveRun:
 
 def run_live(frames: list, config_text: str, workdir: Path, group: str, speed: float = 1.0,
              marks: list[int] = (), cpu: int | None = None, start_timeout_s: float = 120.0,
-             rt_priority: int | None = None) -> LiveRun:
+             rt_priority: int | None = None, min_sleep_s: float = 0.001) -> LiveRun:
     """Start the service with ``config_text`` (its bus set to ``group``), send ``frames``, stop it, collect.
 
     ``cpu``: pin the service (and its worker) to this core.  The service is
@@ -101,7 +110,7 @@ def run_live(frames: list, config_text: str, workdir: Path, group: str, speed: f
     db = load_dbc(None)
     encoder = OutputEncoder(db)
     estimate_id = int(db.get_message_by_name("OidEstimate").frame_id)
-    estimates: list[tuple[float, float, dict]] = []
+    estimates: list[tuple[float, float, dict, float]] = []
     stop = threading.Event()
 
     def consume() -> None:
@@ -111,12 +120,12 @@ def run_live(frames: list, config_text: str, workdir: Path, group: str, speed: f
                 frame = bus.recv(0.1)
                 if frame is not None and frame.arbitration_id == estimate_id:
                     estimates.append((time.time(), time.perf_counter(),
-                                      encoder.decode(frame.arbitration_id, frame.data)))
+                                      encoder.decode(frame.arbitration_id, frame.data), frame.t_s))
         finally:
             bus.close()
 
     consumer = threading.Thread(target=consume, daemon=True)
-    t_bench0, sent, stamps, cpu_s = float("nan"), 0, {}, float("nan")
+    t_bench0, sent, stamps, cpu_s, max_gap = float("nan"), 0, {}, float("nan"), float("nan")
     try:
         deadline = time.monotonic() + start_timeout_s
         while not any("listening on" in ln for ln in lines):
@@ -127,11 +136,11 @@ def run_live(frames: list, config_text: str, workdir: Path, group: str, speed: f
         time.sleep(0.5)
         ctx = mp.get_context("spawn")
         out = ctx.Queue()
-        sender = ctx.Process(target=_send, args=(group, frames, speed, list(marks), out), daemon=True)
+        sender = ctx.Process(target=_send, args=(group, frames, speed, list(marks), out, min_sleep_s), daemon=True)
         sender.start()
         _, t_bench0, _ = out.get(timeout=start_timeout_s)
         duration = (frames[-1][0] - frames[0][0]) / speed
-        _, sent, stamps = out.get(timeout=duration + start_timeout_s)
+        _, sent, stamps, max_gap = out.get(timeout=duration + start_timeout_s)
         sender.join(timeout=30)
         time.sleep(0.5)
         cpu_s = _cpu_seconds(service.pid)
@@ -146,7 +155,7 @@ def run_live(frames: list, config_text: str, workdir: Path, group: str, speed: f
     time.sleep(0.2)
     match = next((m for m in map(STOPPED.search, lines) if m), None)
     counts = {k: int(v) for k, v in match.groupdict().items()} if match else {}
-    return LiveRun(rc, lines, counts, t_bench0, estimates, stamps, sent, cpu_s)
+    return LiveRun(rc, lines, counts, t_bench0, estimates, stamps, sent, cpu_s, max_gap)
 
 
 def _cpu_seconds(pid: int) -> float:

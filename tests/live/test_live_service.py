@@ -60,7 +60,7 @@ def test_service_process_keeps_up_at_real_time_on_a_kernel_socket(tmp_path) -> N
     timeouts = [ln for ln in run.log if "state INPUT_TIMEOUT" in ln]
     assert all(f"{n['samples']} samples" in ln for ln in timeouts), run.text
     # valid within 15 s of the first steady point (the bench starts on it), and right
-    valid = [(t, d) for t, _p, d in run.estimates if d.get("Valid")]
+    valid = [(t, d) for t, _p, d, _k in run.estimates if d.get("Valid")]
     assert valid, "no valid estimate published:\n" + run.text
     assert valid[0][0] - run.t_bench0 <= 15.0, f"first valid estimate {valid[0][0] - run.t_bench0:.1f} s after start"
     f0 = float(np.median([d["ResonanceFreq"] for _t, d in valid[-50:]]))
