@@ -24,13 +24,16 @@ class Mosquitto:
     ``users``: name -> password (a password file; anonymous clients refused), else anonymous access.
     """
 
-    def __init__(self, directory: Path, users: dict[str, str] | None = None) -> None:
+    def __init__(self, directory: Path, users: dict[str, str] | None = None,
+                 tls: tuple[Path, Path, Path] | None = None) -> None:
         self.dir = Path(directory)
         self.dir.mkdir(parents=True, exist_ok=True)
         self.port = free_port()
         self.proc: subprocess.Popen | None = None
         lines = [f"listener {self.port} 127.0.0.1", f"persistence true", f"persistence_location {self.dir}/",
                  "autosave_interval 0", f"log_dest file {self.dir}/mosquitto.log", "user root"]
+        if tls is not None:  # (CA certificate, server certificate, server key): a TLS listener only
+            lines += [f"cafile {tls[0]}", f"certfile {tls[1]}", f"keyfile {tls[2]}"]
         if users:
             pwfile = self.dir / "passwd"
             pwfile.write_text("")
@@ -76,3 +79,24 @@ def wait_for(condition, timeout_s: float = 10.0, poll_s: float = 0.01) -> bool:
             return bool(condition())
         time.sleep(poll_s)
     return True
+
+
+def make_ca(directory: Path, name: str = "ca") -> tuple[Path, Path]:
+    """A self-signed test CA (certificate, key) made with the openssl command."""
+    directory.mkdir(parents=True, exist_ok=True)
+    crt, key = directory / f"{name}.crt", directory / f"{name}.key"
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", str(key), "-out", str(crt),
+                    "-days", "2", "-subj", f"/CN=online-id test {name}"], check=True, capture_output=True)
+    return crt, key
+
+
+def make_server_cert(directory: Path, ca: tuple[Path, Path]) -> tuple[Path, Path]:
+    """A server certificate for 127.0.0.1 (subjectAltName IP), signed by ``ca``: (certificate, key)."""
+    crt, key, csr, ext = (directory / n for n in ("server.crt", "server.key", "server.csr", "server.ext"))
+    ext.write_text("subjectAltName=IP:127.0.0.1\n")
+    subprocess.run(["openssl", "req", "-newkey", "rsa:2048", "-nodes", "-keyout", str(key), "-out", str(csr),
+                    "-subj", "/CN=127.0.0.1"], check=True, capture_output=True)
+    subprocess.run(["openssl", "x509", "-req", "-in", str(csr), "-CA", str(ca[0]), "-CAkey", str(ca[1]),
+                    "-CAcreateserial", "-out", str(crt), "-days", "2", "-extfile", str(ext)],
+                   check=True, capture_output=True)
+    return crt, key

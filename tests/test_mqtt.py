@@ -5,6 +5,7 @@ import io
 import json
 import math
 import os
+import shutil
 import socket
 import threading
 import time
@@ -14,7 +15,7 @@ import pytest
 pytest.importorskip("paho.mqtt.client", reason="paho-mqtt is not installed (pip install 'online-id[mqtt]')")
 import paho.mqtt.client as paho  # noqa: E402
 
-from mqtt_broker import EXE, MISSING, Mosquitto, wait_for  # noqa: E402
+from mqtt_broker import EXE, MISSING, Mosquitto, make_ca, make_server_cert, wait_for  # noqa: E402
 from online_id.bench.scenario import BenchScenario, OperatingPoint  # noqa: E402
 from online_id.bench.simulate import simulate_bench  # noqa: E402
 from online_id.cli import main  # noqa: E402
@@ -33,10 +34,12 @@ needs_broker = pytest.mark.skipif(EXE is None, reason=MISSING)
 class Subscriber:
     """Everything under ``online-id/#``, QoS 1 on a persistent session (kept by the broker across its restart)."""
 
-    def __init__(self, port: int, name: str = "test-subscriber") -> None:
+    def __init__(self, port: int, name: str = "test-subscriber", ca_file=None) -> None:
         self.messages: list[tuple[str, dict, bool]] = []
         self.subscribed = threading.Event()
         c = paho.Client(paho.CallbackAPIVersion.VERSION2, client_id=name, clean_session=False)
+        if ca_file is not None:
+            c.tls_set(ca_certs=str(ca_file))
         c.reconnect_delay_set(0.05, 0.2)
         c.on_connect = lambda cl, *_: cl.subscribe("online-id/#", qos=1)
         c.on_subscribe = lambda *_: self.subscribed.set()
@@ -248,6 +251,38 @@ def test_wrong_password_is_one_clear_line_and_the_service_keeps_running(tmp_path
 
 
 # --- online-id fleet ------------------------------------------------------------------------------
+
+
+@needs_broker
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="the openssl command is not installed")
+def test_tls_with_the_benchs_ca_publishes_and_an_untrusted_certificate_is_one_clear_line(tmp_path):
+    """A TLS listener: the CA in mqtt.ca_file verifies it; another CA is refused, said once, the queue kept."""
+    ca = make_ca(tmp_path / "pki")
+    server = make_server_cert(tmp_path / "pki", ca)
+    b = Mosquitto(tmp_path / "broker", tls=(ca[0], *server)).start()
+    sub = Subscriber(b.port, ca_file=ca[0])
+    logs: list[str] = []
+    good = MqttTelemetry(mqtt_settings(b.port, bench="bench-tls", tls=True, ca_file=str(ca[0])), logs.append)
+    other_ca = make_ca(tmp_path / "other", "other-ca")
+    bad_logs: list[str] = []
+    bad = MqttTelemetry(mqtt_settings(b.port, bench="bench-bad", tls=True, ca_file=str(other_ca[0])), bad_logs.append)
+    try:
+        good.publish([EstimateOut(3.0, 21.5, 0.04, 1.2e4, 2.0, True), StatusOut(3.0, ServiceState.TRACKING, 0, 0)])
+        bad.publish([StatusOut(3.0, ServiceState.TRACKING, 0, 0)])
+        assert wait_for(lambda: any(p.get("f0_hz") == 21.5 for p in sub.of("estimate")), 10), logs
+        assert good.connected and good.fault is None
+        assert wait_for(lambda: bad.fault is not None, 10)
+        time.sleep(1.2)  # paho retries: said once
+        assert not bad.connected and bad.published == 0 and bad.enqueued >= 1
+        assert len(bad_logs) == 1 and "\n" not in bad_logs[0], bad_logs
+        assert bad_logs[0].startswith(f"mqtt: broker 127.0.0.1:{b.port}: TLS certificate not trusted (")
+        assert f"check mqtt.ca_file {str(other_ca[0])!r}" in bad_logs[0]
+        assert not any(t.endswith("bench-bad/status") for t, _p, _r in sub.messages)
+    finally:
+        good.close("STOPPED", timeout_s=1.0)
+        bad.close("STOPPED", timeout_s=0.2)
+        sub.close()
+        b.stop()
 
 
 @needs_broker

@@ -31,6 +31,7 @@ import math
 import os
 import socket
 import ssl
+import sys
 import threading
 import time
 from collections import deque
@@ -224,8 +225,17 @@ class MqttTelemetry:
 
     def _on_connect_fail(self, client, userdata) -> None:
         host, port = self.address
-        self._report(f"mqtt: cannot reach broker {host}:{port}; buffering up to {self.capacity} messages, "
-                     f"retrying")
+        err = sys.exc_info()[1]  # paho calls this inside its ``except OSError`` around the connection attempt
+        if isinstance(err, ssl.SSLCertVerificationError):
+            self._report(f"mqtt: broker {host}:{port}: TLS certificate not trusted ({err.verify_message}; check "
+                         f"mqtt.ca_file {self.settings.ca_file!r}); buffering up to {self.capacity} messages, "
+                         f"retrying")
+        elif isinstance(err, ssl.SSLError):
+            self._report(f"mqtt: broker {host}:{port}: TLS handshake failed ({err.reason or err}; check mqtt.tls, "
+                         f"mqtt.port and the broker's listener); buffering up to {self.capacity} messages, retrying")
+        else:
+            self._report(f"mqtt: cannot reach broker {host}:{port}; buffering up to {self.capacity} messages, "
+                         f"retrying")
 
     def _on_disconnect(self, client, userdata, flags, reason, properties) -> None:
         was, self.connected = self.connected, False
