@@ -27,8 +27,17 @@ TerminalProgress = Progress
 
 
 def fmt(x: float | None, spec: str) -> str:
-    """``x`` formatted with ``spec``, or ``-`` when it is None or not finite."""
-    return "-" if x is None or not np.isfinite(x) else format(x, spec)
+    """``x`` formatted with ``spec``, or ``-`` when it is None or not finite.
+
+    A value that rounds to zero is printed without a sign (an order line's
+    damping of -0.00001 is ``0.0000``, not ``-0.0000``).
+    """
+    if x is None or not np.isfinite(x):
+        return "-"
+    text = format(x, spec)
+    if x < 0 and float(text) == 0.0:
+        text = text.replace("-", " " if spec[:1].isdigit() else "", 1)
+    return text
 
 
 # Units of the keys of ``identify --json`` (also written into the document as ``"units"``).

@@ -212,3 +212,12 @@ def test_state_report_units_and_no_validity_claim(tmp_path):
     assert {"f0_hz", "zeta", "residual_rms", "speed_rpm", "c_s"} <= doc["units"].keys()
     assert doc["units"]["f0_hz"] == "Hz"
     assert "| unknown |" in (out / "report.md").read_text()
+
+
+def test_fmt_prints_no_negative_zero():
+    """An order line's damping of -1e-5 reads 0.0000 in the pole table, the column width kept."""
+    from online_id.report import fmt
+
+    assert fmt(-1e-5, "8.4f") == "  0.0000" and fmt(-1e-5, ".4f") == "0.0000"
+    assert fmt(-0.5, "8.4f") == " -0.5000" and fmt(-1e-9, ".3g") == "-1e-09"
+    assert fmt(float("nan"), ".3f") == "-" and fmt(None, ".3f") == "-"
