@@ -207,9 +207,22 @@ class Pipeline:
         return self._consume(samples, self.assembler.now_s)
 
     def tick(self, now_s: float) -> list[Publication]:
-        """The stream clock moved without a frame (silence on the bus)."""
+        """The stream clock moved without a frame (silence on the bus, the end of a log)."""
         self.worker.poll()  # adopt finished slow work (also before the samples this may complete)
-        return self._consume(self.assembler.poll(now_s), self.assembler.now_s)
+        out = self._consume(self.assembler.poll(now_s), self.assembler.now_s)
+        if self._detect_pending is not None:  # the last publication's detection, when no sample followed it
+            self._run_pending_detection(out)
+        return out
+
+    @property
+    def detection_pending(self) -> bool:
+        """The last publication's tracking and detection have not run yet (they run on the next sample)."""
+        return self._detect_pending is not None
+
+    def _run_pending_detection(self, out: list[Publication]) -> None:
+        est, t_s, speed = self._detect_pending
+        self._detect_pending = None
+        self._track_and_detect(est, t_s, speed, out)
 
     def on_command(self, command: int, t_s: float) -> list[Publication]:
         """A command frame: acknowledge alerts, re-learn, reset the estimator."""
@@ -274,8 +287,7 @@ class Pipeline:
                     self._next_publish = a.t_s + 1.0 / self.settings.publish.rate_hz
                 out.extend(self._publish(a.t_s))
             elif self._detect_pending is not None:
-                self._track_and_detect(*self._detect_pending, out)
-                self._detect_pending = None
+                self._run_pending_detection(out)
             # slow work starts on a sample that publishes nothing, so it never delays an estimate; with the
             # process worker it runs beside the stream and is adopted when it is back (``worker.poll``)
             elif self.estimator.refit_due and not self.worker.busy(WINDOW):

@@ -107,7 +107,8 @@ class RecordingRuntime(Runtime):
 
     Every publication passes :meth:`frames` on its way to the encoder; the
     estimates are kept with the engine speed of the estimator at that moment
-    and, per track matched at that publication, its newest point.  Acknowledge
+    and, per track matched at that publication, its newest point (once the
+    pipeline has tracked it, on the sample after the publication).  Acknowledge
     and re-learn notices (alerts of kind NONE) are kept too; the raised alerts
     are the pipeline's own list (the 1 Hz repeats of a latched alarm are not
     new alerts).
@@ -120,24 +121,40 @@ class RecordingRuntime(Runtime):
         self.track_info: dict[int, tuple[str, float | None]] = {}
         self.notices: list[AlertOut] = []
         self.learned_at: dict[tuple, float] = {}  # baseline cell -> stream time it was first learned
+        self._awaiting: float | None = None  # a publication whose tracking has not run yet
 
     def frames(self, pubs: list[Publication]) -> list[OutFrame]:
         for pub in pubs:
             if isinstance(pub, EstimateOut):
-                self._observe_estimate(pub)
+                self.estimates.append((pub.t_s, self.pipeline.estimator.speed_rpm, pub.f0_hz, pub.zeta,
+                                       bool(pub.valid)))
+                self._awaiting = pub.t_s
             elif isinstance(pub, AlertOut) and pub.kind == AlertKind.NONE:
                 self.notices.append(pub)
         return super().frames(pubs)
 
-    def _observe_estimate(self, pub: EstimateOut) -> None:
+    def on_frame(self, *args, **kwargs) -> list[OutFrame]:
+        out = super().on_frame(*args, **kwargs)
+        if self._awaiting is not None and not self.pipeline.detection_pending:
+            self._observe_tracks(self._awaiting)
+        return out
+
+    def tick(self, now_s: float) -> list[OutFrame]:
+        out = super().tick(now_s)
+        if self._awaiting is not None and not self.pipeline.detection_pending:
+            self._observe_tracks(self._awaiting)
+        return out
+
+    def _observe_tracks(self, t_s: float) -> None:
+        """Tracks and learned cells after the tracking of the publication at ``t_s`` (run on the sample after it)."""
+        self._awaiting = None
         p = self.pipeline
-        self.estimates.append((pub.t_s, p.estimator.speed_rpm, pub.f0_hz, pub.zeta, bool(pub.valid)))
         for b in p.baseline.bands:
             if b.count >= p.baseline.min_count:
-                self.learned_at.setdefault(cell_key(b), pub.t_s)
+                self.learned_at.setdefault(cell_key(b), t_s)
         for tr in p.tracker.tracks:
             self.track_info[tr.id] = (tr.cls, tr.order)
-            if tr.last_seen_s == pub.t_s:  # matched (or started) at this publication
+            if tr.last_seen_s == t_s:  # matched (or started) at this publication
                 self.track_points.setdefault(tr.id, []).append((tr.last_seen_s, tr.speed_rpm, tr.f_hz, tr.zeta))
 
 
