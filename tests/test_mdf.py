@@ -48,21 +48,37 @@ def test_mf4_twins_read_as_the_samples_of_the_csv_and_blf(bench, capsys):
     _same(read_bench(bench / "back.mf4", s), read_bench(bench / "back.csv", s))
 
 
-@pytest.mark.slow
-def test_identify_diagnose_replay_give_the_results_of_the_twins(tmp_path, capsys):
-    bench = _twins(tmp_path, SHORT)
-    def run(*argv):
-        capsys.readouterr()
-        assert main([*argv, "--json"]) == 0
-        doc = json.loads(capsys.readouterr().out)
-        doc.pop("source", None)
-        return doc
+@pytest.fixture(scope="module")
+def short_bench(tmp_path_factory):
+    """Two operating points of 11 s: enough for identify, diagnose and a valid replay."""
+    return _twins(tmp_path_factory.mktemp("mdf-short"), SHORT)
 
-    assert run("identify", str(bench / "can.mf4"))["driveline"] == run("identify", str(bench / "b.csv"))["driveline"]
-    d_mf4, d_csv = (run("diagnose", str(bench / f), "--max-effects", "1") for f in ("sig.mf4", "b.csv"))
+
+def _run(capsys, *argv) -> dict:
+    capsys.readouterr()
+    assert main([*argv, "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    doc.pop("source", None)
+    return doc
+
+
+# three tests, not one: pytest-xdist spreads them over the workers
+@pytest.mark.slow
+def test_identify_gives_the_result_of_the_twins(short_bench, capsys):
+    b = short_bench
+    assert _run(capsys, "identify", str(b / "can.mf4"))["driveline"] == _run(capsys, "identify", str(b / "b.csv"))["driveline"]
+
+
+@pytest.mark.slow
+def test_diagnose_gives_the_result_of_the_twins(short_bench, capsys):
+    d_mf4, d_csv = (_run(capsys, "diagnose", str(short_bench / f), "--max-effects", "1") for f in ("sig.mf4", "b.csv"))
     assert d_mf4["error_before"]["rms"] > 0
     assert json.dumps(d_mf4, sort_keys=True).replace("sig.mf4", "b.csv") == json.dumps(d_csv, sort_keys=True)
-    r_mf4, r_blf = (run("replay", str(bench / f)) for f in ("can.mf4", "b.blf"))
+
+
+@pytest.mark.slow
+def test_replay_gives_the_result_of_the_twins(short_bench, capsys):
+    r_mf4, r_blf = (_run(capsys, "replay", str(short_bench / f)) for f in ("can.mf4", "b.blf"))
     assert r_mf4["driveline"]["valid"] and r_mf4["driveline"] == r_blf["driveline"]
     assert r_mf4["counters"] == r_blf["counters"] and r_mf4["status_changes"] == r_blf["status_changes"]
 

@@ -91,7 +91,9 @@ def test_service_on_virtual_bus_end_to_end(tmp_path):
                                           ({"J1": 1.1, "J2": 0.3, "c_s": 9000.0, "d_s": 5.0}, ".log")])
 def test_replay_matches_identify_recursive_and_truth(tmp_path, capsys, plant, suffix):
     cfg = tmp_path / "scenario.yaml"
-    cfg.write_text(json.dumps({"seed": 11, **plant}))
+    # two points of 25 s (the default bench holds four of 40 s): valid from about 10 s into each
+    points = [{"speed_rpm": 1300.0, "duration_s": 25.0}, {"speed_rpm": 2000.0, "duration_s": 25.0}]
+    cfg.write_text(json.dumps({"seed": 11, "operating_points": points, **plant}))
     csv, log = tmp_path / "bench.csv", tmp_path / f"bench{suffix}"
     assert main(["simulate", "--config", str(cfg), "--out", str(csv), "--can-log", str(log)]) == 0
     truth = json.loads(csv.with_suffix(".truth.json").read_text())

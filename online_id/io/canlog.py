@@ -24,6 +24,7 @@ from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import can
+import numpy as np
 
 from online_id.errors import InputDataError
 from online_id.io.outfile import atomic_output
@@ -50,8 +51,65 @@ def _writer(path: Path, suffix: str, channel: str) -> can.io.generic.MessageWrit
     if suffix == ".asc":
         return can.ASCWriter(path)
     if suffix == ".mf4":
-        return can.io.MF4Writer(path)
+        return BufferedMF4Writer(path)
     return can.BLFWriter(path)
+
+
+class BufferedMF4Writer(can.io.MF4Writer):
+    """python-can's ``MF4Writer``, its classic data frames handed to asammdf ``CHUNK`` at a time.
+
+    ``MF4Writer`` extends the file by one frame per call, and asammdf writes
+    a data block for each: 66,000 frames (22 s of a bench) took 21 s of CPU
+    and 270 s of wall time.  The file is the same (same groups, channels and
+    values); remote, error and CAN FD frames go through ``MF4Writer`` itself.
+    """
+
+    CHUNK = 20_000
+
+    def __init__(self, file, **kwargs) -> None:
+        super().__init__(file, **kwargs)
+        self._times: list[float] = []
+        self._rows: list[tuple] = []
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.is_remote_frame or msg.is_error_frame or msg.is_fd:
+            self._flush()
+            super().on_message_received(msg)
+            return
+        t = msg.timestamp
+        if t is None:
+            t = self.last_timestamp
+        else:
+            self.last_timestamp = max(self.last_timestamp, t)
+        self._times.append(t - self._start_time)
+        self._rows.append((msg.channel, msg.arbitration_id, msg.is_extended_id, msg.is_rx, bytes(msg.data), msg.dlc))
+        if len(self._times) >= self.CHUNK:
+            self._flush()
+
+    def _flush(self) -> None:
+        if not self._times:
+            return
+        from can.io.mf4 import STD_DTYPE
+        from can.util import channel2int
+
+        buf = np.zeros(len(self._times), dtype=STD_DTYPE)
+        data = buf["CAN_DataFrame.DataBytes"]
+        for k, (channel, ident, ext, rx, payload, dlc) in enumerate(self._rows):
+            ch = channel2int(channel)
+            if ch is not None:
+                buf["CAN_DataFrame.BusChannel"][k] = ch
+            buf["CAN_DataFrame.ID"][k] = ident
+            buf["CAN_DataFrame.IDE"][k] = int(ext)
+            buf["CAN_DataFrame.Dir"][k] = 0 if rx else 1
+            buf["CAN_DataFrame.DataLength"][k] = len(payload)
+            buf["CAN_DataFrame.DLC"][k] = dlc
+            data[k, :len(payload)] = np.frombuffer(payload, dtype=np.uint8)
+        self._mdf.extend(0, [(np.asarray(self._times, dtype="<f8"), None), (buf, None)])
+        self._times, self._rows = [], []
+
+    def stop(self) -> None:
+        self._flush()
+        super().stop()
 
 
 def write_log(path: str | Path, frames: Iterable[tuple], channel: str = "can0") -> int:
