@@ -118,3 +118,19 @@ def test_progress_shows_rate_and_time_left_only_on_a_terminal():
         q(0.5)
         q.close()
     assert quiet.getvalue() == ""
+
+
+def test_commands_sent_within_one_clock_tick_never_repeat_a_counter(monkeypatch):
+    """`ack` then `relearn` within 50 ms (one tick of the counter's clock) used to send one counter twice: the
+    service refused the repeat and took the relearn's second frame for a first one (a CI failure under load)."""
+    import online_id.cli.command as command
+
+    sent = []
+    monkeypatch.setattr(command.time, "time", lambda: 1_790_000_000.0)  # the clock stands still
+    monkeypatch.setattr(command.time, "sleep", lambda _s: None)
+    monkeypatch.setattr(CanBus, "send", lambda self, ident, data, **kw: sent.append(bytes(data)))
+    channel = f"ticks-{os.getpid()}"
+    for name in ("ack", "relearn", "ack"):
+        assert main([name, "--interface", "virtual", "--channel", channel, "--wait", "0"]) == 0
+    counters = [d[1] for d in sent]  # the alive counter byte of OidCommand (see the DBC)
+    assert len(sent) == 4 and len(set(counters)) == 4, [d.hex() for d in sent]

@@ -58,6 +58,9 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
         p.set_defaults(func=run, command_name=name)
 
 
+_last_counter: int | None = None  # the last alive counter this process sent (see run)
+
+
 def run(args: argparse.Namespace) -> int:
     s = load_config(args.config)
     if getattr(args, "from_log", None):
@@ -66,8 +69,14 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("relearn: --state needs --from LOG (a running service keeps its own state)")
     command = COMMANDS[args.command_name][0]
     db = load_dbc(s.dbc)
-    counter = int(time.time() * 20)
+    global _last_counter
     repeats = 2 if command == BenchCommand.RELEARN_BASELINE else 1
+    # the clock's counter, but never one this process has used: two commands within one 50 ms tick (a
+    # script, or `ack` then `relearn` in one process) would repeat it, and the service refuses a repeat
+    counter = int(time.time() * 20)
+    if _last_counter is not None:
+        counter = max(counter, _last_counter + 1)
+    _last_counter = counter + repeats - 1
     frames = [encode_command(db, s.mapping.command_message, s.mapping.command_signal, command, counter + k,
                              crc=s.mapping.command_crc) for k in range(repeats)]
     interface = args.interface or s.bus.interface
