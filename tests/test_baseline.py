@@ -191,14 +191,16 @@ def test_sources_reference_and_spread_ratio_round_trip():
     base = Baseline(min_count=10)
     for _ in range(10):
         base.learn(speed_rpm=2000.0, f0_hz=22.0 + 0.5 * rng.standard_normal(), zeta=0.05, load_nm=3.0,
-                   f0_std_hz=0.01, source="reference run day1.log", reference=True)
+                   f0_std_hz=0.01, zeta_std=0.002, source="reference run day1.log", reference=True)
     stats = base.lookup(2000.0, 3.0)
+    assert stats.uncertainty_zeta == pytest.approx(0.002) and stats.tolerance_zeta == 0.0
     assert stats.kind == "reference" and stats.source == "reference run day1.log"
     assert stats.spread_ratio > 5  # a spread far above the estimator's own uncertainty
     again = Baseline.from_dict(base.to_dict())
     assert again.lookup(2000.0, 3.0) == stats
     d = stats.as_dict()
     assert d["kind"] == "reference" and d["spread_ratio"] == pytest.approx(stats.std_f / 0.01)
+    assert d["zeta_uncertainty"] == pytest.approx(0.002)
 
 
 @pytest.mark.parametrize("seed,f0,drop", [(3, 19.9, 0.025), (4, 31.0, 0.05)])
