@@ -203,10 +203,14 @@ class Baseline:
         Floor of the frequency spread, relative to the mean frequency.
     min_rel_std_zeta
         Floor of the damping spread, relative to the mean damping.
-    pool_tolerance_f, pool_tolerance_zeta
-        Relative widening of the pooled baseline for the unknown dependence
-        on speed and load (added in quadrature to its spread, see
+    pool_tolerance_f
+        Relative widening of the pooled baseline's frequency spread for the
+        unknown dependence on speed and load (added in quadrature, see
         :meth:`pooled`).
+    pool_tolerance_zeta
+        Relative widening of the pooled damping spread for cells that do not
+        hold the estimator's damping uncertainty (states saved before it was
+        kept); otherwise that uncertainty is the widening (see :meth:`pooled`).
     load_band_nm
         Width of a load cell [Nm]: an estimate is learned into the cell of
         its speed band whose load is within half of it, and compared with a
@@ -367,9 +371,17 @@ class Baseline:
 
             s_p^2 = \\overline{s_i^2} + s_b^2 + (\\tau \\bar f)^2
 
-        and the damping alike (``pool_tolerance_zeta``). ``min_n``: pool the
-        cells with at least this many estimates (default ``min_count``: the
-        learned ones).
+        The damping alike, but measured: its between-cell spread
+        :math:`s_b` is kept whether or not the cells disagree (the spread of
+        the cell means, or of the fit's residuals), and its tolerance
+        :math:`t_\\zeta` is the estimator's own damping uncertainty, the
+        count-weighted mean over the pooled cells' estimates
+        (``pool_tolerance_zeta`` :math:`\\cdot \\bar\\zeta` only for cells
+        saved before it was kept):
+        :math:`s_{p,\\zeta}^2 = \\overline{s_{i,\\zeta}^2} + s_{b,\\zeta}^2 + t_\\zeta^2`.
+        The learning check leaves :math:`t_\\zeta` out (:meth:`disagrees`).
+        ``min_n``: pool the cells with at least this many estimates (default
+        ``min_count``: the learned ones).
         """
         min_n = self.min_count if min_n is None else max(2, int(min_n))
         cells = [(i, c) for i, cs in self._bands.items() for c in cs if c.n >= min_n]
