@@ -522,7 +522,8 @@ class Pipeline:
                                          {"kind": why, "baseline": ref.kind}))
             return est
         self.baseline.learn(speed_rpm=speed, f0_hz=est.f0_hz, zeta=est.zeta, load_nm=load,
-                            f0_std_hz=est.f0_std_hz, source=self.run_label, reference=self.reference_run)
+                            f0_std_hz=est.f0_std_hz, zeta_std=est.zeta_std, source=self.run_label,
+                            reference=self.reference_run)
         solution = self.estimator.solution
         if solution is not None:
             self._references[self.baseline.key(speed)] = solution

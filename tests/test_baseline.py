@@ -191,14 +191,16 @@ def test_sources_reference_and_spread_ratio_round_trip():
     base = Baseline(min_count=10)
     for _ in range(10):
         base.learn(speed_rpm=2000.0, f0_hz=22.0 + 0.5 * rng.standard_normal(), zeta=0.05, load_nm=3.0,
-                   f0_std_hz=0.01, source="reference run day1.log", reference=True)
+                   f0_std_hz=0.01, zeta_std=0.002, source="reference run day1.log", reference=True)
     stats = base.lookup(2000.0, 3.0)
+    assert stats.uncertainty_zeta == pytest.approx(0.002) and stats.tolerance_zeta == 0.0
     assert stats.kind == "reference" and stats.source == "reference run day1.log"
     assert stats.spread_ratio > 5  # a spread far above the estimator's own uncertainty
     again = Baseline.from_dict(base.to_dict())
     assert again.lookup(2000.0, 3.0) == stats
     d = stats.as_dict()
     assert d["kind"] == "reference" and d["spread_ratio"] == pytest.approx(stats.std_f / 0.01)
+    assert d["zeta_uncertainty"] == pytest.approx(0.002)
 
 
 @pytest.mark.parametrize("seed,f0,drop", [(3, 19.9, 0.025), (4, 31.0, 0.05)])
@@ -235,3 +237,83 @@ def test_a_change_while_learning_cannot_creep_into_what_it_is_checked_with(seed,
     # the frozen statistics survive a save
     again = Baseline.from_dict(json.loads(json.dumps(base.to_dict())))
     assert again.cell(1500.0, 0.0, frozen=True).as_dict() == frozen.as_dict()
+
+
+# -- the damping of a pooled baseline: a measured tolerance, and a learning check that leaves it out ------------
+
+
+def _learn_damping(base, rng, speed, zeta, spread, unc, n=20, f0=25.0):
+    """``n`` estimates of a healthy cell: damping ``zeta`` with relative scatter ``spread``, the estimator's own
+    damping uncertainty ``unc`` (relative; None: a state saved before it was kept)."""
+    for _ in range(n):
+        base.learn(speed_rpm=speed, f0_hz=f0 * (1 + 0.001 * rng.standard_normal()),
+                   zeta=zeta * (1 + spread * rng.standard_normal()), f0_std_hz=0.01,
+                   zeta_std=float("nan") if unc is None else unc * zeta)
+
+
+@pytest.mark.parametrize("seed, zeta, spread, unc", [
+    (11, 0.037, 0.005, 0.007),  # the spreads of the evaluation's plants: 0.5-3.4 % within a cell,
+    (12, 0.074, 0.034, 0.025),  # 0.7-4.3 % the estimator's own uncertainty (README, damping table)
+    (13, 0.052, 0.025, 0.043),
+    (14, 0.031, 0.012, 0.030),
+])
+def test_a_damping_change_of_half_is_never_learned_into_a_new_cell(seed, zeta, spread, unc):
+    rng = np.random.default_rng(seed)
+    base = Baseline()
+    _learn_damping(base, rng, 1500.0, zeta, spread, unc)
+    pooled = base.lookup(2500.0)
+    assert pooled.kind == "pooled"
+    # the pooled damping's tolerance is what the estimator measured, not a constant
+    assert pooled.tolerance_zeta == pytest.approx(unc * zeta, rel=1e-9)
+    assert pooled.uncertainty_zeta == pytest.approx(unc * zeta, rel=1e-9)
+    within = base.lookup(1500.0).std_zeta
+    assert pooled.std_zeta == pytest.approx(np.hypot(within, unc * zeta), rel=1e-9)
+    # the learning check (20 % dead band + 3 spreads, without the tolerance) refuses +-50 %, learns the healthy
+    for factor in (1.5, 0.5):
+        assert base.disagrees(pooled, 25.0, zeta * factor, 0.005, 0.20) == "damping"
+    for factor in (0.9, 1.0, 1.1):
+        assert base.disagrees(pooled, 25.0, zeta * factor, 0.005, 0.20) is None
+    # the same against a cell that is learning (its own first ten estimates, frozen)
+    _learn_damping(base, rng, 2500.0, zeta, spread, unc, n=10)
+    own = base.cell(2500.0, frozen=True)
+    assert own.kind == "learning" and own.tolerance_zeta == 0.0
+    assert base.disagrees(own, 25.0, zeta * 1.5, 0.005, 0.20) == "damping"
+    assert base.disagrees(own, 25.0, zeta * 0.5, 0.005, 0.20) == "damping"
+
+
+def test_a_state_saved_before_the_damping_uncertainty_was_kept_still_refuses_half():
+    """Cells without the estimator's damping uncertainty (older states) pool with ``pool_tolerance_zeta``
+    (10 %); the learning check leaves it out, so +50 % is refused there too (it was learned before: 20 % dead
+    band + 3 x sqrt(3 %^2 + 10 %^2) = 51 %)."""
+    rng = np.random.default_rng(15)
+    base = Baseline()
+    _learn_damping(base, rng, 1500.0, 0.0368, 0.005, None)
+    base = Baseline.from_dict(json.loads(json.dumps(base.to_dict())))
+    pooled = base.lookup(2500.0)
+    assert pooled.tolerance_zeta == pytest.approx(0.10 * pooled.mean_zeta, rel=1e-9)
+    assert base.disagrees(pooled, 25.0, 0.0368 * 1.5, 0.005, 0.20) == "damping"
+    assert base.disagrees(pooled, 25.0, 0.0368 * 1.05, 0.005, 0.20) is None
+
+
+@pytest.mark.parametrize("seed, step", [(16, 0.0), (17, 0.08), (18, -0.15)])
+def test_the_between_cell_damping_spread_is_measured(seed, step):
+    """Where the damping differs between operating points, the pooled baseline's spread holds it (measured
+    whether or not the cells disagree beyond their spreads); where it does not, the pooled spread stays near
+    the within-cell one."""
+    rng = np.random.default_rng(seed)
+    base = Baseline()
+    zeta = 0.05
+    _learn_damping(base, rng, 1000.0, zeta, 0.01, 0.01)
+    _learn_damping(base, rng, 2000.0, zeta * (1 + step), 0.01, 0.01)
+    pooled = base.lookup(3000.0)
+    means = [c.mean_zeta for c in base.bands]
+    # the spread of the two cell means (or, where they disagree, of the fit of the damping against speed)
+    assert pooled.between_zeta >= abs(means[1] - means[0]) / 2 * (1 - 1e-9)
+    within = max(c.std_zeta for c in base.bands)
+    assert pooled.std_zeta >= pooled.between_zeta
+    if step == 0.0:
+        assert pooled.std_zeta < 1.5 * np.hypot(within, 0.01 * zeta)
+    # the as_dict form reports what the damping tolerance was made of
+    d = pooled.as_dict()
+    assert d["zeta_pool_tolerance"] == pytest.approx(0.01 * zeta * (1 + step / 2), rel=1e-9)
+    assert d["zeta_between_cells"] > 0

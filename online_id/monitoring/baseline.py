@@ -101,6 +101,16 @@ class BandStats:
         Mean of the estimator's own frequency uncertainty over the learned
         estimates [Hz] (nan if unknown); a spread far above it is reported
         (:attr:`spread_ratio`).
+    uncertainty_zeta
+        Mean of the estimator's own damping uncertainty over the learned
+        estimates (nan if unknown).
+    tolerance_zeta
+        The part of ``std_zeta`` that widens a pooled baseline for the
+        unknown dependence of the damping on the operating point (0 for a
+        cell); the learning check leaves it out (:meth:`Baseline.disagrees`).
+    between_zeta
+        Of a pooled baseline: the spread of the damping between the pooled
+        cells (:meth:`Baseline.pooled`), nan for a cell or a single one.
     """
 
     mean_f: float
@@ -113,6 +123,9 @@ class BandStats:
     kind: str = "learned"
     source: str = ""
     uncertainty_f: float = float("nan")
+    uncertainty_zeta: float = float("nan")
+    tolerance_zeta: float = 0.0
+    between_zeta: float = float("nan")
 
     @property
     def spread_ratio(self) -> float:
@@ -129,18 +142,19 @@ class BandStats:
                 "f0_hz": fin(self.mean_f), "f0_std_hz": fin(self.std_f), "zeta": fin(self.mean_zeta),
                 "zeta_std": fin(self.std_zeta), "count": int(self.count), "kind": self.kind,
                 "source": self.source, "f0_uncertainty_hz": fin(self.uncertainty_f),
-                "spread_ratio": fin(self.spread_ratio)}
+                "spread_ratio": fin(self.spread_ratio), "zeta_uncertainty": fin(self.uncertainty_zeta),
+                "zeta_pool_tolerance": fin(self.tolerance_zeta), "zeta_between_cells": fin(self.between_zeta)}
 
 
 class _Welford:
     """Running statistics of one cell: frequency, damping and the mean load."""
 
     __slots__ = ("n", "mean_f", "m2_f", "mean_z", "m2_z", "load", "unc_f", "source", "reference", "rejected",
-                 "frozen")
+                 "frozen", "unc_z")
 
     def __init__(self, n: int = 0, mean_f: float = 0.0, m2_f: float = 0.0, mean_z: float = 0.0, m2_z: float = 0.0,
                  load: float = 0.0, unc_f: float = float("nan"), source: str = "", reference: bool = False,
-                 rejected: int = 0, frozen: list | None = None):
+                 rejected: int = 0, frozen: list | None = None, unc_z: float = math.nan):
         self.n, self.mean_f, self.m2_f, self.mean_z, self.m2_z = int(n), mean_f, m2_f, mean_z, m2_z
         self.load = load
         self.unc_f = unc_f  # running mean of the estimator's own f0 uncertainty
@@ -148,15 +162,16 @@ class _Welford:
         self.reference = reference  # learned from a reference run (relearn --from)
         self.rejected = rejected  # estimates not learned: they disagreed with the baselines
         self.frozen = frozen  # [n, mean_f, m2_f, mean_z, m2_z] at freeze_count: what later estimates are checked with
+        self.unc_z = unc_z  # running mean of the estimator's own damping uncertainty
 
     def distance(self, load_nm: float) -> float:
         """How far ``load_nm`` is from the cell's load (0 for a cell without one)."""
         return abs(load_nm - self.load) if math.isfinite(self.load) else 0.0
 
-    def add(self, f: float, z: float, load: float, unc_f: float = float("nan")) -> None:
+    def add(self, f: float, z: float, load: float, unc_f: float = float("nan"), unc_z: float = float("nan")) -> None:
         self.n += 1
-        if math.isfinite(unc_f):
-            self.unc_f = unc_f if not math.isfinite(self.unc_f) else self.unc_f + (unc_f - self.unc_f) / self.n
+        self.unc_f = _running_mean(self.unc_f, unc_f, self.n)
+        self.unc_z = _running_mean(self.unc_z, unc_z, self.n)
         if math.isfinite(self.load):
             self.load += (load - self.load) / self.n
         d = f - self.mean_f
@@ -172,7 +187,7 @@ class _Welford:
 
     def as_list(self) -> list:
         return [self.n, self.mean_f, self.m2_f, self.mean_z, self.m2_z, self.load, self.unc_f, self.source,
-                self.reference, self.rejected, self.frozen]
+                self.reference, self.rejected, self.frozen, self.unc_z]
 
 
 class Baseline:
@@ -188,10 +203,14 @@ class Baseline:
         Floor of the frequency spread, relative to the mean frequency.
     min_rel_std_zeta
         Floor of the damping spread, relative to the mean damping.
-    pool_tolerance_f, pool_tolerance_zeta
-        Relative widening of the pooled baseline for the unknown dependence
-        on speed and load (added in quadrature to its spread, see
+    pool_tolerance_f
+        Relative widening of the pooled baseline's frequency spread for the
+        unknown dependence on speed and load (added in quadrature, see
         :meth:`pooled`).
+    pool_tolerance_zeta
+        Relative widening of the pooled damping spread for cells that do not
+        hold the estimator's damping uncertainty (states saved before it was
+        kept); otherwise that uncertainty is the widening (see :meth:`pooled`).
     load_band_nm
         Width of a load cell [Nm]: an estimate is learned into the cell of
         its speed band whose load is within half of it, and compared with a
@@ -239,7 +258,8 @@ class Baseline:
         return self._nearest(i, load_nm, 0.5 * self.load_band_nm)
 
     def learn(self, *, speed_rpm: float, f0_hz: float, zeta: float, load_nm: float = 0.0,
-              f0_std_hz: float = float("nan"), source: str = "", reference: bool = False) -> None:
+              f0_std_hz: float = float("nan"), zeta_std: float = float("nan"), source: str = "",
+              reference: bool = False) -> None:
         """Add one estimate to the cell of ``speed_rpm`` and ``load_nm`` (a new cell if none is near).
 
         Raises
@@ -259,7 +279,7 @@ class Baseline:
             self._bands.setdefault(i, []).append(cell)
         elif source and source not in cell.source.split(", ") and cell.n < self.min_count:
             cell.source = f"{cell.source}, {source}" if cell.source else source
-        cell.add(float(f0_hz), float(zeta), float(load_nm), float(f0_std_hz))
+        cell.add(float(f0_hz), float(zeta), float(load_nm), float(f0_std_hz), float(zeta_std))
         if cell.frozen is None and cell.n >= self.freeze_count:
             cell.freeze()
 
@@ -304,6 +324,7 @@ class Baseline:
             kind,
             b.source,
             b.unc_f,
+            b.unc_z,
         )
 
     def _ready_cell(self, i: int, load_nm: float) -> _Welford | None:
@@ -350,9 +371,17 @@ class Baseline:
 
             s_p^2 = \\overline{s_i^2} + s_b^2 + (\\tau \\bar f)^2
 
-        and the damping alike (``pool_tolerance_zeta``). ``min_n``: pool the
-        cells with at least this many estimates (default ``min_count``: the
-        learned ones).
+        The damping alike, but measured: its between-cell spread
+        :math:`s_b` is kept whether or not the cells disagree (the spread of
+        the cell means, or of the fit's residuals), and its tolerance
+        :math:`t_\\zeta` is the estimator's own damping uncertainty, the
+        count-weighted mean over the pooled cells' estimates
+        (``pool_tolerance_zeta`` :math:`\\cdot \\bar\\zeta` only for cells
+        saved before it was kept):
+        :math:`s_{p,\\zeta}^2 = \\overline{s_{i,\\zeta}^2} + s_{b,\\zeta}^2 + t_\\zeta^2`.
+        The learning check leaves :math:`t_\\zeta` out (:meth:`disagrees`).
+        ``min_n``: pool the cells with at least this many estimates (default
+        ``min_count``: the learned ones).
         """
         min_n = self.min_count if min_n is None else max(2, int(min_n))
         cells = [(i, c) for i, cs in self._bands.items() for c in cs if c.n >= min_n]
@@ -360,28 +389,36 @@ class Baseline:
             return None
         stats = [self._stats(i, c, frozen=True) for i, c in cells]
         w = [s.count for s in stats]
-        mean_f, sb_f = self._pool([s.mean_f for s in stats], [s.std_f for s in stats], w, cells, speed_rpm,
-                                  load_nm, self.pool_tolerance_f)
-        mean_z, sb_z = self._pool([s.mean_zeta for s in stats], [s.std_zeta for s in stats], w, cells,
-                                  speed_rpm, load_nm, self.pool_tolerance_zeta)
+        total = sum(w)
+        means_f, means_z = [s.mean_f for s in stats], [s.mean_zeta for s in stats]
+        tol_f = self.pool_tolerance_f * sum(wi * m for wi, m in zip(w, means_f)) / total
+        # the damping's tolerance is measured: the estimator's own damping uncertainty over the pooled cells' estimates
+        unc_z = [(wi, s.uncertainty_zeta) for wi, s in zip(w, stats) if math.isfinite(s.uncertainty_zeta)]
+        tol_z = (sum(wi * u for wi, u in unc_z) / sum(wi for wi, _ in unc_z) if unc_z else
+                 self.pool_tolerance_zeta * sum(wi * m for wi, m in zip(w, means_z)) / total)  # a state saved before
+        mean_f, sb_f = self._pool(means_f, [s.std_f for s in stats], w, cells, speed_rpm, load_nm, tol_f)
+        mean_z, sb_z = self._pool(means_z, [s.std_zeta for s in stats], w, cells, speed_rpm, load_nm, tol_z)
         if not (mean_f > 0 and mean_z > 0):
             return None
-        within_f = math.sqrt(sum(wi * s.std_f ** 2 for wi, s in zip(w, stats)) / sum(w))
-        within_z = math.sqrt(sum(wi * s.std_zeta ** 2 for wi, s in zip(w, stats)) / sum(w))
-        std_f = math.sqrt(within_f ** 2 + sb_f ** 2 + (self.pool_tolerance_f * mean_f) ** 2)
-        std_z = math.sqrt(within_z ** 2 + sb_z ** 2 + (self.pool_tolerance_zeta * mean_z) ** 2)
+        between_z = _between(means_z, w) if sb_z == 0.0 else sb_z  # measured whether or not the cells agree
+        within_f = math.sqrt(sum(wi * s.std_f ** 2 for wi, s in zip(w, stats)) / total)
+        within_z = math.sqrt(sum(wi * s.std_zeta ** 2 for wi, s in zip(w, stats)) / total)
+        std_f = math.sqrt(within_f ** 2 + sb_f ** 2 + tol_f ** 2)
+        std_z = math.sqrt(within_z ** 2 + (between_z if math.isfinite(between_z) else 0.0) ** 2 + tol_z ** 2)
         unc = [s.uncertainty_f for s in stats if math.isfinite(s.uncertainty_f)]
         sources = ", ".join(dict.fromkeys(x for s in stats for x in s.source.split(", ") if x))
         i = self.key(speed_rpm)
-        return BandStats(mean_f, std_f, mean_z, std_z, sum(w), self._edges(i), float(load_nm), "pooled",
-                         sources, sum(unc) / len(unc) if unc else float("nan"))
+        return BandStats(mean_f, std_f, mean_z, std_z, total, self._edges(i), float(load_nm), "pooled",
+                         sources, sum(unc) / len(unc) if unc else float("nan"),
+                         sum(u for _, u in unc_z) / len(unc_z) if unc_z else float("nan"), tol_z, between_z)
 
     def _pool(self, means: list[float], stds: list[float], w: list[int], cells: list, speed_rpm: float,
               load_nm: float, tolerance: float) -> tuple[float, float]:
-        """Pooled mean at the operating point and the between-cell spread (see :meth:`pooled`)."""
+        """Pooled mean at the operating point and the between-cell spread (0 where the cells agree within
+        three spreads or ``tolerance``, absolute; see :meth:`pooled`)."""
         total = sum(w)
         mean = sum(wi * m for wi, m in zip(w, means)) / total
-        if all(abs(m - mean) <= max(3.0 * s, tolerance * abs(mean)) for m, s in zip(means, stds)):
+        if all(abs(m - mean) <= max(3.0 * s, tolerance) for m, s in zip(means, stds)):
             return mean, 0.0
         import numpy as np  # only where the cells disagree
 
@@ -411,11 +448,17 @@ class Baseline:
         """Which of frequency and damping deviates from ``stats`` beyond the tolerance (None: neither).
 
         The tolerance of a quantity is its dead band plus ``n_sigma`` spreads:
-        :math:`|f_0 - \\bar f| > \\delta_f \\bar f + n_\\sigma s_f`.
+        :math:`|f_0 - \\bar f| > \\delta_f \\bar f + n_\\sigma s_f`. For the damping
+        the spread leaves out a pooled baseline's tolerance
+        (``stats.tolerance_zeta``): :math:`s_\\zeta^2 - t_\\zeta^2`, the spread
+        of single estimates within and between the learned cells, so a change
+        of the damping (the detector's dead band plus three of those spreads)
+        is never learned into a new cell.
         """
         if abs(f0_hz - stats.mean_f) > min_change_f * stats.mean_f + n_sigma * stats.std_f:
             return "frequency"
-        if abs(zeta - stats.mean_zeta) > min_change_zeta * stats.mean_zeta + n_sigma * stats.std_zeta:
+        std_z = math.sqrt(max(stats.std_zeta ** 2 - stats.tolerance_zeta ** 2, 0.0))
+        if abs(zeta - stats.mean_zeta) > min_change_zeta * stats.mean_zeta + n_sigma * std_z:
             return "damping"
         return None
 
@@ -474,12 +517,28 @@ class Baseline:
 def _cell_from_list(c: list) -> _Welford:
     """A cell saved by :meth:`_Welford.as_list` (older states have only the first six fields)."""
     def num(x: Any) -> float:
-        return float("nan") if x is None else float(x)
+        return math.nan if x is None else float(x)  # one nan object: a restored cell compares equal
 
-    extra = list(c[6:11]) + [None] * (5 - len(c[6:11]))
+    extra = list(c[6:12]) + [None] * (6 - len(c[6:12]))
     frozen = None if extra[4] is None else [int(extra[4][0])] + [float(x) for x in extra[4][1:5]]
     return _Welford(int(c[0]), *(float(x) for x in c[1:5]), num(c[5]), num(extra[0]), str(extra[1] or ""),
-                    bool(extra[2]), int(extra[3] or 0), frozen)
+                    bool(extra[2]), int(extra[3] or 0), frozen, num(extra[5]))
+
+
+def _between(means: list[float], w: list[int]) -> float:
+    """Count-weighted spread of the cell means about their mean (nan for one cell)."""
+    if len(means) < 2:
+        return float("nan")
+    total = sum(w)
+    mean = sum(wi * m for wi, m in zip(w, means)) / total
+    return math.sqrt(sum(wi * (m - mean) ** 2 for wi, m in zip(w, means)) / total * len(means) / (len(means) - 1))
+
+
+def _running_mean(mean: float, x: float, n: int) -> float:
+    """``mean`` of ``n - 1`` values updated with the ``n``-th, ``x`` (non-finite values skipped)."""
+    if not math.isfinite(x):
+        return mean
+    return x if not math.isfinite(mean) else mean + (x - mean) / n
 
 
 def _positive(name: str, value: float) -> float:
