@@ -161,6 +161,7 @@ class OnlineDriveline:
         self._pick: float | None = None
         self._valid = False
         self._poles_key: tuple | None = None
+        self._memo: dict = {}  # per window fit: pole -> residue, std (see _cached)
         self._poles: list[Pole] = []
 
     # -- per sample ---------------------------------------------------------------------------
@@ -239,7 +240,22 @@ class OnlineDriveline:
         if key is None or self._poles_key != key:
             self._poles = poles_of(a, self.dt) if np.all(np.isfinite(a)) else []
             self._poles_key = key
+            self._memo = {}
         return self._poles
+
+    def _cached(self, what: str, z: complex, source: str, compute):
+        """``compute()`` once per window fit and pole (``what``: residue, std); every time for the recursive model.
+
+        A window fit's polynomials and covariance stay the same until the next refit (once a second) while
+        estimates are published at 10 Hz: the publication, which the receive loop owes the bus within a
+        millisecond, reuses them.
+        """
+        if source != "window":
+            return compute()
+        k = (what, z)
+        if k not in self._memo:
+            self._memo[k] = compute()
+        return self._memo[k]
 
     def _candidates(self, poles: list[Pole]) -> list[Pole]:
         rpm = self.speed_rpm
@@ -269,7 +285,8 @@ class OnlineDriveline:
             if not near:
                 ref = min(p.f_hz for p in cands)
                 near = [p for p in cands if p.f_hz <= 1.15 * ref]
-            pick = near[0] if len(near) == 1 else max(near, key=lambda p: modal_residue(a, b, p.z))
+            pick = near[0] if len(near) == 1 else max(
+                near, key=lambda p: self._cached("residue", p.z, source, lambda: modal_residue(a, b, p.z)))
         # two pairs within 5 % of each other at the resonance: the model splits the mode, neither is it
         split = pick is not None and any(p is not pick and abs(p.f_hz - pick.f_hz) < 0.05 * pick.f_hz for p in cands)
         d = self.orders.n_params
@@ -281,7 +298,7 @@ class OnlineDriveline:
         std_f = std_z = float("inf")
         if pick is not None:
             self._pick = pick.f_hz
-            std_f, std_z = pole_std(a, pick.z, cov_a, self.dt)
+            std_f, std_z = self._cached("std", pick.z, source, lambda: pole_std(a, pick.z, cov_a, self.dt))
         # valid when the model's own uncertainty is small; leaving needs twice the uncertainty (hysteresis)
         k = 2.0 if self._valid else 1.0
         self._valid = (
