@@ -96,6 +96,13 @@ def run_case(seed: int, shaft: int | None, magnitude: float, na: int = 8, nb: in
            "offset_true_s": spec.clock_offset_s, "offset_est_s": clock["offset_s"],
            "drift_true_ppm": spec.clock_drift_ppm, "drift_est_ppm": clock["drift_ppm"],
            "warnings": d.warnings, "seconds": time.perf_counter() - t0}
+    out["found_in_any_step"] = truth is not None and any(
+        e["kind"] == "rotation_order_disturbance" and e["params"].get("shaft") == out["true_shaft"]
+        and e["params"].get("order") == truth.order for e in out["effects"])
+    out["wrong_shaft_or_order"] = truth is not None and any(
+        e["kind"] == "rotation_order_disturbance" and (e["params"].get("shaft") != out["true_shaft"]
+                                                       or e["params"].get("order") != truth.order)
+        for e in out["effects"])
     out["order_exact"] = truth is not None and out["found_order"] == truth.order
     out["shaft_right"] = truth is not None and out["found_shaft"] == out["true_shaft"]
     return out
@@ -149,6 +156,8 @@ def summarise(rows: list[dict]) -> dict:
                 "named_first_pct": 100.0 * sum(r["found_kind"] == r["true_kind"] for r in rs) / n,
                 "order_exact_pct": 100.0 * sum(r["order_exact"] for r in rs) / n,
                 "shaft_right_pct": 100.0 * sum(r["shaft_right"] for r in rs) / n,
+                "found_in_any_step_pct": 100.0 * sum(r["found_in_any_step"] for r in rs) / n,
+                "wrong_shaft_or_order_pct": 100.0 * sum(r["wrong_shaft_or_order"] for r in rs) / n,
                 "error_lower_pct": 100.0 * sum(r["rms_after"] < r["rms_before"] for r in rs) / n}
 
     off = [abs(r["offset_est_s"] - r["offset_true_s"]) for r in rows]

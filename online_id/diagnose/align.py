@@ -1,4 +1,4 @@
-"""Two records on their own clocks: offset and drift, and resampling onto one uniform grid.
+r"""Two records on their own clocks: offset and drift, and resampling onto one uniform grid.
 
 Notes
 -----

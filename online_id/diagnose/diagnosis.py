@@ -204,8 +204,6 @@ def _build(kind: str, hint: dict, data: DiagnoseData, cur: AugmentedFit, n_est: 
         return model, _params(kind, model, cur, data, hint), None
     elif kind == "fixed_frequency_disturbance":
         new = fx.search_frequency(data, s, n_est, C, hint["freq_hz"], hint["half_width_hz"])
-        model = fit_extension(data, cur, new.terms[-1], n_est)
-        return model, _params(kind, model, cur, data, hint), None
     elif kind == "additional_mode":
         new = fx.mode_structure(s)
     elif kind == "sensor_delay":
