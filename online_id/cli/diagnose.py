@@ -18,7 +18,8 @@ import numpy as np
 
 from online_id.benchlog import read_bench
 from online_id.config import load_config
-from online_id.estimation.preprocess import check_uniform, decimate, decimation_factor
+from online_id.estimation.preprocess import decimate, decimation_factor
+from online_id.diagnose.align import resample_uniform
 from online_id.diagnose import DiagnoseData, Diagnosis, diagnose
 from online_id.diagnose.bench_data import TARGET_FS_HZ, prepare
 from online_id.diagnose.bench_diagnosis import BenchDiagnosis, diagnose_bench
@@ -94,18 +95,16 @@ def _mat(path: Path, args: argparse.Namespace) -> tuple[np.ndarray, np.ndarray, 
         return x
 
     u, y = var(args.input_var), var(args.output_var)
-    return u, y, _rate(path, var(args.time_var) if args.time_var else None, args.fs, args.time_var)
-
-
-def _rate(path: Path, t: np.ndarray | None, fs: float | None, name: str | None) -> float:
-    if t is None:
-        if fs is None or fs <= 0:
-            raise ConfigError(f"{path}: give --time-col/--time-var or --fs HZ (> 0)")
-        return float(fs)
-    try:
-        return 1.0 / check_uniform(t)
-    except InputDataError as err:
-        raise InputDataError(f"{path}: {name}: {err}") from None
+    if not args.time_var:
+        if args.fs is None or args.fs <= 0:
+            raise ConfigError(f"{path}: give --time-var or --fs HZ (> 0)")
+        return u, y, float(args.fs)
+    t = var(args.time_var)
+    if not (t.size == u.size == y.size):
+        raise InputDataError(f"{path}: {args.time_var!r} has {t.size} samples, {args.input_var!r} {u.size}, "
+                             f"{args.output_var!r} {y.size}")
+    rec = resample_uniform(t, {"u": u, "y": y}, str(path), args.time_var)  # jittered time: resampled
+    return rec.columns["u"], rec.columns["y"], rec.fs_hz
 
 
 def load_data(args: argparse.Namespace) -> tuple[DiagnoseData, bool]:
