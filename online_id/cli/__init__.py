@@ -18,7 +18,7 @@ from online_id.errors import OnlineIdError, printable  # noqa: E402
 
 def build_parser() -> argparse.ArgumentParser:
     from online_id.cli import command, convert, demo, diagnose, evaluate, identify, replay, report_cmd, run, simulate
-    from online_id.cli import evaluate_diagnose, fleet, monitor
+    from online_id.cli import evaluate_diagnose, evaluate_rig, fleet, monitor
 
     parser = argparse.ArgumentParser(
         prog="online-id",
@@ -28,7 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for module in (demo, run, replay, report_cmd, simulate, identify, diagnose, evaluate, evaluate_diagnose,
-                   convert, command, fleet, monitor):
+                   evaluate_rig, convert, command, fleet, monitor):
         module.add_subparser(sub)
     return parser
 

@@ -18,14 +18,15 @@ import numpy as np
 
 from online_id.benchlog import read_bench
 from online_id.config import load_config
-from online_id.estimation.preprocess import check_uniform, decimate, decimation_factor
+from online_id.estimation.preprocess import decimate, decimation_factor
+from online_id.diagnose.align import resample_uniform
 from online_id.diagnose import DiagnoseData, Diagnosis, diagnose
 from online_id.diagnose.bench_data import TARGET_FS_HZ, prepare
 from online_id.diagnose.bench_diagnosis import BenchDiagnosis, diagnose_bench
 from online_id.cli.diagnose_bench_report import bench_text, write_bench_report
 from online_id.diagnose.effects import shaft_angle
+from online_id.cli.diagnose_records import add_arguments as add_record_arguments, read_records
 from online_id.errors import ConfigError, InputDataError
-from online_id.io.table_csv import read_csv_columns
 from online_id.io.outfile import check_output
 from online_id.progress import progress_for
 
@@ -55,6 +56,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     g.add_argument("--fs", type=float, metavar="HZ", help="sample rate when there is no time column")
     g.add_argument("--differentiate-output", action="store_true",
                    help="model the derivative of the output (a position becomes a velocity)")
+    add_record_arguments(g)
     m = p.add_argument_group("model and test settings")
     m.add_argument("--sample-rate", type=float, metavar="HZ",
                    help="decimate to about this rate (bench default 250 Hz)")
@@ -93,18 +95,16 @@ def _mat(path: Path, args: argparse.Namespace) -> tuple[np.ndarray, np.ndarray, 
         return x
 
     u, y = var(args.input_var), var(args.output_var)
-    return u, y, _rate(path, var(args.time_var) if args.time_var else None, args.fs, args.time_var)
-
-
-def _rate(path: Path, t: np.ndarray | None, fs: float | None, name: str | None) -> float:
-    if t is None:
-        if fs is None or fs <= 0:
-            raise ConfigError(f"{path}: give --time-col/--time-var or --fs HZ (> 0)")
-        return float(fs)
-    try:
-        return 1.0 / check_uniform(t)
-    except InputDataError as err:
-        raise InputDataError(f"{path}: {name}: {err}") from None
+    if not args.time_var:
+        if args.fs is None or args.fs <= 0:
+            raise ConfigError(f"{path}: give --time-var or --fs HZ (> 0)")
+        return u, y, float(args.fs)
+    t = var(args.time_var)
+    if not (t.size == u.size == y.size):
+        raise InputDataError(f"{path}: {args.time_var!r} has {t.size} samples, {args.input_var!r} {u.size}, "
+                             f"{args.output_var!r} {y.size}")
+    rec = resample_uniform(t, {"u": u, "y": y}, str(path), args.time_var)  # jittered time: resampled
+    return rec.columns["u"], rec.columns["y"], rec.fs_hz
 
 
 def load_data(args: argparse.Namespace) -> tuple[DiagnoseData, bool]:
@@ -120,12 +120,7 @@ def load_data(args: argparse.Namespace) -> tuple[DiagnoseData, bool]:
     elif args.input_col or args.output_col:
         if not (args.input_col and args.output_col):
             raise ConfigError("--input-col and --output-col go together")
-        cols = [args.input_col, args.output_col] + ([args.time_col] if args.time_col else [])
-        table = read_csv_columns(path, cols)
-        u, y = table[args.input_col], table[args.output_col]
-        fs = _rate(path, table.get(args.time_col) if args.time_col else None, args.fs, args.time_col)
-        names = (args.input_col, args.output_col)
-        extra = {}
+        return read_records(args), False
     else:
         bench = True
         s = load_config(args.config)
@@ -217,7 +212,8 @@ def text_report(d: Diagnosis) -> str:
              summary_table(d), "",
              f"error before: RMS {d.error_before.rms:.4g}, fit {d.error_before.fit_pct:.1f} %",
              f"error after:  RMS {d.error_after.rms:.4g}, fit {d.error_after.fit_pct:.1f} %",
-             f"stopped: {d.stop_reason}", "", "Residual tests (held-out part), before -> after:"]
+             f"stopped: {d.stop_reason}"]
+    lines += recording_lines(d) + ["", "Residual tests (held-out part), before -> after:"]
     after = {t.name: t for t in d.tests_after}
     for t in d.tests_before:
         a = after.get(t.name)
@@ -225,6 +221,34 @@ def text_report(d: Diagnosis) -> str:
         lines.append(f"  {t.name:26s} {state(t)} ({_pct(t.score)})"
                      + (f" -> {state(a)} ({_pct(a.score)})" if a else "") + f"  {t.detail}")
     return "\n".join(lines)
+
+
+def recording_lines(d: Diagnosis) -> list[str]:
+    """Clock alignment, jitter, shafts, baseline modes, refused steps and warnings, as text lines."""
+    out = []
+    notes = d.data.notes
+    for key in ("file", "second_file"):
+        if key in notes:
+            f = notes[key]
+            out.append(f"{f['path']}: {f['fs_hz']:g} Hz, jitter RMS {1e6 * f['jitter_rms_s']:.1f} us "
+                       f"(max {1e6 * f['jitter_max_s']:.1f} us)" + (", resampled" if f["resampled"] else ""))
+    if "clock" in notes:
+        c = notes["clock"]
+        out.append(f"clock of the second file: offset {c['offset_s']:+.4f} s, drift {c['drift_ppm']:+.1f} ppm "
+                   f"(misfit {c['misfit']:.3f}, on {c['aligned_on']})")
+    if d.data.shaft_rates:
+        out.append("shafts (rate relative to the first): "
+                   + ", ".join(f"{n} {r:.4g}" for n, r in d.data.shaft_rates.items()))
+    if d.modes:
+        out.append("baseline poles: " + ", ".join(
+            (f"{m['freq_hz']:.3g} Hz zeta {m['damping']:.3f}" if m["kind"] == "complex" and m["freq_hz"]
+             else f"real z={m['z_real']:+.3f}") + ("" if m["stable"] else " UNSTABLE") for m in d.modes))
+    for c in d.candidates:
+        if c.refused:
+            out.append(f"refused at step {c.step}: {c.kind} {_fmt_params(c.params)} "
+                       f"({100 * c.explained_variance:.1f} %, t {c.t_stat:.1f}) {c.refused}")
+    out += [f"warning: {w}" for w in d.warnings]
+    return ([""] + out) if out else []
 
 
 def write_report(d: Diagnosis, out: Path) -> list[Path]:

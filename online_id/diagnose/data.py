@@ -46,6 +46,13 @@ class DiagnoseData:
         simulated from the simulated output).
     source
         Where the data came from, for error messages.
+    shaft_rates
+        Shaft name -> rate relative to the first shaft (gear ratios).  With two
+        or more, rotation orders are searched on the grid the ratios imply and
+        reported against the shaft they belong to
+        (:mod:`online_id.diagnose.shafts`).
+    notes
+        How the record was put together (clock alignment, jitter), reported as is.
     """
 
     u: np.ndarray
@@ -58,6 +65,8 @@ class DiagnoseData:
     velocity: np.ndarray | None = None
     output_is_velocity: bool = True
     source: str = "<memory>"
+    shaft_rates: Mapping[str, float] = field(default_factory=dict)
+    notes: Mapping[str, object] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         u = np.asarray(self.u, dtype=float).ravel()
@@ -81,6 +90,9 @@ class DiagnoseData:
         for name, x in dict(self.shaft_speeds_rad_s).items():
             speeds[name] = self._aux(x, f"{name} speed")
         object.__setattr__(self, "shaft_speeds_rad_s", speeds)
+        unknown = [n for n in self.shaft_rates if n not in speeds]
+        if unknown:
+            raise InputDataError(f"{self.source}: shaft rate given for {unknown[0]!r}, which has no speed")
         if self.torsion is not None:
             object.__setattr__(self, "torsion", self._aux(self.torsion, "torsion"))
         if self.velocity is not None:

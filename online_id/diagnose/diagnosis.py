@@ -13,8 +13,10 @@ The record is split into an estimation part (the first
    variance it removes, :math:`1 - V_{new}/V_{cur}`, for the one-step
    prediction error, or for the simulation error when that is larger and
    significant (a Wiener sensor model mainly improves the simulation);
-4. accept the best if it removes at least ``min_explained`` and the
-   improvement is significant: with :math:`d_t = e_{cur}^2 - e_{new}^2` on
+4. accept the best if it removes at least ``min_explained``, lowers the
+   held-out one-step RMS *and* raises the held-out simulation fit (a step
+   that wrecks the simulation is overfitting; one that raises the one-step
+   error explains nothing new), and the improvement is significant: with :math:`d_t = e_{cur}^2 - e_{new}^2` on
    the held-out samples, the mean of 20 batch means of :math:`d` must exceed
    ``T_CRIT`` (one-sided 0.5 % of Student's t with 19 degrees of freedom)
    times its standard error (batches make the test robust to correlation).
@@ -32,10 +34,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from online_id.analysis.poles import poles_of
 from online_id.estimation.pem import fit_percent
 from online_id.diagnose import effects as fx
 from online_id.diagnose.data import DiagnoseData
-from online_id.diagnose.model import AugmentedFit, Structure, fit_structure
+from online_id.diagnose.model import AugmentedFit, Structure, fit_extension, fit_structure, regressors
 from online_id.diagnose.residual_tests import ResidualTest, run_tests
 from online_id.diagnose.wiener import WienerAbsFit, fit_wiener_abs
 from online_id.errors import EstimationError
@@ -84,6 +87,10 @@ class Candidate:
     explained_variance: float
     t_stat: float
     significant: bool
+    rms: float = float("nan")
+    fit_pct: float = float("nan")
+    accepted: bool = False
+    refused: str = ""
 
 
 @dataclass
@@ -102,6 +109,8 @@ class Diagnosis:
     residual_after: np.ndarray
     candidates: list[Candidate] = field(default_factory=list)
     stop_reason: str = ""
+    modes: list[dict] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
 
     def as_dict(self) -> dict:
         s = self.baseline
@@ -109,7 +118,11 @@ class Diagnosis:
             "source": self.data.source,
             "input": self.data.input_name, "output": self.data.output_name,
             "fs_hz": self.data.fs_hz, "n_samples": len(self.data), "n_estimation": self.n_est,
-            "baseline": {"na": s.na, "nb": s.nb, "nc": s.nc, "nk": s.nk, "input_lead": -s.delay},
+            "baseline": {"na": s.na, "nb": s.nb, "nc": s.nc, "nk": s.nk, "input_lead": -s.delay,
+                         "modes": self.modes},
+            "recording": dict(self.data.notes),
+            "shaft_rates": dict(self.data.shaft_rates),
+            "warnings": list(self.warnings),
             "effects": [e.as_dict() for e in self.effects],
             "error_before": self.error_before.as_dict(),
             "error_after": self.error_after.as_dict(),
@@ -140,9 +153,21 @@ def _sim(model: Model, data: DiagnoseData, n_est: int, horizon: int | None) -> n
         ysim = model.simulate(data, n_est)
     else:  # restart from the measured output every `horizon` samples
         ysim = data.y.astype(float).copy()
+        if isinstance(model, AugmentedFit):
+            return model.simulate_restarts(data, n_est, horizon)
         for w in range(n_est, len(data), horizon):
             ysim[w:w + horizon] = model.simulate(data, w)[w:w + horizon]
     return ysim
+
+
+def _guard(cur: ErrorFigures, rms_new: float, fit_new: float) -> str:
+    """Why a significant step is refused: it must lower the held-out one-step RMS *and* raise the sim fit."""
+    why = []
+    if not rms_new < cur.rms:
+        why.append(f"one-step RMS {cur.rms:.4g} -> {rms_new:.4g}")
+    if not fit_new > cur.fit_pct:
+        why.append(f"simulation fit {cur.fit_pct:.1f} % -> {fit_new:.1f} %")
+    return ("worsens " + "; ".join(why)) if why else ""
 
 
 def _t_stat(e_cur: np.ndarray, e_new: np.ndarray) -> float:
@@ -175,7 +200,8 @@ def _build(kind: str, hint: dict, data: DiagnoseData, cur: AugmentedFit, n_est: 
         term = fx.RotationOrder(hint["shaft"], hint["order"])
         if any(t == term for t in s.terms):
             return None
-        new = s.with_term(term)
+        model = fit_extension(data, cur, term, n_est)
+        return model, _params(kind, model, cur, data, hint), None
     elif kind == "fixed_frequency_disturbance":
         new = fx.search_frequency(data, s, n_est, C, hint["freq_hz"], hint["half_width_hz"])
     elif kind == "additional_mode":
@@ -201,18 +227,62 @@ def _build(kind: str, hint: dict, data: DiagnoseData, cur: AugmentedFit, n_est: 
     else:
         return None
     model = fit_structure(data, new, n_est)
-    return model, _params(kind, model, cur, data), None
+    return model, _params(kind, model, cur, data, hint), None
 
 
-def _params(kind: str, model: AugmentedFit, cur: AugmentedFit, data: DiagnoseData) -> dict:
+def _params(kind: str, model: AugmentedFit, cur: AugmentedFit, data: DiagnoseData,
+            hint: dict | None = None) -> dict:
     s = model.structure
+    hint = hint or {}
     if kind == "additional_mode":
         return {"freq_hz": fx.new_mode_freq_hz(cur.A, model.A, data.fs_hz)}
     if kind == "sensor_delay":
         d = s.delay - cur.structure.delay
         signal = data.output_name if d > 0 else data.input_name
         return {"signal": signal, "delay_s": abs(d) / data.fs_hz, "delay_samples": abs(d)}
-    return s.terms[-1].params()
+    params = s.terms[-1].params()
+    if kind == "rotation_order_disturbance" and hint.get("aliases"):
+        params["aliases"] = list(hint["aliases"])
+    return params
+
+
+def modes_of(A: np.ndarray, fs_hz: float) -> list[dict]:
+    """Poles of ``A`` (one per conjugate pair) with frequency, damping and stability."""
+    out = []
+    for p in poles_of(A, 1.0 / fs_hz):
+        z = complex(p.z)
+        out.append({"z_real": z.real, "z_imag": z.imag, "abs_z": abs(z),
+                    "freq_hz": p.f_hz if np.isfinite(p.f_hz) else None,
+                    "damping": p.zeta if np.isfinite(p.zeta) else None,
+                    "kind": p.kind, "stable": bool(abs(z) < 1.0)})
+    return out
+
+
+def fit_warnings(model: AugmentedFit, data: DiagnoseData, n_est: int, modes: list[dict]) -> list[str]:
+    """What makes the baseline's figures less precise than they look."""
+    out = []
+    bad = [m for m in modes if not m["stable"]]
+    if bad:
+        text = ", ".join(f"|z| {m['abs_z']:.4f}" + (f" at {m['freq_hz']:.3g} Hz" if m["freq_hz"] else "")
+                         for m in bad)
+        out.append(f"the baseline has {len(bad)} pole(s) on or outside the unit circle ({text}): it is "
+                   "unstable as identified; the simulation reflects them inside")
+    phi, _ = regressors(data, model.structure)
+    t0 = model.structure.max_lag + abs(model.structure.delay)
+    X = phi[t0:n_est]
+    X = X / np.maximum(np.sqrt(np.mean(X**2, axis=0)), 1e-300)
+    sv = np.linalg.svd(X, compute_uv=False)
+    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
+    if cond > 1e8:
+        out.append(f"the baseline fit is (nearly) singular (condition number {cond:.3g}): the regressors "
+                   "are collinear, its parameters are not determined by the data")
+    for name, w in list(data.shaft_speeds_rad_s.items())[:1]:
+        lo, hi = np.percentile(w, [5, 95])
+        if abs(np.mean(w)) > 0 and (hi - lo) < 0.1 * abs(np.mean(w)):
+            out.append(f"one operating point: shaft {name!r} speed spans only {hi - lo:.3g} rad/s "
+                       f"around {np.mean(w):.3g}; a rotation order and a fixed-frequency line cannot be "
+                       "told apart and speed-dependent effects are not identifiable")
+    return out
 
 
 def diagnose(data: DiagnoseData, *, na: int, nb: int, nc: int, nk: int = 1, input_lead: int = 0,
@@ -265,6 +335,8 @@ def diagnose(data: DiagnoseData, *, na: int, nb: int, nc: int, nk: int = 1, inpu
     e0 = e_cur
     lags = baseline.input_lags
     tests0 = run_tests(data, e_cur, n_est, lags)
+    modes = modes_of(cur.A, data.fs_hz)
+    warnings = fit_warnings(cur, data, n_est, modes)
     tests, fig, steps, evaluated = tests0, fig0, [], []
     stop = f"max_effects={max_effects} reached"
     for step in range(max_effects):
@@ -295,16 +367,22 @@ def diagnose(data: DiagnoseData, *, na: int, nb: int, nc: int, nk: int = 1, inpu
             explained = 1.0 - float(np.mean(e_new[n_est:] ** 2)) / float(np.mean(e_base[n_est:] ** 2))
             t = _t_stat(e_base[n_est:], e_new[n_est:])
             basis = "one_step"
+            ysim_new = _sim(model, data, n_est, horizon)
+            r_new = (data.y - ysim_new)[n_est:]
+            if not np.all(np.isfinite(r_new)):
+                continue
             if e_ref is None:  # the simulation error may improve where the one-step error cannot
-                r_new = (data.y - _sim(model, data, n_est, horizon))[n_est:]
-                if np.all(np.isfinite(r_new)):
-                    x_sim = 1.0 - float(np.mean(r_new**2)) / float(np.mean(r_cur**2))
-                    t_sim = _t_stat(r_cur, r_new)
-                    if x_sim > explained and t_sim >= T_CRIT:
-                        explained, t, basis = x_sim, t_sim, "simulation"
+                x_sim = 1.0 - float(np.mean(r_new**2)) / float(np.mean(r_cur**2))
+                t_sim = _t_stat(r_cur, r_new)
+                if x_sim > explained and t_sim >= T_CRIT:
+                    explained, t, basis = x_sim, t_sim, "simulation"
             ok = explained >= min_explained and t >= T_CRIT
-            evaluated.append(Candidate(step + 1, kind, params, explained, t, ok))
-            if ok and (best is None or explained > best[0]):
+            rms_new = float(np.sqrt(np.mean(e_new[n_est:] ** 2)))
+            fit_new = fit_percent(data.y[n_est:], ysim_new[n_est:])
+            refused = _guard(fig, rms_new, fit_new) if ok else ""
+            evaluated.append(Candidate(step + 1, kind, params, explained, t, ok, rms_new, fit_new,
+                                       ok and not refused, refused))
+            if ok and not refused and (best is None or explained > best[0]):
                 best = (explained, t, kind, params, model, basis)
         if best is None:
             stop = ("no candidate effect improves the held-out error significantly"
@@ -320,4 +398,4 @@ def diagnose(data: DiagnoseData, *, na: int, nb: int, nc: int, nk: int = 1, inpu
             stop = "the residual passes every test"
     report(1.0, "done")
     return Diagnosis(data, n_est, baseline, steps, fig0, fig, tests0, tests,
-                     e0, e_cur, evaluated, stop)
+                     e0, e_cur, evaluated, stop, modes, warnings)

@@ -6,7 +6,8 @@ Each effect is a real change of the model that the identification fits:
 kind                            extension
 ==============================  =============================================
 rotation_order_disturbance      :math:`\\sin, \\cos(o\\,\\theta_s(t - l))`
-                                regressors, :math:`\\theta_s = \\int \\omega_s dt`
+                                regressors at the first two lags of B,
+                                :math:`\\theta_s = \\int \\omega_s dt`
 fixed_frequency_disturbance     :math:`\\sin, \\cos(2\\pi f t)`, ``f`` refined
 additional_mode                 ``na`` and ``nb`` raised by 2 (one pole pair)
 backlash                        dead-zone feature :math:`\\mathrm{clip}(\\varphi
@@ -35,6 +36,7 @@ from online_id.diagnose.data import DiagnoseData
 from online_id.diagnose.model import Structure, fit_structure, lag_matrix
 
 ORDER_STEP = 0.5
+ROTATION_LAGS = 2
 
 
 def shaft_angle(speed_rad_s: np.ndarray, fs_hz: float) -> np.ndarray:
@@ -53,6 +55,11 @@ class RotationOrder:
 
     def columns(self, data: DiagnoseData, lags: np.ndarray) -> np.ndarray:
         theta = self.order * shaft_angle(data.shaft_speeds_rad_s[self.shaft], data.fs_hz)
+        # two lags, not all of B's: at one speed every lag of a sinusoid is a mix of sin and cos, so
+        # nb lags make 2 nb nearly collinear columns whose coefficients extrapolate wildly to another
+        # speed (held-out error tripled on the rig evaluation); two lags give amplitude and phase and
+        # their first-order change with the line frequency
+        lags = np.asarray(lags)[:ROTATION_LAGS]
         return np.hstack((lag_matrix(np.sin(theta), lags), lag_matrix(np.cos(theta), lags)))
 
     def output_static(self) -> None:

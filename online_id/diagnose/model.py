@@ -127,12 +127,20 @@ class AugmentedFit:
         phi, _ = regressors(data, self.structure)
         return lfilter([1.0], self.C, data.y - phi @ self.eta)
 
-    def simulate(self, data: DiagnoseData, start: int) -> np.ndarray:
-        """Simulated output from sample ``start`` on, measured output before it.
+    def simulate(self, data: DiagnoseData, start: int, stop: int | None = None) -> np.ndarray:
+        """Simulated output from sample ``start`` on (to ``stop``), measured output elsewhere.
 
         Roots of ``A`` outside the unit circle (an equation-error model may
         place one near the Nyquist frequency) are reflected inside for the
         simulation, which keeps the amplitude response of ``1/A``.
+        """
+        return self.simulate_restarts(data, start, None if stop is None else stop - start, once=True)
+
+    def simulate_restarts(self, data: DiagnoseData, start: int, horizon: int | None,
+                          once: bool = False) -> np.ndarray:
+        """Simulation restarted from the measured output every ``horizon`` samples from ``start``.
+
+        ``horizon=None``: one simulation to the end.  ``once``: only the first window.
         """
         s = self.structure
         phi, _ = regressors(data, s)
@@ -152,25 +160,32 @@ class AugmentedFit:
             col += m
         w = phi[:, mask] @ self.eta[mask]
         out = y.astype(float).copy()
-        if not dependent:
-            # y(t) = -sum a_i y(t-i) + w(t): a filter started from the measured output
-            if s.na == 0:
-                out[start:] = w[start:]
-                return out
-            past = out[max(start - s.na, 0):start][::-1]
-            zi = lfiltic([1.0], A, np.pad(past, (0, s.na - past.size)))
-            out[start:] = lfilter([1.0], A, w[start:], zi=zi)[0]
-            return out
-        for t in range(start, y.size):
-            acc = w[t]
-            for i in range(s.na):
-                if t - 1 - i >= 0:
-                    acc -= a[i] * out[t - 1 - i]
-            for f, lags, g in dependent:
-                idx = t - lags
-                vals = np.where(idx >= 0, out[np.maximum(idx, 0)], 0.0)
-                acc += float(f(vals) @ g)
-            out[t] = acc
+        step = (y.size - start) if horizon is None else max(1, int(horizon))
+        for w0 in range(start, y.size, step):
+            w1 = min(w0 + step, y.size)
+            if not dependent:
+                # y(t) = -sum a_i y(t-i) + w(t): a filter started from the measured output
+                if s.na == 0:
+                    out[w0:w1] = w[w0:w1]
+                else:
+                    past = y[max(w0 - s.na, 0):w0][::-1].astype(float)
+                    zi = lfiltic([1.0], A, np.pad(past, (0, s.na - past.size)))
+                    out[w0:w1] = lfilter([1.0], A, w[w0:w1], zi=zi)[0]
+            else:
+                sim = y.astype(float).copy()
+                for t in range(w0, w1):
+                    acc = w[t]
+                    for i in range(s.na):
+                        if t - 1 - i >= 0:
+                            acc -= a[i] * sim[t - 1 - i]
+                    for f, lags, g in dependent:
+                        idx = t - lags
+                        vals = np.where(idx >= 0, sim[np.maximum(idx, 0)], 0.0)
+                        acc += float(f(vals) @ g)
+                    sim[t] = acc
+                out[w0:w1] = sim[w0:w1]
+            if once:
+                break
         return out
 
 
@@ -254,6 +269,29 @@ def fit_structure(data: DiagnoseData, s: Structure, n_est: int, *,
     if not np.all(np.isfinite(eps)):
         raise EstimationError(f"{data.source}: the prediction-error fit diverged")
     return AugmentedFit(s, eta, C, widths, float(np.mean(eps**2)), n_est)
+
+
+def fit_extension(data: DiagnoseData, cur: AugmentedFit, term: object, n_est: int) -> AugmentedFit:
+    """``cur`` with one more term, fitted with ``A``, ``B``, ``C`` and the older terms held.
+
+    Only the new term's coefficients and the constant are estimated: by least
+    squares on the ``1/C``-filtered equation error of ``cur``.  Refitting the
+    whole model for a disturbance term lets the least-squares ``A`` move (on
+    the benches it moved a root at the Nyquist frequency from 1.02 to 1.05),
+    which changed the simulation far more than the term did: a true effect
+    that lowers the one-step error could then lower the simulation fit.
+    """
+    s = cur.structure.with_term(term)
+    phi, widths = regressors(data, s)
+    k0 = cur.eta.size - 1  # everything of cur but its constant
+    t0 = s.max_lag + max(abs(s.delay), 0)
+    target = lfilter([1.0], cur.C, data.y[:n_est] - phi[:n_est, :k0] @ cur.eta[:k0])[t0:]
+    X = lfilter([1.0], cur.C, phi[:n_est, k0:], axis=0)[t0:]
+    scale = np.maximum(np.sqrt(np.mean(X**2, axis=0)), 1e-300)
+    g = _ls(X / scale, target) / scale
+    eta = np.concatenate((cur.eta[:k0], g))
+    eps = target - X @ g
+    return AugmentedFit(s, eta, cur.C, widths, float(np.mean(eps**2)), n_est)
 
 
 def _ls(phi: np.ndarray, y: np.ndarray) -> np.ndarray:

@@ -30,6 +30,7 @@ from scipy.signal import welch
 from online_id.diagnose.data import DiagnoseData
 from online_id.diagnose.effects import ORDER_STEP, shaft_angle
 from online_id.diagnose.model import lag_matrix
+from online_id.diagnose.shafts import assign_order
 
 Z99 = 2.576
 PEAK_RATIO = 8.0
@@ -150,6 +151,44 @@ def order_spectrum(e: np.ndarray, speed_rad_s: np.ndarray, fs_hz: float, shaft: 
                         tuple(cands), {"order": order, "psd": psd})
 
 
+def rig_orders(e: np.ndarray, speeds: dict[str, np.ndarray], rates: dict[str, float],
+               fs_hz: float) -> ResidualTest | None:
+    """Order spectrum on the slowest shaft's angle; peaks assigned to a shaft on the ratio grid.
+
+    See :mod:`online_id.diagnose.shafts`: a peak becomes a candidate on the
+    shaft where it is the smallest integer order; ``None`` if the shafts stop.
+    """
+    slow = min(rates, key=lambda n: abs(rates[n]))
+    w = speeds[slow] * np.sign(rates[slow])
+    if np.min(w) <= 0.05 * np.max(np.abs(w)):
+        return None
+    theta = shaft_angle(w, fs_hz)
+    n_rev = (theta[-1] - theta[0]) / (2.0 * np.pi)
+    if n_rev < 10:
+        return None
+    grid = np.linspace(theta[0], theta[-1], e.size)
+    e_ang = np.interp(grid, theta, e - e.mean())
+    rev_per_sample = (grid[1] - grid[0]) / (2.0 * np.pi)
+    nper = int(min(e.size // 4, 10.0 / rev_per_sample))  # 0.1 order of the slowest shaft
+    order, psd = welch(e_ang, fs=1.0 / rev_per_sample, nperseg=max(nper, 16))
+    res = order[1] - order[0]
+    peaks = [(o, s) for o, s in _peaks(order[1:], psd[1:], n_max=4) if o >= 0.5]
+    cands, text = [], []
+    for o, share in peaks:
+        hit = assign_order(o, slow, rates, tol_slow=max(1.5 * res, 0.02 * o))
+        if hit is None:
+            text.append(f"{o:.2f} x {slow} (off the grid, {100 * share:.1f} %)")
+            continue
+        shaft, k, aliases = hit
+        cands.append(("rotation_order_disturbance", {"shaft": shaft, "order": float(k),
+                                                     "aliases": tuple(aliases)}))
+        text.append(f"order {k} of {shaft} ({100 * share:.1f} %)")
+    score = float(sum(s for _, s in peaks))
+    return ResidualTest("rotation orders (rig)", not cands, score,
+                        "peaks: " + (", ".join(text) or "none") + f"; grid of {len(rates)} shafts",
+                        tuple(cands), {"order": order, "psd": psd, "shaft": slow})
+
+
 def speed_dependence(e: np.ndarray, speed_rad_s: np.ndarray, shaft: str) -> ResidualTest:
     """Residual mean and spread in ten bins of operating speed."""
     edges = np.unique(np.percentile(speed_rad_s, np.linspace(0, 100, 11)))
@@ -211,10 +250,16 @@ def run_tests(data: DiagnoseData, e: np.ndarray, start: int, lags: np.ndarray,
     ev = e[start:]
     fs = data.fs_hz
     out = [whiteness(ev), input_independence(ev, data.u[start:], fs), spectrum(ev, fs)]
-    for name, w in data.shaft_speeds_rad_s.items():
-        t = order_spectrum(ev, w[start:], fs, name)
+    if len(data.shaft_rates) >= 2:
+        speeds = {n: w[start:] for n, w in data.shaft_speeds_rad_s.items() if n in data.shaft_rates}
+        t = rig_orders(ev, speeds, dict(data.shaft_rates), fs)
         if t is not None:
             out.append(t)
+    else:
+        for name, w in data.shaft_speeds_rad_s.items():
+            t = order_spectrum(ev, w[start:], fs, name)
+            if t is not None:
+                out.append(t)
     for name, w in list(data.shaft_speeds_rad_s.items())[:1]:
         out.append(speed_dependence(ev, w[start:], name))
     if data.torsion is not None:

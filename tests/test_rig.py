@@ -1,0 +1,185 @@
+"""Multi-shaft rig simulator, clock alignment, the ratio order grid, the acceptance guard."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from online_id.bench.rig import OrderDisturbance, random_rig, simulate_rig
+from online_id.cli import main
+from online_id.diagnose import DiagnoseData, diagnose
+from online_id.diagnose.align import resample_uniform
+from online_id.diagnose.diagnosis import _guard, ErrorFigures
+from online_id.diagnose.records import build_data
+from online_id.diagnose.shafts import assign_order, parse_shafts, snap_ratio
+from online_id.errors import ConfigError, InputDataError
+from online_id.io.table_csv import write_csv_columns
+from online_id.rig_evaluation import identifiable_orders, record_spec, run_case
+
+
+def _records(seed: int, **overrides):
+    spec = random_rig(np.random.default_rng(seed), **overrides)
+    rec = simulate_rig(spec, seed)
+    drive, sensor = dict(rec.drive), dict(rec.sensor)
+    r1 = resample_uniform(drive.pop("time_s"), drive, "drive", "time_s")
+    r2 = resample_uniform(sensor.pop("time_s"), sensor, "sensor", "time_s")
+    return spec, rec, r1, r2
+
+
+@pytest.mark.parametrize("seed", [3, 7])
+def test_rig_shafts_turn_at_their_gear_ratios_and_clock_drifts(seed):
+    spec, rec, _, _ = _records(seed)
+    assert spec.n_shafts >= 3
+    mean = rec.truth_speed_rad_s[len(rec.truth_time_s) // 2:].mean(axis=0)
+    np.testing.assert_allclose(mean / mean[0], spec.speed_factors(), rtol=1e-3)
+    # the sensor clock runs offset + (1 + drift) t from the true start
+    assert rec.sensor["time_s"][0] == pytest.approx(spec.clock_offset_s, abs=2e-3)
+    # encoder angles are whole counts
+    q = 2 * np.pi / spec.counts_per_rev
+    a = rec.sensor[f"{spec.names[1]}_angle_rad"]
+    np.testing.assert_allclose(a / q, np.round(a / q), atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", [0, 2, 5, 11, 17])
+def test_alignment_recovers_offset_and_drift(seed):
+    spec, _, r1, r2 = _records(seed)
+    data = build_data(r1, r2, record_spec(spec), f"seed {seed}")
+    c = data.notes["clock"]
+    assert abs(c["offset_s"] - spec.clock_offset_s) < 1e-3  # 1 ms
+    assert abs(c["drift_ppm"] - spec.clock_drift_ppm) < 5.0  # 5 ppm
+    assert data.notes is not None and set(data.shaft_rates) == set(spec.names)
+
+
+def test_resampling_reports_jitter_and_refuses_gaps():
+    rng = np.random.default_rng(1)
+    t = np.arange(2000) * 1e-3 + rng.uniform(-1e-4, 1e-4, 2000)
+    r = resample_uniform(t, {"x": np.sin(t)}, "f.csv", "time")
+    assert r.resampled and 3e-5 < r.jitter_rms_s < 8e-5 and r.jitter_max_s <= 1.01e-4
+    assert r.fs_hz == pytest.approx(1000.0, rel=1e-4)
+    t[1000:] += 0.5
+    with pytest.raises(InputDataError, match="gap"):
+        resample_uniform(t, {"x": t}, "f.csv", "time")
+
+
+def test_order_grid_assigns_a_line_to_the_shaft_where_it_is_the_smallest_integer_order():
+    rates = {"motor": 1.0, "mid": 1 / 3, "out": 1 / 12}
+    # orders of the slowest shaft (out): order 12 of out = order 1 of motor
+    assert assign_order(12.0, "out", rates, 0.05)[:2] == ("motor", 1)
+    assert assign_order(8.0, "out", rates, 0.05)[:2] == ("mid", 2)  # 2x the intermediate shaft
+    assert assign_order(1.0, "out", rates, 0.05)[:2] == ("out", 1)  # a third of mid's... rate
+    assert assign_order(2.0, "out", rates, 0.05)[:2] == ("out", 2)
+    assert assign_order(6.5, "out", rates, 0.05) is None
+    assert snap_ratio(0.33340) == pytest.approx(1 / 3)
+
+
+def test_shaft_options_are_checked():
+    s = parse_shafts(["w:motor"], ["a_out:out"], ["mid=motor/3"])
+    assert [(x.name, x.kind) for x in s] == [("motor", "speed"), ("out", "angle"), ("mid", "geared")]
+    assert s[2].ratio == 3.0
+    with pytest.raises(ConfigError, match="--gear-ratio"):
+        parse_shafts([], [], ["mid:motor:3"])
+    with pytest.raises(ConfigError, match="> 0"):
+        parse_shafts([], [], ["mid=motor/0"])
+
+
+def test_identifiable_orders_leave_out_orders_of_a_faster_shaft():
+    spec = random_rig(np.random.default_rng(0), ratios=(2.0, 3.0), inertias_kgm2=(0.03, 0.1, 1.0),
+                      stiffness_nm_rad=(400.0, 4000.0), damping_nms_rad=(0.2, 1.0))
+    assert identifiable_orders(spec, 0) == [1, 2, 3, 4, 5]
+    assert identifiable_orders(spec, 1) == [1, 3, 5]  # 2, 4 of the middle shaft are orders 1, 2 of the motor
+    assert identifiable_orders(spec, 2) == [1, 2, 4, 5]  # 3 of the load is order 1 of the middle shaft
+
+
+def test_guard_refuses_a_step_that_worsens_the_simulation_fit():
+    cur = ErrorFigures(rms=1.0, fit_pct=80.0)
+    assert _guard(cur, 0.9, 81.0) == ""
+    assert "simulation fit" in _guard(cur, 0.5, 79.9)
+    assert "one-step RMS" in _guard(cur, 1.01, 90.0)
+
+
+def test_guard_in_the_loop_refuses_an_overfitting_step():
+    """A record whose held-out part has a fixed line the estimation part lacks: any term fitted on the
+    estimation part is noise there; what is accepted must lower both held-out figures."""
+    rng = np.random.default_rng(4)
+    n = 3000
+    u = rng.standard_normal(n)
+    y = np.zeros(n)
+    for t in range(2, n):
+        y[t] = 1.5 * y[t - 1] - 0.7 * y[t - 2] + 0.5 * u[t - 1] + 0.05 * rng.standard_normal()
+    w = np.full(n, 50.0) + 0.5 * rng.standard_normal(n)
+    data = DiagnoseData(u, y, 100.0, "u", "y", {"a": w, "b": w / 3.0}, shaft_rates={"a": 1.0, "b": 1 / 3})
+    d = diagnose(data, na=2, nb=2, nc=1, min_explained=0.0)
+    for e in d.effects:
+        assert e.error_after.rms < e.error_before.rms and e.error_after.fit_pct > e.error_before.fit_pct
+    assert all((c.refused != "") or not c.accepted for c in d.candidates if not c.significant or c.refused)
+    assert any("one operating point" in w for w in d.warnings)
+    doc = d.as_dict()
+    assert doc["baseline"]["modes"] and all("stable" in m for m in doc["baseline"]["modes"])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed, shaft", [(1001, 0), (1002, 2), (1003, 1)])
+def test_order_on_a_shaft_is_found_against_that_shaft(seed, shaft):
+    # motor, intermediate and intermediate-of-four shafts on three different rigs; the evaluation
+    # (docs/diagnose.md) gives the rates, which are far from 100 % at this magnitude
+    r = run_case(seed, shaft, 0.3)
+    kinds = [e["kind"] for e in r["effects"]]
+    assert "rotation_order_disturbance" in kinds, r["effects"]
+    e = next(e for e in r["effects"] if e["kind"] == "rotation_order_disturbance")
+    assert e["params"]["shaft"] == r["true_shaft"]
+    assert e["params"]["order"] == r["true_order"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [1000, 1002])
+def test_clean_rig_reports_no_effect(seed):
+    r = run_case(seed, None, 0.0)
+    assert r["found_kind"] == "clean", r["effects"]
+
+
+def test_cli_diagnose_two_files_with_shafts(tmp_path, capsys):
+    spec = random_rig(np.random.default_rng(1), n_stages=2)
+    spec = replace(spec, disturbance=OrderDisturbance(0, 2.0, 0.5), load_speed_rad_s=spec.load_speed_rad_s,
+                   plateau_s=12.0)
+    rec = simulate_rig(spec, 1)
+    fmt = {n: "%.9f" if n == "time_s" else "%.7f" for n in (*rec.drive, *rec.sensor)}
+    write_csv_columns(tmp_path / "drive.csv", rec.drive, fmt)
+    write_csv_columns(tmp_path / "sensor.csv", rec.sensor, fmt)
+    argv = ["diagnose", str(tmp_path / "drive.csv"), "--input-col", "torque_demand_nm", "--output-col",
+            "motor_angle_rad", "--differentiate-output", "--time-col", "time_s",
+            "--second-file", str(tmp_path / "sensor.csv"), "--angle-col", "motor_angle_rad:motor",
+            "--angle-col", f"{spec.names[1]}_angle_rad:mid", "--gear-ratio", "out=mid/" + str(spec.ratios[1]),
+            "--sample-rate", "200", "--max-effects", "0", "--json"]
+    assert main(argv) == 0
+    import json
+    doc = json.loads(capsys.readouterr().out)
+    assert abs(doc["recording"]["clock"]["offset_s"] - spec.clock_offset_s) < 1e-3
+    assert set(doc["shaft_rates"]) == {"motor", "mid", "out"}
+    assert doc["shaft_rates"]["out"] == pytest.approx(1 / (spec.ratios[0] * spec.ratios[1]))
+    assert "modes" in doc["baseline"] and "warnings" in doc
+    # bad input: one line naming the file and column / option
+    assert main(argv[:-1] + ["--angle-col", "nope:x"]) == 2
+    assert "nope" in capsys.readouterr().err
+    assert main(argv[:-1] + ["--gear-ratio", "bad"]) == 2
+    assert "--gear-ratio" in capsys.readouterr().err
+
+
+def test_cli_headerless_csv(tmp_path, capsys):
+    rng = np.random.default_rng(2)
+    n = 1500
+    u = rng.standard_normal(n)
+    y = np.zeros(n)
+    for t in range(1, n):
+        y[t] = 0.9 * y[t - 1] + 0.3 * u[t - 1] + 0.01 * rng.standard_normal()
+    t = np.arange(n) / 100.0 + rng.uniform(-2e-4, 2e-4, n)
+    np.savetxt(tmp_path / "x.csv", np.column_stack((t, u, y)), delimiter=",", fmt="%.7f")
+    argv = ["diagnose", str(tmp_path / "x.csv"), "--no-header", "--columns", "t,u,y", "--time-col", "t",
+            "--input-col", "u", "--output-col", "y", "--na", "1", "--nb", "1", "--nc", "0", "--json"]
+    assert main(argv) == 0
+    import json
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["recording"]["file"]["resampled"] and doc["recording"]["file"]["jitter_rms_s"] > 0
+    assert main(argv[:3] + ["--columns", "t,u", *argv[5:]]) == 2
+    assert "--columns" in capsys.readouterr().err
