@@ -56,7 +56,7 @@ FREQ_GRID_HZ = 0.002  # line frequency grid (a 60 s record resolves about 0.017 
 THRESHOLDS = {
     "rotation_order_disturbance": 0.005,
     "fixed_frequency_disturbance": 0.005,
-    "additional_mode": 0.005,
+    "additional_mode": 0.0126,
     "backlash": 0.0167,
     "sensor_delay": 0.5,
     "coulomb_friction": 0.0136,
