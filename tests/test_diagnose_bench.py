@@ -87,6 +87,7 @@ def test_speed_delay_fractional(plant, seed, signal, delay_s):
     c = first(diagnose_bench(series_of(sc), max_effects=1))
     assert c.kind == "sensor_delay" and c.params["signal"] == signal
     assert c.params["delay_s"] == pytest.approx(delay_s, abs=1e-3)  # issue 14: within 1 ms
+    assert c.params["heldout_gain"] > 0  # the held-out transfer misfit is lower with the delay
 
 
 @pytest.mark.slow
@@ -103,16 +104,45 @@ def test_fixed_frequency_disturbance_is_not_a_mode(plant, seed, freq_hz, resonan
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("plant, seed, f_hz", [("a", 13, 60.0), ("b", 14, 85.0)])
-def test_second_mode_is_a_mode(plant, seed, f_hz):
-    J2 = PLANTS[plant]["J2"]
-    J3 = 0.25 * J2
-    jr = J2 * J3 / (J2 + J3)
+@pytest.mark.parametrize("plant, seed, f_hz, ratio", [("a", 13, 60.0, 0.25), ("b", 14, 85.0, 0.15),
+                                                     ("a", 17, 110.0, 0.12)])
+def test_second_mode_is_a_mode(plant, seed, f_hz, ratio):
+    from online_id.bench.plant import linear_modes
+
+    p = PLANTS[plant]
+    J3 = ratio * p["J2"]
+    jr = p["J2"] * J3 / (p["J2"] + J3)
     w = 2 * np.pi * f_hz
-    sc = BenchScenario(operating_points=POINTS, seed=seed, **PLANTS[plant],
-                       third_inertia=ThirdInertia(J3, w**2 * jr, 2 * 0.04 * w * jr))
+    third = (J3, w**2 * jr, 2 * 0.04 * w * jr)
+    sc = BenchScenario(operating_points=POINTS, seed=seed, **p, third_inertia=ThirdInertia(*third))
     c = first(diagnose_bench(series_of(sc), max_effects=1))
     assert c.kind == "additional_mode"
+    f_true = linear_modes(p["J1"], p["J2"], p["c_s"], p["d_s"], third)[-1]["f_hz"]
+    assert c.params["freq_hz"] == pytest.approx(f_true, rel=0.02)  # issue 14: within 2 %
+
+
+@pytest.mark.parametrize("f1, f2, mu, tau_s", [(15.0, 70.0, 0.1, 0.0), (30.0, 110.0, 0.05, -0.002),
+                                               (20.0, 45.0, 0.2, 0.001)])
+def test_speed_transfer_mode_fit(f1, f2, mu, tau_s):
+    from online_id.diagnose.bench_transfer import fit_ratio_mode, fit_ratio_tau
+
+    # engine side with a further inertia (J2 = 1): T = (d s + c)(J3 s^2 + d2 s + c2) / [...]
+    rng = np.random.default_rng(int(f2))
+    f = np.arange(2.0, 150.0)
+    s = 2j * np.pi * f
+    c, d = (2 * np.pi * f1) ** 2, 2 * 0.08 * 2 * np.pi * f1
+    c2, d2 = mu * (2 * np.pi * f2) ** 2, mu * 2 * 0.04 * 2 * np.pi * f2
+    z3 = mu * s**2 * (d2 * s + c2) / (mu * s**2 + d2 * s + c2)
+    T = (d * s + c) / (s**2 + z3 + d * s + c) * np.exp(-s * tau_s)
+    T = T * (1 + 0.01 * (rng.standard_normal(f.size) + 1j * rng.standard_normal(f.size)))
+    w = np.ones(f.size)
+    two = fit_ratio_tau(f, T, w, 0.012)
+    four, _ = fit_ratio_mode(f, T, w, two, 0.012)
+    assert four.misfit(f, T, w) < 0.2 * two.misfit(f, T, w)
+    assert four.tau_s == pytest.approx(tau_s, abs=2e-4)
+    eig = np.roots(np.polyadd(np.polymul([1.0, d, c], [mu, d2, c2]), np.polymul([mu, 0, 0], [d2, c2])))
+    f_true = max(abs(eig)) / (2 * np.pi)
+    assert max(four.poles_hz()) == pytest.approx(f_true, rel=0.01)
 
 
 @pytest.mark.slow
@@ -164,7 +194,7 @@ def test_bench_without_plateaus_is_a_one_line_error():
 
 @pytest.mark.parametrize("fa_hz, zeta, tau_s", [(20.0, 0.05, 0.004), (35.0, 0.15, -0.0015), (14.0, 0.1, 0.0)])
 def test_speed_transfer_delay_fit(fa_hz, zeta, tau_s):
-    from online_id.diagnose.bench_effects import fit_ratio_delay
+    from online_id.diagnose.bench_transfer import fit_ratio_delay
 
     rng = np.random.default_rng(int(fa_hz))
     f = np.arange(2.0, 150.0)

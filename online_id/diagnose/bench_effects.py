@@ -15,13 +15,14 @@ rotation order          sin/cos(k theta) of the entering shaft in the
                         equation of that shaft
 fixed frequency         sin/cos(2 pi f t) and two lags of the residual
                         band-passed at f (a narrow-band noise model)
-additional mode         one more pole pair (na, nb + 2) in one equation
+additional mode         one more pole pair (na, nb + 2) in the engine
+                        equation
 backlash                clip(twist - centre, +-gap/2) at the input lags in
                         both equations, judged against the linear twist
 coulomb friction        sign(y1 - y2) at the input lags in both equations
-sensor delay            one speed advanced by a fraction of a sample; the
-                        delay is fitted to the engine-over-dyno speed
-                        transfer measured through the torque demand
+sensor delay            one speed advanced by a fraction of a sample (the
+                        delay and the additional mode are fitted to the
+                        speed transfer, :mod:`bench_transfer`)
 ======================  ==================================================
 
 A line fixed in Hz is told a mode or a disturbance by its coherence with
@@ -37,7 +38,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.ndimage import median_filter, uniform_filter1d
-from scipy.optimize import minimize_scalar
 from scipy.signal import csd, find_peaks, iirpeak, lfilter, welch
 
 from online_id.diagnose.bench_model import (EQS, BenchFit, PlateauSignals, Spec, fit_plateau,
@@ -207,26 +207,6 @@ def excitation_coherence(fit: BenchFit, eq: str) -> tuple[np.ndarray, np.ndarray
     return f, np.abs(sm(sxy.real) + 1j * sm(sxy.imag)) ** 2 / np.maximum(sm(sxx) * sm(syy), 1e-300)
 
 
-def driveline_resonance_hz(fit: BenchFit) -> float:
-    """The declared driveline mode: the peak of the excitation-to-twist-speed transfer.
-
-    ``|S_{x,y_1 - y_2}| / S_{xx}`` from Welch spectra pooled over the
-    plateaus (``x`` the excitation of :func:`excitation_coherence`), maximal
-    between 3 Hz and 0.4 ``fs``.  A residual line there is the baseline
-    misfitting the mode it already has, not an additional one.
-    """
-    sxz = sxx = 0.0
-    for p in fit.plateaus:
-        x = (p.demand if p.demand is not None else p.u)[p.rows]
-        z = (p.y1 - p.y2)[p.rows]
-        f, pxz = csd(x, z, fs=p.fs_hz, nperseg=int(p.fs_hz))
-        _, pxx = welch(x, fs=p.fs_hz, nperseg=int(p.fs_hz))
-        sxz, sxx = sxz + pxz * z.size, sxx + pxx * z.size
-    band = (f >= 3.0) & (f <= 0.4 * fit.plateaus[0].fs_hz)
-    h = np.abs(sxz) / np.maximum(sxx, 1e-300)
-    return float(f[band][np.argmax(h[band])])
-
-
 def coherence_contrast(f: np.ndarray, coh: np.ndarray, freq_hz: float) -> float:
     """Coherence at ``freq_hz`` over the median coherence of its neighbourhood.
 
@@ -270,84 +250,3 @@ def search_backlash(series: BenchSeries, spec: Spec) -> TwistTerm:
     return TwistTerm(gap, centers, spec.nb)
 
 
-# -- sensor delay from the excitation's transfers -----------------------------------
-
-DELAY_BAND_HZ = (2.0, 0.3)  # lowest frequency [Hz], highest as a fraction of fs
-DELAY_GRID_S = 2e-4
-
-
-def speed_ratio_frf(p: PlateauSignals) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``T = S_{x y_2} / S_{x y_1}`` (engine over dyno speed) with the excitation ``x`` as instrument.
-
-    Returns frequencies, ``T`` and a weight (the coherence of ``x`` with the
-    dyno speed).  Noise on either speed and the controller's reaction to it
-    are uncorrelated with the test-torque demand, so ``T`` is unbiased by
-    both; the causal FIR acts on both speeds alike and cancels.
-    """
-    x = (p.demand if p.demand is not None else p.u)[p.rows]
-    y1, y2 = p.y1[p.rows], p.y2[p.rows]
-    nper = int(p.fs_hz)
-    f, s1 = csd(x, y1, fs=p.fs_hz, nperseg=nper)
-    _, s2 = csd(x, y2, fs=p.fs_hz, nperseg=nper)
-    _, sxx = welch(x, fs=p.fs_hz, nperseg=nper)
-    _, s11 = welch(y1, fs=p.fs_hz, nperseg=nper)
-    band = (f >= DELAY_BAND_HZ[0]) & (f <= DELAY_BAND_HZ[1] * p.fs_hz)
-    w = np.abs(s1) ** 2 / np.maximum(sxx * s11, 1e-300)
-    return f[band], (s2 / np.where(s1 == 0, 1e-300, s1))[band], w[band]
-
-
-def _ratio_misfit(f: np.ndarray, T: np.ndarray, w: np.ndarray, tau: float) -> float:
-    """Weighted misfit of ``T e^{s tau}`` to the shaft's ``(b s + a) / (s^2 + b s + a)``.
-
-    Given ``tau`` the model is linear in ``a`` (``c_s / J_2``) and ``b``
-    (``d_s / J_2``): ``(tc - 1)(b s + a) = -tc s^2``.
-    """
-    s = 2j * np.pi * f
-    tc = T * np.exp(s * tau)
-    sw = np.sqrt(w)
-    m = np.column_stack(((tc - 1) * s, tc - 1)) * sw[:, None]
-    rhs = -tc * s**2 * sw
-    a_ri = np.vstack((m.real, m.imag))
-    b_ri = np.concatenate((rhs.real, rhs.imag))
-    scale = np.maximum(np.linalg.norm(a_ri, axis=0), 1e-300)
-    coef, *_ = np.linalg.lstsq(a_ri / scale, b_ri, rcond=None)
-    b, a = coef / scale
-    model = (b * s + a) / (s**2 + b * s + a)
-    return float(np.sum(w * np.abs(tc - model) ** 2) / np.sum(w * np.abs(tc) ** 2))
-
-
-def fit_ratio_delay(f: np.ndarray, T: np.ndarray, w: np.ndarray, max_s: float) -> tuple[float, float, float]:
-    """Delay ``tau`` [s] of the engine speed relative to the dyno speed; misfits at ``tau`` and 0.
-
-    ``tau > 0``: the engine speed lags (its sensor is late); ``tau < 0``: the
-    dyno speed lags by ``-tau``.  Grid search, then a bounded refinement.
-    """
-    grid = np.arange(-max_s, max_s + 1e-12, DELAY_GRID_S)
-    vals = np.array([_ratio_misfit(f, T, w, t) for t in grid])
-    i = int(np.argmin(vals))
-    res = minimize_scalar(lambda t: _ratio_misfit(f, T, w, t), method="bounded",
-                          bounds=(grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]),
-                          options={"xatol": 1e-6})
-    tau, v = (float(res.x), float(res.fun)) if res.fun < vals[i] else (float(grid[i]), float(vals[i]))
-    return tau, v, _ratio_misfit(f, T, w, 0.0)
-
-
-def transfer_delay(ps: list[PlateauSignals], max_s: float) -> dict:
-    """The relative speed delay from the transfer pooled over the plateaus, with a jackknife t.
-
-    ``t`` is ``|tau|`` over its leave-one-plateau-out (jackknife) standard
-    error; ``misfit_share`` the share of the transfer misfit the delay removes.
-    """
-    fr = [speed_ratio_frf(p) for p in ps]
-
-    def pooled(sel: list) -> tuple[float, float, float]:
-        wsum = np.sum([w for _, _, w in sel], axis=0)
-        T = np.sum([T * w for _, T, w in sel], axis=0) / np.maximum(wsum, 1e-300)
-        return fit_ratio_delay(sel[0][0], T, wsum / len(sel), max_s)
-
-    tau, v1, v0 = pooled(fr)
-    n = len(fr)
-    jk = np.array([pooled(fr[:i] + fr[i + 1:])[0] for i in range(n)]) if n > 2 else np.array([tau])
-    se = float(np.sqrt((n - 1) / n * np.sum((jk - jk.mean()) ** 2))) if n > 2 else np.inf
-    return {"tau_s": tau, "misfit_share": 1.0 - v1 / v0 if v0 > 0 else 0.0,
-            "t": abs(tau) / se if se > 0 else 0.0, "jackknife_s": jk.tolist()}

@@ -1,0 +1,319 @@
+"""The engine-over-dyno speed transfer through the torque demand: sensor delay and additional mode.
+
+Notes
+-----
+The speed controller acts on the dyno only, so the ratio of the
+demand-to-speed transfers
+
+.. math::
+
+    T(s) = \\frac{S_{x y_2}}{S_{x y_1}} = \\frac{y_2}{y_1}\\Big|_{\\text{driven by } x}
+
+(``x`` the recorded test-torque demand, the PRBS) is the engine side of the
+driveline seen from the dyno shaft, with the controller cancelled.  Noise on
+either speed and the controller's reaction to it are uncorrelated with the
+demand and do not bias it; the causal FIR acts on both speeds alike and
+cancels.  For the declared two-mass plant (``a = c_s / J_2``, ``b = d_s /
+J_2``) and a relative sensor delay ``tau``
+
+.. math::
+
+    T(s) e^{s \\tau} = \\frac{N(s)}{N(s) + s^2 Q(s)}, \\qquad N = b s + a, \\; Q = 1.
+
+A further inertia ``J_3`` coupled to the engine (``c_2, d_2``: an additional
+mode) keeps this shape with ``N`` cubic and ``Q = s^2 + q_1 s + q_0`` monic
+(``N = (b s + a)(s^2 + \\beta s + \\alpha)``, ``Q = (1 + \\mu)(s^2 + \\beta s +
+\\alpha)`` up to scale, ``\\mu = J_3 / J_2``): ``N`` and the denominator share
+their two lowest coefficients, so ``T(0) = 1``.  Given ``tau`` both are
+linear in the unknowns through the equation error ``(T_c - 1) N + T_c s^2 Q
+= 0`` (``T_c = T e^{s tau}``), refined by Steiglitz-McBride iterations
+(weights ``1 / |D|`` of the previous fit) towards the output error
+``T_c - N / D``.
+
+The spectra are taken on 1 s segments aligned with the estimation / held-out
+blocks of every plateau (:mod:`bench_model`), so each model is fitted on the
+estimation segments' transfer and judged on the held-out segments' one: the
+*held-out transfer misfit* ``sum w |T_c - N/D|^2 / sum w |T_c|^2`` (``w`` the
+demand's coherence with the dyno speed).  It is what a delay or a mode
+changes, while the one-step error of the inertia equations absorbs both (six
+lags of both speeds represent a fourth-order engine side, and a late speed
+in its own equation).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares, minimize_scalar
+
+from online_id.diagnose.bench_model import PlateauSignals, order_columns
+
+BAND_HZ = (2.0, 0.3)  # lowest frequency [Hz], highest as a fraction of fs
+DELAY_GRID_S = 2e-4
+W_REF = 2 * np.pi * 50.0  # frequency scale of the polynomial coefficients (conditioning)
+SK_ITERATIONS = 4
+N_STARTS, N_REFINED = 12, 2  # antiresonance starts of the mode fit; the best few are refined
+MAX_NFEV = 150
+
+
+def _without_declared(p: PlateauSignals, y: np.ndarray) -> np.ndarray:
+    """``y`` less its declared compression-order lines (least squares over the plateau).
+
+    Over a few 1 s segments a deterministic line leaks into the demand cross
+    spectrum; the compression lines are by far the strongest in the speeds.
+    """
+    if not p.declared:
+        return y
+    phi = np.column_stack((order_columns(p.theta2[p.rows], p.declared), np.ones(y.size)))
+    coef, *_ = np.linalg.lstsq(phi, y, rcond=None)
+    return y - phi @ coef
+
+
+@dataclass(frozen=True)
+class Spectra:
+    """Demand cross and auto spectra of one plateau, summed over its 1 s segments of one part."""
+
+    f: np.ndarray
+    sx1: np.ndarray
+    sx2: np.ndarray
+    sxx: np.ndarray
+    s11: np.ndarray
+    s22: np.ndarray
+    n_seg: int
+
+
+def segment_spectra(p: PlateauSignals, part: str) -> Spectra:
+    """Spectra of the 1 s segments of ``part`` (``"est"``, ``"val"`` or ``"all"``) of plateau ``p``.
+
+    Segments are aligned with the 5 s blocks, so each is wholly estimation or
+    held out; a Hann window, the mean removed per segment, no overlap.
+    """
+    x = (p.demand if p.demand is not None else p.u)[p.rows]
+    y1, y2 = _without_declared(p, p.y1[p.rows]), _without_declared(p, p.y2[p.rows])
+    nper = int(round(p.fs_hz))
+    mask = {"est": p.est, "val": p.val, "all": np.ones(p.rows.size, bool)}[part]
+    win = np.hanning(nper)
+    acc = [0.0, 0.0, 0.0, 0.0, 0.0]
+    n = 0
+    for i0 in range(0, p.rows.size - nper + 1, nper):
+        if not mask[i0:i0 + nper].all():
+            continue
+        seg = [np.fft.rfft(win * (v[i0:i0 + nper] - np.mean(v[i0:i0 + nper]))) for v in (x, y1, y2)]
+        X, Y1, Y2 = seg
+        for k, v in enumerate((np.conj(X) * Y1, np.conj(X) * Y2, np.abs(X) ** 2, np.abs(Y1) ** 2,
+                                  np.abs(Y2) ** 2)):
+            acc[k] = acc[k] + v
+        n += 1
+    f = np.fft.rfftfreq(nper, 1.0 / p.fs_hz)
+    if n == 0:
+        z = np.zeros(f.size)
+        return Spectra(f, z + 0j, z + 0j, z, z, z, 0)
+    return Spectra(f, *acc, n)
+
+
+def pooled_ratio(spectra: list[Spectra], fs_hz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``T = sum S_{x y_2} / sum S_{x y_1}`` over plateaus in the band, and its weight.
+
+    The weight is the product of the demand's coherences with both speeds
+    (pooled): a bin where either speed holds much the demand does not
+    explain (a line, noise) counts little.
+    """
+    f = spectra[0].f
+    sx1, sx2, sxx, s11, s22 = (sum(getattr(s, k) for s in spectra) for k in ("sx1", "sx2", "sxx", "s11", "s22"))
+    band = (f >= BAND_HZ[0]) & (f <= BAND_HZ[1] * fs_hz)
+    w = (np.abs(sx1) ** 2 / np.maximum(sxx * s11, 1e-300)) * (np.abs(sx2) ** 2 / np.maximum(sxx * s22, 1e-300))
+    T = sx2 / np.where(sx1 == 0, 1e-300, sx1)
+    return f[band], T[band], w[band]
+
+
+@dataclass(frozen=True)
+class RatioModel:
+    """``T e^{s tau} = N / (N + s^2 Q)``; coefficients ascending in ``z = s / W_REF``."""
+
+    tau_s: float
+    num: np.ndarray
+    q: np.ndarray  # monic, ascending; [1.0] for the two-mass model
+
+    def response(self, f: np.ndarray) -> np.ndarray:
+        z = 2j * np.pi * f / W_REF
+        n = np.polyval(self.num[::-1], z)
+        return n / (n + z**2 * np.polyval(self.q[::-1], z))
+
+    def errors(self, f: np.ndarray, T: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """Weighted relative errors ``sqrt(w) |T_c - M| / |T_c|`` per frequency."""
+        tc = T * np.exp(2j * np.pi * f * self.tau_s)
+        return np.sqrt(w) * np.abs(tc - self.response(f)) / np.maximum(np.abs(tc), 1e-300)
+
+    def misfit(self, f: np.ndarray, T: np.ndarray, w: np.ndarray) -> float:
+        """Weighted mean squared relative error (the transfer spans two decades)."""
+        return float(np.sum(self.errors(f, T, w) ** 2) / max(np.sum(w), 1e-300))
+
+    def poles_hz(self) -> np.ndarray:
+        """Natural frequencies [Hz] of the complex pole pairs (``Im > 0``), ascending."""
+        d = np.zeros(max(self.num.size, self.q.size + 2), dtype=float)
+        d[:self.num.size] += self.num
+        d[2:2 + self.q.size] += self.q
+        r = np.roots(d[::-1]) * W_REF
+        return np.sort(np.abs(r[r.imag > 1e-9 * np.maximum(np.abs(r), 1.0)])) / (2 * np.pi)
+
+
+def fit_ratio(f: np.ndarray, T: np.ndarray, w: np.ndarray, tau: float) -> RatioModel:
+    """Fit the two-mass ``(b z + a) / (z^2 + b z + a)`` to ``T e^{s tau}`` (relative error).
+
+    Equation error ``(T_c - 1)(b z + a) = -T_c z^2`` weighted by ``1 / (|D| |T_c|)``,
+    ``D`` from the previous pass (Steiglitz-McBride).
+    """
+    z = 2j * np.pi * f / W_REF
+    tc = T * np.exp(2j * np.pi * f * tau)
+    m0 = np.column_stack((tc - 1, (tc - 1) * z))
+    rhs0 = -tc * z**2
+    d_prev = 1.0 + np.abs(z) ** 2
+    model = None
+    for _ in range(SK_ITERATIONS):
+        g = np.sqrt(w) / (d_prev * np.maximum(np.abs(tc), 1e-300))
+        m, rhs = m0 * g[:, None], rhs0 * g
+        a_ri = np.vstack((m.real, m.imag))
+        cs = np.maximum(np.linalg.norm(a_ri, axis=0), 1e-300)
+        coef, *_ = np.linalg.lstsq(a_ri / cs, np.concatenate((rhs.real, rhs.imag)), rcond=None)
+        model = RatioModel(tau, coef / cs, np.array([1.0]))
+        d_prev = np.maximum(np.abs(np.polyval(model.num[::-1], z) + z**2), 1e-6)
+    return model
+
+
+def fit_ratio_tau(f: np.ndarray, T: np.ndarray, w: np.ndarray, max_s: float) -> RatioModel:
+    """The two-mass model and delay with the least misfit: a 0.2 ms grid over ``+-max_s``, refined."""
+    grid = np.arange(-max_s, max_s + 1e-12, DELAY_GRID_S)
+
+    def loss(t: float) -> float:
+        return fit_ratio(f, T, w, t).misfit(f, T, w)
+
+    vals = np.array([loss(t) for t in grid])
+    i = int(np.argmin(vals))
+    res = minimize_scalar(loss, method="bounded", bounds=(grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]),
+                          options={"xatol": 1e-6})
+    tau = float(res.x) if res.fun < vals[i] else float(grid[i])
+    return fit_ratio(f, T, w, tau)
+
+
+def _mode_model(x: np.ndarray) -> RatioModel:
+    """Physical parameters ``[log a, log b, log alpha, log beta, log mu, tau]`` -> model.
+
+    ``N = (b z + a)(z^2 + beta z + alpha)``, ``Q = z^2 + (1 + mu)(beta z + alpha)``.
+    """
+    a, b, al, be, mu = np.exp(np.clip(x[:5], -30.0, 30.0))
+    num = np.polymul([b, a], [1.0, be, al])[::-1]  # ascending
+    return RatioModel(float(x[5]), num, np.array([(1 + mu) * al, (1 + mu) * be, 1.0]))
+
+
+def fit_ratio_mode(f: np.ndarray, T: np.ndarray, w: np.ndarray, two: RatioModel, max_s: float,
+                   start: np.ndarray | None = None) -> tuple[RatioModel, np.ndarray]:
+    """The two-mass model with one more inertia on the engine side (an additional mode).
+
+    Nonlinear least squares of the relative error over the physical
+    parameters of :func:`_mode_model`, started from the two-mass fit ``two``
+    and a grid of antiresonances ``sqrt(alpha)`` (30 Hz to the band's end,
+    ``mu = 0.1``); the starts with the least misfit are refined and the best
+    end point is kept.  With ``start`` (parameters of an earlier fit) only
+    that start is refined.  Returns the model and its parameters.
+    """
+    sw = np.sqrt(w)
+
+    def resid(x: np.ndarray) -> np.ndarray:
+        tc = T * np.exp(2j * np.pi * f * x[5])
+        with np.errstate(all="ignore"):
+            d = (tc - _mode_model(x).response(f)) / np.maximum(np.abs(tc), 1e-300) * sw
+        d = np.nan_to_num(d, nan=1e6, posinf=1e6, neginf=-1e6)
+        return np.concatenate((d.real, d.imag))
+
+    a0, b0 = max(two.num[0], 1e-6), max(two.num[1], 1e-6)
+    starts = []
+    for fa in np.geomspace(30.0, f[-1], N_STARTS if start is None else 0):
+        al = (2 * np.pi * fa / W_REF) ** 2
+        x0 = np.array([np.log(a0), np.log(b0), np.log(al), np.log(0.08 * np.sqrt(al)), np.log(0.1), two.tau_s])
+        starts.append((float(np.sum(resid(x0) ** 2)), x0))
+    best = None
+    if start is not None:
+        starts = [(0.0, np.asarray(start, dtype=float))]
+    for _, x0 in sorted(starts, key=lambda c: c[0])[:N_REFINED]:
+        r = least_squares(resid, x0, method="lm", max_nfev=MAX_NFEV)
+        if np.all(np.isfinite(r.x)) and (best is None or 2 * r.cost < best[0]):
+            best = (2 * r.cost, r.x)
+    x = best[1].copy()
+    x[5] = float(np.clip(x[5], -max_s, max_s))
+    return _mode_model(x), x
+
+
+def fit_ratio_delay(f: np.ndarray, T: np.ndarray, w: np.ndarray, max_s: float) -> tuple[float, float, float]:
+    """Delay ``tau`` [s] of the engine speed relative to the dyno speed; misfits at ``tau`` and 0.
+
+    ``tau > 0``: the engine speed lags (its sensor is late); ``tau < 0``: the
+    dyno speed lags by ``-tau``.
+    """
+    m = fit_ratio_tau(f, T, w, max_s)
+    return m.tau_s, m.misfit(f, T, w), fit_ratio(f, T, w, 0.0).misfit(f, T, w)
+
+
+def transfer_effects(ps: list[PlateauSignals], max_s: float) -> dict:
+    """Sensor delay and additional mode from the speed transfer, with held-out misfits.
+
+    Returns ``delay`` (``tau_s``, jackknife ``t`` over the plateaus of the
+    delay fitted to all segments, ``heldout_gain``: the share of the held-out
+    transfer misfit of the two-mass model that the delay removes) and
+    ``mode`` (``heldout_gain``: the share of the two-mass model's held-out
+    misfit, delay fitted in both, that one more pole pair removes;
+    ``freq_hz`` the added pole pair, the one farthest from the two-mass
+    pole; ``t`` that gain over its leave-one-plateau-out (jackknife)
+    standard error, 0 when the pole lies outside the fitted band).
+    """
+    fs = ps[0].fs_hz
+    spec = {part: [segment_spectra(p, part) for p in ps] for part in ("all", "est", "val")}
+    f, T, w = pooled_ratio(spec["all"], fs)
+    two = fit_ratio_tau(f, T, w, max_s)
+    n = len(ps)
+    if n > 2:
+        jk = np.array([fit_ratio_tau(*pooled_ratio(spec["all"][:i] + spec["all"][i + 1:], fs), max_s).tau_s
+                       for i in range(n)])
+        se = float(np.sqrt((n - 1) / n * np.sum((jk - jk.mean()) ** 2)))
+    else:
+        jk, se = np.array([two.tau_s]), np.inf
+    held = _heldout(spec["est"], spec["val"], fs, max_s)
+    if n > 2:  # leave-one-plateau-out replicates of the held-out gain, refined from the full fit
+        g_jk = np.array([_heldout(spec["est"][:i] + spec["est"][i + 1:], spec["val"][:i] + spec["val"][i + 1:],
+                                  fs, max_s, held["mode_x"])["mode_gain"] for i in range(n)])
+        se_m = float(np.sqrt((n - 1) / n * np.sum((g_jk - g_jk.mean()) ** 2)))
+    else:
+        g_jk, se_m = np.array([held["mode_gain"]]), np.inf
+    f_mode = held["freq_hz"]
+    in_band = bool(np.isfinite(f_mode) and BAND_HZ[0] < f_mode < BAND_HZ[1] * fs)
+    return {
+        "delay": {"tau_s": two.tau_s, "t": abs(two.tau_s) / se if se > 0 else 0.0,
+                  "jackknife_s": jk.tolist(), "heldout_gain": held["delay_gain"]},
+        "mode": {"heldout_gain": held["mode_gain"], "freq_hz": f_mode, "in_band": in_band,
+                 "t": held["mode_gain"] / se_m if se_m > 0 and in_band else 0.0,
+                 "jackknife_gain": g_jk.tolist(), "tau_s": held["mode_tau_s"], "poles_hz": held["poles_hz"]},
+    }
+
+
+def _farthest_pole(p2: np.ndarray, p4: np.ndarray) -> float:
+    """The pole pair the mode model adds: the one farthest (in log frequency) from the two-mass
+    pole; NaN when it has no complex pair."""
+    if not p4.size:
+        return float("nan")
+    ref = p2[0] if p2.size else 1.0
+    return float(p4[int(np.argmax(np.abs(np.log(np.maximum(p4, 1e-9) / max(ref, 1e-9)))))])
+
+
+def _heldout(est: list[Spectra], val: list[Spectra], fs: float, max_s: float,
+             start: np.ndarray | None = None) -> dict:
+    """Models fitted on the estimation segments' transfer, misfits on the held-out segments' one."""
+    fe, Te, we = pooled_ratio(est, fs)
+    fv, Tv, wv = pooled_ratio(val, fs)
+    two = fit_ratio_tau(fe, Te, we, max_s)
+    four, x = fit_ratio_mode(fe, Te, we, two, max_s, start)
+    v_zero, v_two, v_four = (m.misfit(fv, Tv, wv) for m in (fit_ratio(fe, Te, we, 0.0), two, four))
+    p4 = four.poles_hz()
+    f_mode = _farthest_pole(two.poles_hz(), p4)
+    return {"delay_gain": 1.0 - v_two / v_zero if v_zero > 0 else 0.0,
+            "mode_gain": 1.0 - v_four / v_two if v_two > 0 else 0.0,
+            "freq_hz": f_mode, "mode_tau_s": four.tau_s, "poles_hz": p4.tolist(), "mode_x": x}
