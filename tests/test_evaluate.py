@@ -101,6 +101,14 @@ def test_evaluate_command_writes_table_json_and_plot(tmp_path, capsys, cli_error
     again = tmp_path / "again"
     assert main(["evaluate", "--from-results", str(tmp_path / "results.json"), "--out", str(again)]) == 0
     assert (again / "table.md").read_text() == (tmp_path / "table.md").read_text()
+    assert doc["complete"] is True
+    # a stopped evaluation leaves its runs so far, marked partial, and they tabulate as they stand
+    partial = tmp_path / "partial.json"
+    partial.write_text(json.dumps(dict(doc, complete=False)))
+    capsys.readouterr()
+    assert main(["evaluate", "--from-results", str(partial), "--out", str(tmp_path / "p")]) == 0
+    assert "is partial" in capsys.readouterr().err
+    assert json.loads((tmp_path / "p" / "results.json").read_text())["complete"] is False
     (tmp_path / "bad.json").write_text("{}")
     assert "bad.json: not a results.json" in cli_error(["evaluate", "--from-results", str(tmp_path / "bad.json")])
 

@@ -15,7 +15,7 @@ import numpy as np
 
 from online_id.bench import evaluate as ev
 from online_id.errors import ConfigError, InputDataError
-from online_id.io.outfile import check_output
+from online_id.io.outfile import atomic_output, check_output
 from online_id.report import fmt, pyplot, save_figure
 
 
@@ -168,22 +168,26 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.monotonic()
     results: list[ev.RunResult] = []
     done_s = 0.0
+    settings = {"hours": args.hours, "fault_plants": args.fault_plants, "plant_type": args.plant_type,
+                "seed": args.seed,
+                "families": list(args.families), "cases": list(args.cases) if args.cases else None,
+                "jobs": args.jobs,
+                "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"}
     ctx = multiprocessing.get_context("fork")
     with ctx.Pool(args.jobs) as pool:
         for r in pool.imap_unordered(ev.run, specs):
             results.append(r)
             done_s += r.duration_s
+            if args.out is not None:  # a long evaluation that is stopped keeps the runs so far
+                _write_results(args.out, results, dict(settings, elapsed_s=round(time.monotonic() - t0, 1)),
+                               complete=len(results) == len(specs))
             what = (f"{r.false_alarms} false alarms" if r.case == "fault-free"
                     else f"alarm after {fmt(r.warning_delay_s, '.1f')} s")
             print(f"[{len(results):3d}/{len(specs)}] {100 * done_s / total_s:5.1f}%  ({r.family}) {r.case:16s} "
                   f"seed {r.seed:5d}  "
                   f"{r.duration_s / 60:5.1f} min simulated in {r.elapsed_s:5.1f} s  {what}", file=sys.stderr)
     elapsed = time.monotonic() - t0
-    settings = {"hours": args.hours, "fault_plants": args.fault_plants, "plant_type": args.plant_type,
-                "seed": args.seed,
-                "families": list(args.families), "cases": list(args.cases) if args.cases else None,
-                "jobs": args.jobs, "elapsed_s": round(elapsed, 1),
-                "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"}
+    settings["elapsed_s"] = round(elapsed, 1)
     _write(args, results, settings)
     if not args.json:
         print(f"\n{total_s / 3600:.1f} simulated hours in {elapsed / 60:.1f} min"
@@ -198,22 +202,39 @@ def _from_results(args: argparse.Namespace) -> int:
         results = [ev.RunResult(**r) for r in doc["runs"]]
         args.families = tuple(doc["summary"].get("settings", {}).get("families", ["c"]))
         settings = doc["summary"].get("settings", {})
+        complete = bool(doc.get("complete", True))
     except OSError as err:
         raise InputDataError(f"{path}: cannot read the results ({err.strerror})") from None
     except (ValueError, KeyError, TypeError, AttributeError) as err:
         raise InputDataError(f"{path}: not a results.json of online-id evaluate ({err})") from None
-    _write(args, results, settings)
+    if not complete:
+        print(f"online-id evaluate: {path} is partial (the evaluation was stopped or is still running): "
+              f"{len(results)} runs so far", file=sys.stderr)
+    _write(args, results, settings, complete)
     return 0
 
 
-def _write(args: argparse.Namespace, results: list[ev.RunResult], settings: dict) -> None:
-    results.sort(key=lambda r: (r.case, r.seed))
+def _write_results(out: Path, results: list[ev.RunResult], settings: dict, complete: bool = True) -> dict:
+    """``results.json`` (atomically): the summary and every run; ``complete`` is false while runs are left,
+    and ``--from-results`` tabulates such a file as it stands."""
+    results = sorted(results, key=lambda r: (r.case, r.seed))
     summary = ev.summarize(results)
     summary["settings"] = settings
+    with atomic_output(out / "results.json") as tmp:
+        tmp.write_text(json.dumps({"summary": summary, "complete": complete,
+                                   "runs": [r.as_dict() for r in results]}, indent=1) + "\n")
+    return summary
+
+
+def _write(args: argparse.Namespace, results: list[ev.RunResult], settings: dict, complete: bool = True) -> None:
+    results.sort(key=lambda r: (r.case, r.seed))
+    if args.out is not None:
+        summary = _write_results(args.out, results, settings, complete)
+    else:
+        summary = ev.summarize(results)
+        summary["settings"] = settings
     text = table(summary)
     if args.out is not None:
-        (args.out / "results.json").write_text(json.dumps(
-            {"summary": summary, "runs": [r.as_dict() for r in results]}, indent=1) + "\n")
         (args.out / "table.md").write_text(text + "\n")
         plot(results, args.out / "evaluation.png")
     if args.json:
