@@ -29,10 +29,13 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import time
 import traceback
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
+
+from online_id.scheduling import default_slice
 
 Callback = Callable[[Any, "str | None"], None]
 """``callback(result, error)``: ``error`` is None on success, else a one-line description."""
@@ -74,6 +77,9 @@ class InlineWorker:
     def poll(self) -> int:
         return 0
 
+    def wait(self, timeout_s: float) -> bool:
+        return True
+
     def close(self) -> None:
         pass
 
@@ -95,6 +101,7 @@ def _lower_priority() -> None:
         os.nice(WORKER_NICE)
     except OSError:
         pass
+    default_slice()  # a child started after the loop asked for a short slice would inherit it
 
 
 def _serve(conn: Any) -> None:
@@ -174,6 +181,24 @@ class ProcessWorker:
             self._restart(f"the worker process ended (exit code {self._proc.exitcode})")
             return done
         return done
+
+    def wait(self, timeout_s: float) -> bool:
+        """Block until every job in flight has called back (or ``timeout_s`` passed); True if none is left.
+
+        Not for the receive loop (it polls); for offline callers that want the results before going on.
+        """
+        deadline = time.monotonic() + timeout_s
+        while self._pending:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                break
+            try:
+                ready = self._conn.poll(left)
+            except (OSError, EOFError):
+                ready = True  # a dead child: poll() restarts it and calls the job back with the error
+            if ready:
+                self.poll()
+        return not self._pending
 
     def _finish(self, job_id: int, result: Any, error: str | None) -> int:
         entry = self._pending.pop(job_id, None)

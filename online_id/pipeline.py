@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import time
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -165,12 +164,8 @@ class Pipeline:
         estimate would wait for)."""
         n = 20 * orders.n_params
         job = RefitJob(rng.standard_normal(n), rng.standard_normal(n), orders, "cold", (), 0.0, 0.0, -1)
-        done: list[bool] = []
-        self.worker.submit(WINDOW, solve, (job,), lambda _fit, _err: done.append(True))
-        deadline = time.monotonic() + limit_s
-        while not done and time.monotonic() < deadline:
-            if not self.worker.poll():
-                time.sleep(0.01)
+        self.worker.submit(WINDOW, solve, (job,), lambda _fit, _err: None)
+        self.worker.wait(limit_s)
 
     @property
     def last_estimate(self) -> OnlineEstimate | None:

@@ -7,6 +7,7 @@ import time
 from online_id.config import AlertSettings, Settings
 from online_id.io.journal import Journal, encode_entry
 from online_id.records import AlertKind, AlertOut
+from online_id.offload import InlineWorker
 from online_id.service import Service
 
 
@@ -44,7 +45,7 @@ def test_alert_goes_to_journal_and_hook(tmp_path, monkeypatch):
     hook = tmp_path / "hook.sh"
     hook.write_text(f'#!/bin/sh\nenv | grep ^ONLINE_ID_ | sort > "{out}"\n')
     hook.chmod(0o755)
-    svc = Service(Settings(alerts=AlertSettings(command=str(hook))), log=open(os.devnull, "w"))
+    svc = Service(Settings(alerts=AlertSettings(command=str(hook))), log=open(os.devnull, "w"), worker=InlineWorker())
     alert = AlertOut(12.5, AlertKind.FREQ_DRIFT, 2, -5.2, 1500.0,
                      "driveline frequency 5.2 % lower (stiffness about 10 % lower) since t = 10.0 s at 1500 rpm")
     svc._dispatch_alert(alert)

@@ -16,6 +16,7 @@ from online_id.config import CommandSettings, MappingSettings, RoleSettings, Set
 from online_id.io.dbc import BenchCommand, encode_command, encode_inputs, load_dbc
 from online_id.records import FrameFault, SignalSample
 from online_id.runtime import Runtime, role_mapping
+from online_id.offload import InlineWorker
 from online_id.service import Service
 
 DB = load_dbc(None)
@@ -90,7 +91,7 @@ def test_relearn_disabled_by_config():
 
 def test_the_service_logs_every_command_with_its_frame(tmp_path):
     log = io.StringIO()
-    svc = Service(Settings(), log=log)
+    svc = Service(Settings(), log=log, worker=InlineWorker())
     svc.runtime.on_frame(1.0, *_cmd(BenchCommand.ACK_ALERT, 3))
     svc.runtime.on_frame(1.1, *_cmd(BenchCommand.ACK_ALERT, 3))
     svc._report_state()

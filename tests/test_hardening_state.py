@@ -16,6 +16,7 @@ from online_id.config import Settings, StateSettings
 from online_id.errors import InputDataError
 from online_id.io.dbc import encode_inputs, load_dbc
 from online_id.io.statefile import MAX_STATE_BYTES, StateReset, load_state, save_state
+from online_id.offload import InlineWorker
 from online_id.restore import restore_pipeline
 from online_id.runtime import Runtime
 from online_id.service import STATE_FILE, Service
@@ -41,7 +42,8 @@ def _service(tmp_path, text=None, state=None):
     if state is not None:
         save_state(path, state)
     log = io.StringIO()
-    svc = Service(Settings(state=StateSettings(directory=str(tmp_path))), log=log)
+    # the restore is the subject, not the worker: an inline one (no child process to spawn and warm up)
+    svc = Service(Settings(state=StateSettings(directory=str(tmp_path))), log=log, worker=InlineWorker())
     return svc, log.getvalue()
 
 

@@ -22,6 +22,7 @@ from online_id.errors import BusError
 from online_id.io.bus import CanBus
 from online_id.io.dbc import encode_inputs, load_dbc
 from online_id.io.dbc_output import OutputEncoder
+from online_id.offload import InlineWorker
 from online_id.records import FrameFault, ServiceState
 from online_id.runtime import Runtime
 from online_id.service import Service
@@ -174,18 +175,19 @@ def test_error_frames_and_garbage_never_raise():
 def test_restart_restores_estimator_state(tmp_path):
     rec, frames = bench_frames(6.0)
     settings = Settings(state=StateSettings(directory=str(tmp_path)))
-    a = Service(settings, bus_factory=None, log=open(os.devnull, "w"))
+    # the restore is the subject: inline workers (no child processes to spawn, warm up and leave behind)
+    a = Service(settings, bus_factory=None, log=open(os.devnull, "w"), worker=InlineWorker())
     for t, i, d in frames:
         a.runtime.on_frame(t, i, d)
     a.save(final=True)  # here and now (a periodic save goes to the worker process)
-    b = Service(settings, log=open(os.devnull, "w"))
+    b = Service(settings, log=open(os.devnull, "w"), worker=InlineWorker())
     ta, tb = a.runtime.pipeline.estimator.rels.theta, b.runtime.pipeline.estimator.rels.theta
     assert np.array_equal(ta, tb) and np.any(ta != 0)
     # a corrupt state file is reported and ignored, never fatal
     (tmp_path / "online-id-state.json").write_text("{not json")
     log = tmp_path / "log.txt"
     with open(log, "w") as fh:
-        c = Service(settings, log=fh)
+        c = Service(settings, log=fh, worker=InlineWorker())
     assert "ignoring saved state" in log.read_text()
     assert not np.any(c.runtime.pipeline.estimator.rels.theta)
 
@@ -270,7 +272,7 @@ def test_bus_that_stays_down_ends_with_status_1(tmp_path):
     settings = Settings(bus=BusSettings(reopen_max_s=0.5))
     log = tmp_path / "log.txt"
     with open(log, "w") as fh:
-        svc = Service(settings, bus_factory=broken, log=fh)
+        svc = Service(settings, bus_factory=broken, log=fh, worker=InlineWorker())
         t0 = time.monotonic()
         assert svc.run() == 1
     assert time.monotonic() - t0 < 5
