@@ -219,6 +219,35 @@ def test_values_saturate_and_non_finite_clears_valid(db):
         enc.encode(SignalSample("dyno_speed", 1.0, 0.0))
 
 
+
+def test_every_output_value_is_clamped_to_what_its_signal_carries(db, tmp_path):
+    """Frames are encoded without cantools' strict check: any value, in or far out of range, gives the clamped
+    value back, never a wrapped bit pattern; also for a DBC whose declared range exceeds the signal's bits."""
+    text = default_dbc_path().read_text().replace("[0|131.07]", "[-50|1000]")  # ResonanceFreq, 16 bits x 0.002
+    assert text != default_dbc_path().read_text()
+    (tmp_path / "wide.dbc").write_text(text)
+    rng = np.random.default_rng(4)
+    for dbx in (db, load_dbc(tmp_path / "wide.dbc")):
+        enc = OutputEncoder(dbx)
+        for key, name in OUTPUT_MESSAGES.items():
+            msg = dbx.get_message_by_name(name)
+            for _ in range(200):
+                values = {sig.name: float(rng.choice([rng.uniform(-1e6, 1e6), rng.uniform(-10, 10), 0.0, 1e300,
+                                                      -math.inf, math.nan]))
+                          for sig in msg.signals}
+                fid, data = enc._encode(key, values)
+                back = enc.decode(fid, data)
+                for sig in msg.signals:
+                    if sig.name in (f"{name}Counter", f"{name}CRC"):
+                        continue
+                    v = values[sig.name] if math.isfinite(values[sig.name]) else 0.0
+                    raw_hi = (1 << sig.length) - 1 if not sig.is_signed else (1 << (sig.length - 1)) - 1
+                    raw_lo = 0 if not sig.is_signed else -(1 << (sig.length - 1))
+                    lo = max(sig.minimum if sig.minimum is not None else -math.inf, sig.offset + sig.scale * raw_lo)
+                    hi = min(sig.maximum if sig.maximum is not None else math.inf, sig.offset + sig.scale * raw_hi)
+                    assert back[sig.name] == pytest.approx(min(max(v, lo), hi), abs=sig.scale), (name, sig.name, v)
+
+
 # --- input decoding: every fault kind -------------------------------------------------------
 
 
