@@ -10,6 +10,11 @@ waking the loop, decoding, assembly, the recursive update and the sends.  A
 frame stamped in another time base (a replayed log, a clock step) gives a
 difference outside 0-10 s and is counted as not measurable.
 
+The service keeps a second histogram of the same outputs from the moment
+its loop got the frame from the socket (``processing``): the loop's own
+work; the rest of the reaction is the wait for the loop (the scheduler,
+frames ahead of it, housekeeping).
+
 A fixed histogram (10 us bins up to 100 ms, one overflow bin): constant
 memory and cost whatever the run's length.
 """
@@ -50,11 +55,11 @@ class ReactionTimes:
         k = int(np.searchsorted(np.cumsum(self.counts), q / 100.0 * self.n))
         return self.max_s if k >= N_BINS else min((k + 1) * BIN_S, self.max_s)
 
-    def summary(self) -> str:
+    def summary(self, what: str = "reaction") -> str:
         """``reaction p50 0.12 ms, p99 0.40 ms, max 1.30 ms over N outputs`` (or why there is none)."""
         if self.n == 0:
-            return "reaction time not measured (no output, or frames stamped in another time base)"
-        return (f"reaction p50 {1e3 * self.percentile_s(50):.2f} ms, p99 {1e3 * self.percentile_s(99):.2f} ms, "
+            return f"{what} time not measured (no output, or frames stamped in another time base)"
+        return (f"{what} p50 {1e3 * self.percentile_s(50):.2f} ms, p99 {1e3 * self.percentile_s(99):.2f} ms, "
                 f"max {1e3 * self.max_s:.2f} ms over {self.n} outputs")
 
     def as_dict(self) -> dict:

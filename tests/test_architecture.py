@@ -19,7 +19,8 @@ ALLOWED = {
     "bench": {"errors", "records", "excitation", "config", "bench", "pipeline"},
     "pipeline": {"errors", "records", "analysis", "estimation", "monitoring", "excitation", "assembly", "config",
                  "offload"},
-    "offload": set(),
+    "offload": {"scheduling"},
+    "scheduling": set(),
 }
 
 
