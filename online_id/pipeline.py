@@ -111,6 +111,7 @@ class Pipeline:
         self.t_s = float("nan")
         self.t_first: float | None = None
         self._next_publish: float | None = None
+        self._poll_deferred = False  # the worker was not polled on the last sample (it published)
         self._next_physical: float | None = None
         self._physical: DrivelineParameters | None = None
         self._refit_pending = False
@@ -198,7 +199,13 @@ class Pipeline:
         if samples:
             if self.t_first is None:
                 self.t_first = samples[0].t_s
-            self.worker.poll()  # adopt finished slow work before the samples use the model
+            publishes = self._next_publish is not None and samples[-1].t_s >= self._next_publish
+            if not publishes or self._poll_deferred:
+                # adopt finished slow work before the samples use the model; not on a sample that publishes
+                # (adopting a window fit takes up to a millisecond): its estimate goes out first, the result
+                # is adopted on the next sample (an inline worker, as replay's, has nothing to adopt here)
+                self.worker.poll()
+            self._poll_deferred = publishes and not self._poll_deferred
         return self._consume(samples, self.assembler.now_s)
 
     def tick(self, now_s: float) -> list[Publication]:

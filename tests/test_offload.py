@@ -136,3 +136,48 @@ def test_pipeline_with_the_process_worker_matches_the_inline_pipeline(seed: int,
         finals[name] = float(np.median(f0[-20:]))
     assert abs(finals["process"] / finals["inline"] - 1) < 0.002
     assert abs(finals["process"] / truth["f0_hz"] - 1) < 0.01
+
+
+class _CountingWorker(InlineWorker):
+    """Runs jobs inline but says it is asynchronous, and counts the polls (where results would be adopted)."""
+
+    asynchronous = True
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.polls = 0
+
+    def poll(self) -> int:
+        self.polls += 1
+        return 0
+
+    def wait(self, timeout_s: float) -> bool:
+        return True
+
+
+@pytest.mark.parametrize("rate_hz", [10.0, 1000.0])
+def test_the_worker_is_not_polled_on_a_sample_that_publishes(rate_hz: float) -> None:
+    """Adopting a result (up to a millisecond) never delays an estimate; but it is never put off twice running,
+    even when every sample publishes."""
+    from online_id.config import PublishSettings
+    from online_id.records import EstimateOut, SignalSample
+
+    record = simulate_bench(dataclasses.replace(BenchScenario(), seed=3,
+                                                operating_points=(OperatingPoint(1500.0, 3.0),)))
+    worker = _CountingWorker()
+    pipe = Pipeline(Settings(publish=PublishSettings(rate_hz=rate_hz)), worker=worker)
+    d = record.to_data("sim")
+    publishing, plain = [], []
+    for k in range(len(d)):
+        t = float(d.time_s[k])
+        for role, x in (("dyno_speed", d.dyno_speed_rad_s), ("engine_speed", d.engine_speed_rad_s),
+                        ("dyno_torque", d.dyno_torque_nm)):
+            before = worker.polls
+            out = pipe.on_signal(SignalSample(role, float(x[k]), t))
+            if role == "dyno_torque":  # the frame that completes the sample
+                (publishing if any(isinstance(o, EstimateOut) for o in out) else plain).append(worker.polls - before)
+    assert plain and all(n == 1 for n in plain)
+    if rate_hz < 100.0:
+        assert len(publishing) > 20 and all(n == 0 for n in publishing[1:])  # the first sample starts the schedule
+    else:  # every sample publishes: polled on every second one
+        assert not plain[1:] and sum(publishing) == len(publishing) // 2

@@ -37,7 +37,7 @@ import numpy as np
 from online_id.estimation.settings import IdentificationSettings, InertiaSettings
 from online_id.estimation.model import ArmaxOrders
 from online_id.estimation.pem import ArmaxFit, fit_armax, predict_errors
-from online_id.estimation.rels import RecursiveArmax
+from online_id.estimation.window import fit_two_starts
 from online_id.analysis.physical import (
     DrivelineParameters,
     ResponseFit,
@@ -177,25 +177,6 @@ def best_window(u: np.ndarray, n: int, step: int) -> tuple[int, int]:
     return best, best + n
 
 
-def fit_from_starts(y: np.ndarray, u: np.ndarray, orders: ArmaxOrders, recursive_start: bool = True,
-                    **fit_kwargs) -> ArmaxFit:
-    """PEM fit from two starts, Hannan-Rissanen and the recursive estimate; the lower loss wins.
-
-    As :func:`~online_id.estimation.window.fit_two_starts`, with ``fit_kwargs``
-    (e.g. ``solver="lm"``) passed to :func:`~online_id.estimation.pem.fit_armax`.
-    """
-    fits = [fit_armax(y, u, orders, **fit_kwargs)]
-    if recursive_start:
-        est = RecursiveArmax(orders, lam=1.0, p0=1e3)
-        est.update_block(y, u)
-        if np.all(np.isfinite(est.theta)):
-            try:
-                fits.append(fit_armax(y, u, orders, theta0=est.theta, **fit_kwargs))
-            except EstimationError:
-                pass
-    return min(fits, key=lambda f: f.V)
-
-
 def _refine_span(size: int, window: tuple[int, int], n: int) -> tuple[int, int]:
     """``n`` samples (at most ``size``) centred on ``window``, shifted to stay inside ``0:size``."""
     if n >= size:
@@ -319,7 +300,7 @@ def identify(
         for orders in candidates:
             report(done / total, f"{point.speed_rpm:.0f} rpm, na={orders.na} nb={orders.nb} nc={orders.nc}")
             try:
-                point.fits[orders] = fit_from_starts(_centred(y[a:b]), _centred(u[a:b]), orders, s.recursive_start, solver=solver)
+                point.fits[orders] = fit_two_starts(_centred(y[a:b]), _centred(u[a:b]), orders, s.recursive_start, solver=solver)
             except EstimationError as err:
                 warnings.append(f"{point.speed_rpm:.0f} rpm, {orders}: {err}")
             done += 1

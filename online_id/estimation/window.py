@@ -50,10 +50,16 @@ from online_id.errors import EstimationError
 
 
 FIT_ERRORS = (EstimationError, FloatingPointError, ValueError, np.linalg.LinAlgError)
+SOLVER = "trf"
+"""The window's PEM solver (:func:`~online_id.estimation.pem.fit_armax`): scipy's trust-region solver.
+The Levenberg-Marquardt solver of ``identify`` costs about a third as much, but measured on the window
+refits it does not follow a 20 % stiffness step: warm-started from the previous window's optimum it stops
+after about two steps at a loss 10 % above the optimum (the trust-region solver reaches it in four), and the
+estimate lagged the step by more than ten refits instead of one (``tests/test_window.py``)."""
 
 
 def fit_two_starts(y: np.ndarray, u: np.ndarray, orders: ArmaxOrders, recursive_start: bool = True,
-                   starts: tuple = (), prefer_last_within: float = 0.0) -> ArmaxFit:
+                   starts: tuple = (), prefer_last_within: float = 0.0, **fit_kwargs) -> ArmaxFit:
     """PEM fit from two starts (Hannan-Rissanen, and the recursive estimate); the lower loss wins.
 
     The prediction-error criterion of an over-parametrised ARMAX model has
@@ -64,15 +70,16 @@ def fit_two_starts(y: np.ndarray, u: np.ndarray, orders: ArmaxOrders, recursive_
     ``starts`` wins if its loss is within that share of the lowest,
     ``V_last <= (1 + prefer_last_within) V_min`` -- where the
     criterion has nearly equal minima, the data do not tell them apart, and
-    the caller's own solution (a baseline's) is kept.
+    the caller's own solution (a baseline's) is kept. ``fit_kwargs`` (e.g.
+    ``solver="lm"``) go to every :func:`~online_id.estimation.pem.fit_armax`.
     """
-    fits = [fit_armax(y, u, orders)]
+    fits = [fit_armax(y, u, orders, **fit_kwargs)]
     last = None
     for k, theta0 in enumerate(starts):
         if theta0 is None:
             continue
         try:
-            fits.append(fit_armax(y, u, orders, theta0=np.asarray(theta0, dtype=float)))
+            fits.append(fit_armax(y, u, orders, theta0=np.asarray(theta0, dtype=float), **fit_kwargs))
             last = fits[-1] if k == len(starts) - 1 else None
         except FIT_ERRORS:
             pass
@@ -81,7 +88,7 @@ def fit_two_starts(y: np.ndarray, u: np.ndarray, orders: ArmaxOrders, recursive_
         est.update_block(y, u)
         if np.all(np.isfinite(est.theta)):
             try:
-                fits.append(fit_armax(y, u, orders, theta0=est.theta))
+                fits.append(fit_armax(y, u, orders, theta0=est.theta, **fit_kwargs))
             except EstimationError:
                 pass
     best = min(fits, key=lambda f: f.V)
@@ -120,8 +127,9 @@ def solve(job: RefitJob) -> ArmaxFit:
     """Fit the window of ``job`` (pure: runs in the pipeline or in a worker process)."""
     if job.mode == "warm":
         return fit_armax(job.y, job.u, job.orders, theta0=job.starts[0], max_iter=job.warm_iterations,
-                         start_radius=0.999, tol=job.warm_tol)
-    return fit_two_starts(job.y, job.u, job.orders, starts=job.starts, prefer_last_within=job.prefer_last_within)
+                         start_radius=0.999, tol=job.warm_tol, solver=SOLVER)
+    return fit_two_starts(job.y, job.u, job.orders, starts=job.starts, prefer_last_within=job.prefer_last_within,
+                          solver=SOLVER)
 
 
 class SlidingPem:
