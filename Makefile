@@ -26,21 +26,11 @@ system-deps:
 	scripts/install-system-deps
 
 ## Run the whole test suite: everything but the live and vcan tiers natively on both cores (pytest-xdist),
-## then the live tier (the service as its own process over kernel sockets, at real time: run alone,
-## so the suite's own load does not compete with it), then the vcan tier on a real SocketCAN vcan0
-## (natively, or inside User-Mode Linux when this kernel has no vcan). Fails if any part fails.
+## then, side by side, the live tier (the service as its own process over kernel sockets, at real time) and
+## the vcan tier on a real SocketCAN vcan0 (natively, or inside User-Mode Linux when this kernel has no vcan).
+## Fails if any part fails (scripts/test-all).
 test: system-deps $(STAMP)
-	@native=0; live=0; vcan=0; \
-	echo '$(PY) -m pytest -n 2 -m "not vcan and not live" $(PYTEST_ARGS)'; \
-	$(PY) -m pytest -n 2 -m "not vcan and not live" $(PYTEST_ARGS) || native=$$?; \
-	echo '$(PY) -m pytest -m live tests/live $(PYTEST_ARGS)'; \
-	$(PY) -m pytest -m live tests/live $(PYTEST_ARGS) || live=$$?; \
-	echo 'scripts/test-vcan $(PY) $(PYTEST_ARGS)'; \
-	scripts/test-vcan $(PY) $(PYTEST_ARGS) || vcan=$$?; \
-	if [ $$native -ne 0 ] || [ $$live -ne 0 ] || [ $$vcan -ne 0 ]; then \
-	    echo "make test: FAILED (pytest exit: $$native native, $$live live tier, $$vcan vcan tier)" >&2; \
-	    exit 1; \
-	fi
+	scripts/test-all $(PY) $(PYTEST_ARGS)
 
 ## Only the fast tier (no slow identification runs).
 test-fast: $(STAMP)
