@@ -83,6 +83,16 @@ class Runtime:
     def on_frame(self, t_s: float, arbitration_id: int, data: bytes, is_extended: bool = False,
                  is_error: bool = False) -> list[OutFrame]:
         """One received frame; returns the frames to publish."""
+        pubs = self.publications(t_s, arbitration_id, data, is_extended, is_error)
+        return self.frames(pubs) if pubs else []
+
+    def publications(self, t_s: float, arbitration_id: int, data: bytes, is_extended: bool = False,
+                     is_error: bool = False) -> list[Publication]:
+        """One received frame; returns what it publishes, not yet encoded (:meth:`frames` encodes them).
+
+        The live service encodes and sends a publication's first frame, its OidEstimate, before it encodes
+        the others; replay and the tests take :meth:`on_frame`.
+        """
         self.frames_in += 1
         if is_error:
             self.pipeline.on_fault(FrameFault.MALFORMED)
@@ -101,17 +111,17 @@ class Runtime:
                     return []
                 result = AWAITING_CONFIRMATION if self.commands.awaiting > awaiting else REFUSED
                 return self._answer(t_s, int(res.command), result, res.counter)
-            out = self.frames(self.pipeline.on_command(int(res.command), t_s))
-            return out + self._answer(t_s, int(res.command), ACCEPTED, res.counter)
+            done = self.pipeline.on_command(int(res.command), t_s)
+            return done + self._answer(t_s, int(res.command), ACCEPTED, res.counter)
         pubs: list[Publication] = []
         for sample in res:
             pubs.extend(self.pipeline.on_signal(sample))
-        return self.frames(pubs) if pubs else []
+        return pubs
 
-    def _answer(self, t_s: float, command: int, result: int, counter: int | None) -> list[OutFrame]:
+    def _answer(self, t_s: float, command: int, result: int, counter: int | None) -> list[Publication]:
         """A status frame at once, answering a command frame (signals LastCommand, CommandResult, CommandCounterEcho)."""
         self.encoder.answer_command(command, result, counter)
-        return self.frames([self.pipeline.status(t_s)])
+        return [self.pipeline.status(t_s)]
 
     def tick_worker(self) -> list[OutFrame]:
         """No stream clock yet: only adopt finished slow work."""

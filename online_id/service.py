@@ -264,8 +264,19 @@ class Service:
                     if frame is not None:
                         self.last_frame_wall = now
                         self.last_frame_ts = frame.t_s
-                        out = runtime.on_frame(frame.t_s, frame.arbitration_id, frame.data, frame.is_extended,
-                                               frame.is_error)
+                        pubs = runtime.publications(frame.t_s, frame.arbitration_id, frame.data,
+                                                    frame.is_extended, frame.is_error)
+                        if pubs:
+                            # a publication's first frame is its OidEstimate: encoded and sent before the
+                            # others are encoded
+                            first, *rest = runtime.frames(pubs[:1])
+                            bus.send(*first)
+                            t_sent = wall()
+                            reaction.add(t_sent - frame.t_s)
+                            processing.add(t_sent - t_recv)
+                            for ident, data in rest + (runtime.frames(pubs[1:]) if len(pubs) > 1 else []):
+                                bus.send(ident, data)
+                        out = None
                     elif draining_until is not None:
                         break
                     elif self.last_frame_ts is not None:
@@ -275,13 +286,7 @@ class Service:
                     else:
                         out = runtime.tick_worker()
                     if out:
-                        ident, data = out[0]  # a publication's first frame is its OidEstimate
-                        bus.send(ident, data)
-                        if frame is not None:
-                            t_sent = wall()
-                            reaction.add(t_sent - frame.t_s)
-                            processing.add(t_sent - t_recv)
-                        for ident, data in out[1:]:
+                        for ident, data in out:
                             bus.send(ident, data)
                 except BusError as err:
                     self.say(f"bus failed: {err}; reopening")

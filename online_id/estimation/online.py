@@ -211,8 +211,20 @@ class OnlineDriveline:
         return self.window.prepare_verify(starts, prefer_last_within)
 
     def complete(self, job: RefitJob, fit, error: str | None = None) -> bool:
-        """Adopt the result of a refit or verify job; True when a fit was adopted."""
-        return self.window.complete(job, fit, error)
+        """Adopt the result of a refit or verify job; True when a fit was adopted.
+
+        A new fit's poles, and each candidate's residue and standard deviations, are computed here, when
+        it is adopted (on a sample that publishes nothing), not at the next publication, which the receive
+        loop owes the bus within a millisecond; the publications reuse them until the next fit.
+        """
+        adopted = self.window.complete(job, fit, error)
+        if adopted:
+            a, b, _c, cov_a, _V, source = self.polynomials()
+            if source == "window":
+                for p in self._candidates(self._poles_for(a, source)):
+                    self._cached("residue", p.z, source, lambda: modal_residue(a, b, p.z))
+                    self._cached("std", p.z, source, lambda: pole_std(a, p.z, cov_a, self.dt))
+        return adopted
 
     @property
     def solution(self) -> np.ndarray | None:
