@@ -53,9 +53,14 @@ def test_service_process_keeps_up_at_real_time_on_a_kernel_socket(tmp_path) -> N
     assert run.returncode == 0 and run.counts, run.text
     assert run.sent == len(frames)
     n = run.counts
-    # no frame lost: the kernel dropped none, the assembler missed none, every sample was made
+    # no frame lost: every frame sent was taken (the service's own frames come back as "foreign"), the kernel
+    # dropped none, the assembler missed none and found none bad
+    assert n["frames_in"] - n["foreign"] == len(frames), run.text
     assert n["dropped"] == 0 and n["missing"] == 0 and n["bad"] == 0, run.text
-    assert n["samples"] >= len(record.time_s) - 2, run.text  # the last sample or two wait for a next frame
+    # and the samples of the whole stream were made: the grid runs on the kernel's arrival stamps, so a
+    # sender that started late and caught up (a loaded machine) shortens the stream by a few milliseconds,
+    # and the last samples wait for a next frame that never comes (seen: 5 of 73,000)
+    assert n["samples"] >= len(record.time_s) * 0.9995, run.text
     # the only input timeout is the end of the bench (after its last sample), never one in the middle
     timeouts = [ln for ln in run.log if "state INPUT_TIMEOUT" in ln]
     assert all(f"{n['samples']} samples" in ln for ln in timeouts), run.text
