@@ -118,3 +118,40 @@ def test_numerical_rooms_do_not_load_io_libraries():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == ""
+
+
+def test_the_cli_loads_only_what_its_command_needs(tmp_path):
+    """``online-id --help`` lists every command without importing one; identifying a bench CSV does not load
+    python-can, cantools or asammdf (their import took 1.5 s and 50 MB); a CAN log does."""
+    from online_id.cli import SUBCOMMANDS
+
+    csv = tmp_path / "bench.csv"
+    t = [k / 1000 for k in range(400)]
+    csv.write_text("time_s,dyno_speed_rpm,engine_speed_rpm,dyno_torque_nm\n"
+                   + "".join(f"{x:.3f},1500,1500,{10 + (k % 7)}\n" for k, x in enumerate(t)))
+    heavy = ("can", "cantools", "asammdf", "matplotlib", "scipy")
+    probe = (
+        "import sys, contextlib, io\n"
+        "from online_id.cli import main\n"
+        "with contextlib.redirect_stdout(io.StringIO()) as out, contextlib.redirect_stderr(io.StringIO()):\n"
+        "    try:\n"
+        "        rc = main(sys.argv[1:])\n"
+        "    except SystemExit as e:\n"
+        "        rc = e.code\n"
+        "print(rc, out.getvalue().count('\\n') > 0, ' '.join(m for m in %r if m in sys.modules),"
+        " ' '.join(m for m in sys.modules if m.startswith('online_id.cli.')), sep='|')\n" % (heavy,)
+    )
+
+    def run(*argv: str) -> list[str]:
+        res = subprocess.run([sys.executable, "-c", probe, *argv], capture_output=True, text=True, check=True)
+        return res.stdout.strip().splitlines()[-1].split("|")
+
+    rc, printed, loaded, modules = run("--help")
+    assert rc == "0" and printed == "True" and loaded == "" and modules == ""
+    assert all(name in subprocess.run([sys.executable, "-m", "online_id", "--help"], capture_output=True,
+                                      text=True).stdout for name in SUBCOMMANDS)
+    rc, _printed, loaded, modules = run("identify", str(csv), "--json")
+    assert modules.split() == ["online_id.cli.identify"]
+    assert not {"can", "cantools", "asammdf", "matplotlib"} & set(loaded.split())
+    rc, _printed, loaded, _modules = run("identify", str(tmp_path / "bench.log"))
+    assert rc == "2" and {"can", "cantools"} <= set(loaded.split())  # a CAN log (missing): the CAN side loads

@@ -62,14 +62,13 @@ def find_plateaus(
     n = speed_rpm.shape[0]
     if n < 3:
         return []
-    dt = float(np.median(np.diff(time_s)))
+    dt = float(np.median(np.diff(time_s[:100_001])))  # uniform times: the first 100,000 intervals tell it
     win = max(1, int(round(smooth_s / dt)))
-    smooth = uniform_filter1d(speed_rpm.astype(float), size=win, mode="nearest")
-    rate = np.gradient(smooth, dt)
-    slow = np.abs(rate) < max_rate_rpm_s
+    smooth = uniform_filter1d(np.asarray(speed_rpm, dtype=float), size=win, mode="nearest")
     trim = int(round(trim_s / dt))
     min_len = int(round(min_duration_s / dt))
-    starts, stops = _steady_runs(smooth, slow, float(tol_rpm), max(1, win))
+    # the slope (np.gradient's differences) is taken inside: an hour at 1 kHz holds no array of it
+    starts, stops = _steady_runs(smooth, dt, float(max_rate_rpm_s), float(tol_rpm), max(1, win))
     plateaus: list[Plateau] = []
     for i, j in zip(starts.tolist(), stops.tolist()):
         start, stop = i + trim, j - trim
@@ -82,23 +81,39 @@ def find_plateaus(
 
 
 @njit(cache=True)
-def _steady_runs(smooth: np.ndarray, slow: np.ndarray, tol: float, win: int) -> tuple[np.ndarray, np.ndarray]:
-    """Runs ``i:j`` of slow samples whose smoothed speed stays within ``tol`` of the run's median.
+def _slow(smooth: np.ndarray, j: int, dt: float, max_rate: float) -> bool:
+    """``|slope| < max_rate`` at ``j``, the slope as :func:`numpy.gradient` takes it (one-sided at the ends)."""
+    n = smooth.shape[0]
+    if j == 0:
+        rate = (smooth[1] - smooth[0]) / dt
+    elif j == n - 1:
+        rate = (smooth[n - 1] - smooth[n - 2]) / dt
+    else:
+        rate = (smooth[j + 1] - smooth[j - 1]) / (2.0 * dt)
+    return abs(rate) < max_rate
+
+
+@njit(cache=True)
+def _steady_runs(smooth: np.ndarray, dt: float, max_rate: float, tol: float,
+                 win: int) -> tuple[np.ndarray, np.ndarray]:
+    """Runs ``i:j`` of slow samples (slope below ``max_rate``) whose smoothed speed stays within ``tol`` of the
+    run's median.
 
     The median is of ``smooth[i:j]``, updated every ``win`` samples; it is
     kept in two heaps (the lower half in a max-heap, stored negated, the
     upper half in a min-heap), so a run of ``m`` samples costs
     :math:`O(m \\log m)` instead of a partition of the run at every update.
+    The runs' bounds and the heaps are kept in arrays that grow as needed.
     """
     n = smooth.shape[0]
-    starts = np.empty(n, dtype=np.int64)
-    stops = np.empty(n, dtype=np.int64)
-    low = np.empty(n // 2 + 2)  # negated: a min-heap of -x is a max-heap of x
-    high = np.empty(n // 2 + 2)
+    starts = np.empty(64, dtype=np.int64)
+    stops = np.empty(64, dtype=np.int64)
+    low = np.empty(1024)  # negated: a min-heap of -x is a max-heap of x
+    high = np.empty(1024)
     m = 0
     i = 0
     while i < n:
-        if not slow[i]:
+        if not _slow(smooth, i, dt, max_rate):
             i += 1
             continue
         # grow a run while the smoothed speed stays near the running median
@@ -106,8 +121,11 @@ def _steady_runs(smooth: np.ndarray, slow: np.ndarray, tol: float, win: int) -> 
         level = smooth[i]
         n_low = 0
         n_high = 0
-        while j < n and slow[j] and abs(smooth[j] - level) <= tol:
+        while j < n and _slow(smooth, j, dt, max_rate) and abs(smooth[j] - level) <= tol:
             x = smooth[j]
+            if max(n_low, n_high) + 2 > low.shape[0]:  # the heaps grow with the run
+                low = np.concatenate((low, np.empty_like(low)))
+                high = np.concatenate((high, np.empty_like(high)))
             if n_low == 0 or x <= -low[0]:
                 n_low = _heap_push(low, n_low, -x)
             else:
@@ -121,6 +139,9 @@ def _steady_runs(smooth: np.ndarray, slow: np.ndarray, tol: float, win: int) -> 
             j += 1
             if (j - i) % win == 0:
                 level = -low[0] if n_low > n_high else (-low[0] + high[0]) / 2.0
+        if m == starts.shape[0]:
+            starts = np.concatenate((starts, np.empty_like(starts)))
+            stops = np.concatenate((stops, np.empty_like(stops)))
         starts[m] = i
         stops[m] = j
         m += 1

@@ -16,9 +16,39 @@ from online_id import __version__  # noqa: E402
 from online_id.errors import OnlineIdError, printable  # noqa: E402
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from online_id.cli import command, convert, demo, diagnose, evaluate, identify, replay, report_cmd, run, simulate
-    from online_id.cli import evaluate_diagnose, evaluate_rig, fleet, monitor
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("demo", "the service on a simulated bench, live on a virtual CAN bus (no hardware needed)"),
+    "run": ("run", "run the streaming service on a CAN bus"),
+    "replay": ("replay", "replay a CAN log (.log, .asc, .blf, .mf4) through the service pipeline"),
+    "report": ("report_cmd", "plot estimates, tracks, baselines and alerts of a CAN log or a saved state"),
+    "simulate": ("simulate", "simulate an engine test bench (dyno + motored engine) run"),
+    "identify": ("identify", "identify the driveline from a bench CSV or MDF 4 file, or a CAN log"),
+    "diagnose": ("diagnose", "find what the model lacks in the residual, add it, report the error"),
+    "evaluate": ("evaluate", "evaluate wear and fault detection: false alarms per hour, detection delays"),
+    "evaluate-diagnose": ("evaluate_diagnose", "measure the diagnosis on randomised benches (confusion matrix)"),
+    "evaluate-diagnose-rig": ("evaluate_rig",
+                              "diagnose randomised multi-shaft rigs (order on each shaft, clean)"),
+    "simulate-rig": ("evaluate_rig", "write a randomised multi-shaft rig as two CSV files"),
+    "convert": ("convert", "convert a bench CSV or MDF 4 signal recording into a CAN log of input frames, or a "
+                           "CAN log into bench signals"),
+    "ack": ("command", "acknowledge the latched alerts (they clear and detection restarts)"),
+    "relearn": ("command", "forget the learned baselines and learn them anew (after a planned shaft change)"),
+    "fleet": ("fleet", "table of the benches publishing to an MQTT broker (needs the [mqtt] extra)"),
+    "monitor": ("monitor", "watch the service's output frames and health live, decoded with the DBC"),
+}
+"""Subcommand -> (module in ``online_id.cli``, one-line help).  A module is imported only when its command
+runs: ``online-id --help`` and a command that reads a CSV do not load python-can, cantools, asammdf or
+matplotlib (seconds and tens of MB)."""
+
+
+def command_help(name: str) -> str:
+    """The one-line help of subcommand ``name`` (for its module's ``add_subparser``)."""
+    return SUBCOMMANDS[name][1]
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser; only ``command``'s module is imported and gives its arguments (None: none, e.g. for --help)."""
+    import importlib
 
     parser = argparse.ArgumentParser(
         prog="online-id",
@@ -27,15 +57,30 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"online-id {__version__}")
     parser.add_argument("--debug", action="store_true", help="show tracebacks of errors")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for module in (demo, run, replay, report_cmd, simulate, identify, diagnose, evaluate, evaluate_diagnose,
-                   evaluate_rig, convert, command, fleet, monitor):
-        module.add_subparser(sub)
+    module = SUBCOMMANDS[command][0] if command in SUBCOMMANDS else None
+    done: set[str] = set()
+    for name, (mod, text) in SUBCOMMANDS.items():
+        if mod == module:
+            if mod not in done:  # one module may give several commands (ack, relearn)
+                importlib.import_module(f"online_id.cli.{mod}").add_subparser(sub)
+                done.add(mod)
+        else:
+            sub.add_parser(name, help=text)  # listed in --help; its arguments come with its module
     return parser
+
+
+def _command_of(argv: list[str]) -> str | None:
+    """The subcommand named in ``argv``: its first word that is not an option of ``online-id`` itself."""
+    for word in argv:
+        if not word.startswith("-"):
+            return word
+    return None
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``online-id`` console script; returns the exit status."""
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(_command_of(argv))
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)

@@ -28,20 +28,18 @@ import argparse
 import time
 from pathlib import Path
 
+from online_id.cli import command_help
 from online_id.config import load_config
 from online_id.errors import ConfigError, DbcError
 from online_id.io.bus import CanBus
 from online_id.io.dbc import BenchCommand, encode_command, load_dbc
 
-COMMANDS = {
-    "ack": (BenchCommand.ACK_ALERT, "acknowledge the latched alerts (they clear and detection restarts)"),
-    "relearn": (BenchCommand.RELEARN_BASELINE, "forget the learned baselines and learn them anew "
-                                               "(after a planned shaft change)"),
-}
+COMMANDS = {"ack": BenchCommand.ACK_ALERT, "relearn": BenchCommand.RELEARN_BASELINE}
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
-    for name, (_cmd, text) in COMMANDS.items():
+    for name in COMMANDS:
+        text = command_help(name)
         p = subparsers.add_parser(name, help=text, description=f"Send the service a command frame: {text}.")
         p.add_argument("--config", metavar="FILE", help="the service's YAML configuration (bus, DBC, mapping)")
         p.add_argument("--interface", help="override bus.interface")
@@ -67,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
         return relearn_from(args.from_log, args.state, s)
     if getattr(args, "state", None) is not None:
         raise ConfigError("relearn: --state needs --from LOG (a running service keeps its own state)")
-    command = COMMANDS[args.command_name][0]
+    command = COMMANDS[args.command_name]
     db = load_dbc(s.dbc)
     global _last_counter
     repeats = 2 if command == BenchCommand.RELEARN_BASELINE else 1

@@ -27,14 +27,14 @@ from online_id.io.outfile import check_output
 from online_id.io.dbc import default_dbc_path, encode_inputs, load_dbc
 from online_id.records import ROLES
 from online_id.progress import add_quiet_option, progress_for
+from online_id.cli import command_help
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     """Register the ``convert`` subcommand."""
     p = subparsers.add_parser(
         "convert",
-        help="convert a bench CSV or MDF 4 signal recording into a CAN log of input frames, or a CAN log "
-             "into bench signals",
+        help=command_help("convert"),
         description="Encode a bench CSV or MDF 4 (.mf4) signal recording (time, dyno speed, engine speed, "
                     "dyno torque) into the input "
                     "frames of the DBC (DynoSpeed 0x101, EngineSpeed 0x102, DynoTorque 0x103 with "

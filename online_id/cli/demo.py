@@ -23,12 +23,13 @@ from online_id.bench.simulate import simulate_bench
 from online_id.config import IdentificationSettings, InertiaSettings
 from online_id.estimation.identification import identify
 from online_id.report import TerminalProgress, identification_table, plot_identification
+from online_id.cli import command_help
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "demo",
-        help="the service on a simulated bench, live on a virtual CAN bus (no hardware needed)",
+        help=command_help("demo"),
         description=__doc__.split("\n\n")[0],
     )
     p.add_argument("--seed", type=int, default=0, help="simulation seed (default 0)")

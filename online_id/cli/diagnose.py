@@ -29,6 +29,7 @@ from online_id.cli.diagnose_records import add_arguments as add_record_arguments
 from online_id.errors import ConfigError, InputDataError
 from online_id.io.outfile import check_output
 from online_id.progress import progress_for
+from online_id.cli import command_help
 
 BENCH_ORDERS = (8, 8, 8, 0)
 DEFAULT_PULSES_PER_REV = 2.0  # four-stroke four-cylinder
@@ -37,7 +38,7 @@ GENERIC_ORDERS = (2, 2, 2, 1)
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
-        "diagnose", help="find what the model lacks in the residual, add it, report the error",
+        "diagnose", help=command_help("diagnose"),
         description="Fit a baseline ARMAX model on the first part of the data, test the held-out "
         "residual (whiteness, input correlation, spectrum, order spectra, speed, torsion, "
         "velocity sign, lag), add the most explanatory effect, refit and repeat while the "

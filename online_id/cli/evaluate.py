@@ -17,12 +17,13 @@ from online_id.bench import evaluate as ev
 from online_id.errors import ConfigError, InputDataError
 from online_id.io.outfile import atomic_output, check_output
 from online_id.report import fmt, pyplot, save_figure
+from online_id.cli import command_help
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "evaluate",
-        help="evaluate wear and fault detection: false alarms per hour, detection delays",
+        help=command_help("evaluate"),
         description="Simulate fault-free bench hours (random plants, operating points, noise, friction drift "
         "and undeclared effects) and runs with stiffness losses of 5/10/20 %% and damping changes of +-50 %%; "
         "feed each through the service pipeline and report false alarms per hour and the detection delay "

@@ -9,11 +9,12 @@ import time
 from pathlib import Path
 
 from online_id.errors import ConfigError
+from online_id.cli import command_help
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
-        "evaluate-diagnose", help="measure the diagnosis on randomised benches (confusion matrix)",
+        "evaluate-diagnose", help=command_help("evaluate-diagnose"),
         description="Simulate randomised benches (compression pulses, PI speed control, PRBS, "
         "3-4 plateaus, noise), each clean or with one undeclared effect; calibrate the acceptance "
         "thresholds on clean benches with their own seeds, then diagnose the test benches and "

@@ -15,11 +15,12 @@ from pathlib import Path
 from online_id.errors import ConfigError
 from online_id.io.outfile import check_output
 from online_id.io.table_csv import write_csv_columns
+from online_id.cli import command_help
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
-        "evaluate-diagnose-rig", help="diagnose randomised multi-shaft rigs (order on each shaft, clean)",
+        "evaluate-diagnose-rig", help=command_help("evaluate-diagnose-rig"),
         description="Randomised rigs (motor, 2-3 gear stages, load motor; two records on drifting clocks): "
         "a rotation-order disturbance on each shaft in turn and clean rigs, through clock alignment and "
         "the generic diagnosis; reports order exact / shaft right rates and the false-effect rate.")
@@ -30,7 +31,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
     p.add_argument("--out", metavar="DIR", required=True, help="write rig-evaluation.json here")
     p.set_defaults(func=run)
-    s = subparsers.add_parser("simulate-rig", help="write a randomised multi-shaft rig as two CSV files",
+    s = subparsers.add_parser("simulate-rig", help=command_help("simulate-rig"),
                               description="Simulate a rig and write DIR/drive.csv (time_s, torque_demand_nm, "
                               "motor_angle_rad) and DIR/sensor.csv (time_s, the other shafts' angles) on "
                               "two clocks; prints the truth as JSON.")

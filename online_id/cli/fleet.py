@@ -17,6 +17,7 @@ import threading
 import time
 
 from online_id.errors import ConfigError, printable
+from online_id.cli import command_help
 
 
 class Fleet:
@@ -82,7 +83,7 @@ def _cell(value, width: int, fmt: str) -> str:
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "fleet",
-        help="table of the benches publishing to an MQTT broker (needs the [mqtt] extra)",
+        help=command_help("fleet"),
         description="Subscribe to the benches' MQTT telemetry and show one table: state, latest estimate, "
         "quality and alerts per bench. Credentials and TLS as in the service's mqtt section.",
     )

@@ -14,12 +14,13 @@ from online_id.errors import ConfigError, EstimationError
 from online_id.io.outfile import check_output
 from online_id.progress import Progress, add_quiet_option, progress_for
 from online_id.report import figures_text, fmt, identification_document, identification_table
+from online_id.cli import command_help
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "identify",
-        help="identify the driveline from a bench CSV or MDF 4 file, or a CAN log",
+        help=command_help("identify"),
         description="Identify the driveline (resonance, damping, c_s, d_s, inertias) from a bench "
         "CSV with columns time_s, dyno_speed_rpm, engine_speed_rpm, dyno_torque_nm "
         "(torque positive = braking), an MDF 4 (.mf4) signal recording with channels of those names "

@@ -25,6 +25,7 @@ from online_id.errors import ConfigError, DbcError
 from online_id.io.bus import CanBus
 from online_id.io.dbc import load_dbc
 from online_id.io.dbc_output import OutputEncoder
+from online_id.cli import command_help
 
 SILENT_S = 2.0
 """No status frame for this long: the service is reported silent."""
@@ -32,7 +33,7 @@ SILENT_S = 2.0
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
-        "monitor", help="watch the service's output frames and health live, decoded with the DBC",
+        "monitor", help=command_help("monitor"),
         description="Listen on the service's bus and show its output frames (estimate, shaft, quality, status, "
                     "alerts, excitation) decoded with the config's DBC, with CRC and alive-counter checks and "
                     "the time since each was last seen. On a terminal the view refreshes in place; otherwise, or "

@@ -16,12 +16,13 @@ from online_id.progress import Progress, add_quiet_option, progress_for
 from online_id.records import FrameFault
 from online_id.report import fmt
 from online_id.runtime import Runtime
+from online_id.cli import command_help
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "replay",
-        help="replay a CAN log (.log, .asc, .blf, .mf4) through the service pipeline",
+        help=command_help("replay"),
         description="Feed a candump .log, .asc, .blf or MDF 4 bus logging .mf4 file through the same decoder, assembler, estimator "
         "and encoder as the live service, as fast as possible (or in real time), and report the final "
         "estimate, the status changes and the alerts (times in seconds from the start of the log).",

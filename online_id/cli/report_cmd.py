@@ -48,6 +48,7 @@ from online_id.report import (
     plot_versus_speed,
 )
 from online_id.runtime import OutFrame, Runtime
+from online_id.cli import command_help
 
 STATE_SUFFIXES = (".json",)
 FIGURES = ("frequency_vs_speed.png", "damping_vs_speed.png", "tracks_over_time.png")
@@ -69,7 +70,7 @@ EPOCH_S = 1e8  # stream times above this are Unix times (a live service), below:
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "report",
-        help="plot estimates, tracks, baselines and alerts of a CAN log or a saved state",
+        help=command_help("report"),
         description="Replay a CAN log (.log, .asc, .blf) through the service pipeline, or read a state file "
         "of the service (.json), and write to DIR: frequency and damping against engine speed with the "
         "learned baselines (frequency_vs_speed.png, damping_vs_speed.png), f0 and zeta over time with "

@@ -6,12 +6,13 @@ import argparse
 
 from online_id.config import load_config
 from online_id.service import run_service
+from online_id.cli import command_help
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "run",
-        help="run the streaming service on a CAN bus",
+        help=command_help("run"),
         description="Read engine speed, dyno speed and dyno torque frames, identify the driveline online "
         "and publish estimate, quality, status and alert frames. Stops cleanly on SIGTERM/SIGINT.",
     )

@@ -15,6 +15,7 @@ from online_id.errors import ConfigError
 from online_id.io.outfile import atomic_output, check_output
 from online_id.io.table_csv import write_csv_columns
 from online_id.progress import add_quiet_option, progress_for
+from online_id.cli import command_help
 
 CSV_FORMATS = ("%.6f", "%.4f", "%.4f", "%.4f")
 
@@ -23,7 +24,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     """Register the ``simulate`` subcommand."""
     parser = subparsers.add_parser(
         "simulate",
-        help="simulate an engine test bench (dyno + motored engine) run",
+        help=command_help("simulate"),
         description="Simulate a closed-loop bench run with PRBS test torque and write "
                     "the measured signals (CSV) and the simulation truth (JSON).",
     )

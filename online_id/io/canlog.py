@@ -27,10 +27,8 @@ import can
 import numpy as np
 
 from online_id.errors import InputDataError
+from online_id.io.logformats import SUFFIXES  # noqa: F401 - the formats write_log and read_log support
 from online_id.io.outfile import atomic_output
-
-SUFFIXES = (".log", ".asc", ".blf", ".mf4")
-"""Log formats :func:`write_log` and :func:`read_log` support."""
 
 Frame = tuple[float, int, bytes]
 LoggedFrame = tuple[float, int, bytes, bool, bool]

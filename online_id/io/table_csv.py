@@ -71,7 +71,7 @@ def read_csv_columns(path: str | Path, columns: Iterable[str]) -> dict[str, np.n
             index = {name: header.index(name) for name in wanted}
             capacity = _count_lines(path)  # an upper bound on the rows: arrays allocated once
             out = {name: np.empty(capacity) for name in wanted}
-            line_numbers = np.empty(capacity, dtype=np.int64)
+            line_numbers = np.empty(capacity, dtype=np.int32 if capacity < 2**31 else np.int64)
             rows = 0
             line_no = header_no
             while True:
