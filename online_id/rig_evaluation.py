@@ -79,7 +79,7 @@ def run_case(seed: int, shaft: int | None, magnitude: float, na: int = 8, nb: in
     r1 = resample_uniform(rec.drive.pop("time_s"), rec.drive, "drive", "time_s")
     r2 = resample_uniform(rec.sensor.pop("time_s"), rec.sensor, "sensor", "time_s")
     data = build_data(r1, r2, record_spec(spec), f"rig seed {seed}")
-    d = diagnose(data, na=na, nb=nb, nc=nc, nk=1, input_lead=1, max_effects=2, sim_horizon_s=SIM_HORIZON_S)
+    d = diagnose(data, na=na, nb=nb, nc=nc, nk=1, max_effects=2, sim_horizon_s=SIM_HORIZON_S)
     clock = data.notes["clock"]
     truth = spec.disturbance
     first = d.effects[0] if d.effects else None

@@ -183,3 +183,12 @@ def test_cli_headerless_csv(tmp_path, capsys):
     assert doc["recording"]["file"]["resampled"] and doc["recording"]["file"]["jitter_rms_s"] > 0
     assert main(argv[:3] + ["--columns", "t,u", *argv[5:]]) == 2
     assert "--columns" in capsys.readouterr().err
+
+
+def test_csv_default_format_keeps_time_resolution_of_long_records(tmp_path):
+    from online_id.io.table_csv import read_csv_columns
+
+    t = 5000.0 + np.arange(10) * 1e-3  # 5000 s into a record, 1 kHz
+    write_csv_columns(tmp_path / "t.csv", {"time_s": t, "x": np.arange(10.0)})
+    back = read_csv_columns(tmp_path / "t.csv", ["time_s"])["time_s"]
+    np.testing.assert_allclose(back, t, rtol=0, atol=1e-7)

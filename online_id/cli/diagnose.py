@@ -18,7 +18,6 @@ import numpy as np
 
 from online_id.benchlog import read_bench
 from online_id.config import load_config
-from online_id.estimation.preprocess import decimate, decimation_factor
 from online_id.diagnose.align import resample_uniform
 from online_id.diagnose import DiagnoseData, Diagnosis, diagnose
 from online_id.diagnose.bench_data import TARGET_FS_HZ, prepare
@@ -26,6 +25,7 @@ from online_id.diagnose.bench_diagnosis import BenchDiagnosis, diagnose_bench
 from online_id.cli.diagnose_bench_report import bench_text, write_bench_report
 from online_id.diagnose.effects import shaft_angle
 from online_id.cli.diagnose_records import add_arguments as add_record_arguments, read_records
+from online_id.diagnose.records import data_path, decimate_alike, path_note
 from online_id.errors import ConfigError, InputDataError
 from online_id.io.outfile import check_output
 from online_id.progress import progress_for
@@ -134,12 +134,12 @@ def load_data(args: argparse.Namespace) -> tuple[DiagnoseData, bool]:
         y = np.gradient(y) * fs
         names = (names[0], f"d{names[1]}/dt")
     target = args.sample_rate or (250.0 if bench else None)
-    q = decimation_factor(fs, min(target, fs)) if target else 1
-    dec = (lambda x: decimate(x, q)) if q > 1 else (lambda x: np.asarray(x, dtype=float))
-    speeds = {k: dec(v) for k, v in extra.get("speeds", {}).items()}
-    torsion = dec(extra["torsion"]) if "torsion" in extra else None
-    data = DiagnoseData(dec(u), dec(y), fs / q, names[0], names[1], speeds, torsion,
-                        source=str(path))
+    path_ = data_path(fs, target)  # the causal data path of the generic records
+    sig = decimate_alike({"u": u, "y": y, **{f"w:{k}": v for k, v in extra.get("speeds", {}).items()},
+                          **({"torsion": extra["torsion"]} if "torsion" in extra else {})}, path_)
+    speeds = {k[2:]: v for k, v in sig.items() if k.startswith("w:")}
+    data = DiagnoseData(sig["u"], sig["y"], path_.fs_hz, names[0], names[1], speeds, sig.get("torsion"),
+                        source=str(path), notes={"data_path": path_note(path_)})
     return data, bench
 
 
@@ -177,7 +177,7 @@ def run_diagnosis(args: argparse.Namespace) -> Diagnosis:
     horizon = args.sim_horizon if args.sim_horizon is not None else (0.5 if bench else None)
     progress = progress_for(args, "diagnose")
     try:
-        return diagnose(data, na=na, nb=nb, nc=nc, nk=nk, input_lead=1 if bench else 0,
+        return diagnose(data, na=na, nb=nb, nc=nc, nk=nk, input_lead=1 if bench else None,
                         estimation_fraction=args.estimation_fraction,
                         min_explained=args.min_explained, max_effects=args.max_effects,
                         sim_horizon_s=horizon, progress=progress)
@@ -193,7 +193,8 @@ def summary_table(d: Diagnosis) -> str:
     """The before/after table (Markdown) printed by the command."""
     rows = ["| step | effect | parameters | explained variance | RMS one-step | sim fit % |",
             "|---|---|---|---|---|---|",
-            f"| 0 | baseline ARMAX({d.baseline.na},{d.baseline.nb},{d.baseline.nc}) | | | "
+            f"| 0 | baseline ARMAX({d.baseline.na},{d.baseline.nb + d.baseline.delay},{d.baseline.nc})"
+            + (f", input lead {-d.baseline.delay}" if d.baseline.delay else "") + " | | | "
             f"{d.error_before.rms:.4g} | {d.error_before.fit_pct:.1f} |"]
     for i, e in enumerate(d.effects, 1):
         rows.append(f"| {i} | {e.kind} | {_fmt_params(e.params)} | {100 * e.explained_variance:.1f} % ({e.basis.replace('_', '-')}) | "

@@ -118,7 +118,7 @@ class Diagnosis:
             "source": self.data.source,
             "input": self.data.input_name, "output": self.data.output_name,
             "fs_hz": self.data.fs_hz, "n_samples": len(self.data), "n_estimation": self.n_est,
-            "baseline": {"na": s.na, "nb": s.nb, "nc": s.nc, "nk": s.nk, "input_lead": -s.delay,
+            "baseline": {"na": s.na, "nb": s.nb + s.delay, "nc": s.nc, "nk": s.nk, "input_lead": -s.delay,
                          "modes": self.modes},
             "recording": dict(self.data.notes),
             "shaft_rates": dict(self.data.shaft_rates),
@@ -285,7 +285,7 @@ def fit_warnings(model: AugmentedFit, data: DiagnoseData, n_est: int, modes: lis
     return out
 
 
-def diagnose(data: DiagnoseData, *, na: int, nb: int, nc: int, nk: int = 1, input_lead: int = 0,
+def diagnose(data: DiagnoseData, *, na: int, nb: int, nc: int, nk: int = 1, input_lead: int | None = None,
              estimation_fraction: float = 0.6, min_explained: float = 0.1,
              max_effects: int = 3, max_delay_samples: int = 25,
              sim_horizon_s: float | None = None,
@@ -299,9 +299,11 @@ def diagnose(data: DiagnoseData, *, na: int, nb: int, nc: int, nk: int = 1, inpu
     na, nb, nc, nk
         Orders of the baseline ARMAX model (with a constant term).
     input_lead
-        Samples by which the baseline lets the output anticipate the input.
-        A zero-phase anti-alias filter applied before decimation spreads the
-        response symmetrically, so decimated data need 1.
+        Samples by which the baseline lets the output anticipate the input
+        (the input part covers lags ``nk - input_lead .. nk + nb - 1``).
+        ``None``: what the data path implies (``data.notes["data_path"]``:
+        2 on decimated data, whose band-limited response reaches back about a
+        sample before the input moves; else 0).
     estimation_fraction
         Share of the samples used for estimation; the rest is held out.
     min_explained
@@ -329,7 +331,10 @@ def diagnose(data: DiagnoseData, *, na: int, nb: int, nc: int, nk: int = 1, inpu
     report = progress or (lambda f, m: None)
     horizon = None if sim_horizon_s is None else max(1, int(round(sim_horizon_s * data.fs_hz)))
     report(0.0, "baseline")
-    cur: Model = fit_structure(data, Structure(na, nb, nc, nk, delay=-int(input_lead)), n_est)
+    if input_lead is None:
+        input_lead = int(dict(data.notes.get("data_path", {})).get("input_lead", 0))
+    lead = int(input_lead)
+    cur: Model = fit_structure(data, Structure(na, nb + lead, nc, nk, delay=-lead), n_est)
     baseline = cur.structure
     fig0, e_cur = _figures(cur, data, n_est, horizon)
     e0 = e_cur
