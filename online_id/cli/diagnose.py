@@ -272,10 +272,10 @@ def plot_residuals(d: Diagnosis, out: Path) -> list[Path]:
     from online_id.diagnose.residual_tests import input_independence, spectrum, whiteness
     from online_id.plots.residuals import psd_before_after
 
-    n0, fs = d.n_est, d.data.fs_hz
+    n0, fs = d.val_index, d.data.fs_hz  # held-out samples
     pairs = [("before", d.residual_before), ("after", d.residual_after)]
     fig, ax = plt.subplots(figsize=(8, 4.5))
-    (sb, rb), (sa, ra) = ((spectrum(e[n0:], fs).curve, np.sqrt(np.mean(e[n0:] ** 2))) for _, e in pairs)
+    (sb, rb), (sa, ra) = ((spectrum(e[n0], fs).curve, np.sqrt(np.mean(e[n0] ** 2))) for _, e in pairs)
     psd_before_after(ax, sb["freq_hz"], sb["psd"], sa["psd"], f"(unit of {d.data.output_name})^2/Hz",
                      f"before (RMS {rb:.3g})", f"after (RMS {ra:.3g})")
     ax.set_title(f"held-out residual spectrum, {Path(d.data.source).name}")
@@ -285,8 +285,8 @@ def plot_residuals(d: Diagnosis, out: Path) -> list[Path]:
     plt.close(fig)
     fig, (a1, a2) = plt.subplots(2, 1, figsize=(8, 6))
     for label, e in pairs:
-        w = whiteness(e[n0:]).curve
-        x = input_independence(e[n0:], d.data.u[n0:], fs).curve
+        w = whiteness(e[n0]).curve
+        x = input_independence(e[n0], d.data.u[n0], fs).curve
         a1.plot(1e3 * np.asarray(w["lags"]) / fs, w["r"], "o-", ms=3, label=label)
         a2.plot(1e3 * np.asarray(x["lags"]) / fs, x["r"], "o-", ms=3, label=label)
     for a, c, title in ((a1, w, "autocorrelation of the residual"),

@@ -32,7 +32,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from online_id.diagnose.data import DiagnoseData
+from online_id.diagnose.data import DiagnoseData, Split
 from online_id.diagnose.model import Structure, fit_structure, lag_matrix
 
 ORDER_STEP = 0.5
@@ -152,8 +152,8 @@ class CoulombTerm:
 
 # -- parameter searches --------------------------------------------------------
 
-def _loss(data: DiagnoseData, s: Structure, n_est: int, C: np.ndarray) -> float:
-    return fit_structure(data, s, n_est, C_fixed=C).V_est
+def _loss(data: DiagnoseData, s: Structure, split: Split, C: np.ndarray) -> float:
+    return fit_structure(data, s, split, C_fixed=C).V_est
 
 
 def coulomb_structure(data: DiagnoseData, s: Structure) -> Structure:
@@ -163,7 +163,7 @@ def coulomb_structure(data: DiagnoseData, s: Structure) -> Structure:
     return s.with_term(CoulombTerm(on_output, lags))
 
 
-def search_delay(data: DiagnoseData, s: Structure, n_est: int, C: np.ndarray,
+def search_delay(data: DiagnoseData, s: Structure, split: Split, C: np.ndarray,
                  hint: int, max_delay: int) -> Structure:
     """Best sensor delay (samples, negative = input delayed) by least squares."""
     lo = min(-2, hint - 2)
@@ -173,38 +173,38 @@ def search_delay(data: DiagnoseData, s: Structure, n_est: int, C: np.ndarray,
     best, best_v = s, np.inf
     for d in range(lo, hi + 1):
         trial = replace(s, delay=base + d)
-        v = _loss(data, trial, n_est, C)
+        v = _loss(data, trial, split, C)
         if v < best_v:
             best, best_v = trial, v
     return best
 
 
-def search_frequency(data: DiagnoseData, s: Structure, n_est: int, C: np.ndarray,
+def search_frequency(data: DiagnoseData, s: Structure, split: Split, C: np.ndarray,
                      f0_hz: float, half_width_hz: float) -> Structure:
     """Refine a fixed-frequency disturbance around ``f0_hz`` (grid, then bounded 1-D search)."""
     nyq = 0.5 * data.fs_hz
     lo, hi = max(f0_hz - half_width_hz, 1e-3), min(f0_hz + half_width_hz, 0.999 * nyq)
     grid = np.linspace(lo, hi, 31)
-    losses = [_loss(data, s.with_term(FixedFrequency(f)), n_est, C) for f in grid]
+    losses = [_loss(data, s.with_term(FixedFrequency(f)), split, C) for f in grid]
     i = int(np.argmin(losses))
     step = grid[1] - grid[0]
-    res = minimize_scalar(lambda f: _loss(data, s.with_term(FixedFrequency(f)), n_est, C),
+    res = minimize_scalar(lambda f: _loss(data, s.with_term(FixedFrequency(f)), split, C),
                           bounds=(max(grid[i] - step, lo), min(grid[i] + step, hi)),
                           method="bounded", options={"xatol": 1e-4 * max(f0_hz, 1.0)})
     f = float(res.x) if res.fun <= losses[i] else float(grid[i])
     return s.with_term(FixedFrequency(f))
 
 
-def search_backlash(data: DiagnoseData, s: Structure, n_est: int, C: np.ndarray) -> Structure:
+def search_backlash(data: DiagnoseData, s: Structure, split: Split, C: np.ndarray) -> Structure:
     """Dead-zone width and centre on the torsion proxy by grid search (``s`` holds the linear proxy)."""
-    phi = data.torsion[:n_est]
+    phi = data.torsion[split.est_mask]
     lo, hi = np.percentile(phi, [2.0, 98.0])
     span = max(hi - lo, 1e-12)
     best, best_v = s, np.inf
     for center in lo + span * np.linspace(0.2, 0.8, 7):
         for gap in span * np.geomspace(0.03, 0.6, 12):
             trial = s.with_term(BacklashTerm(float(gap), float(center)))
-            v = _loss(data, trial, n_est, C)
+            v = _loss(data, trial, split, C)
             if v < best_v:
                 best, best_v = trial, v
     return best

@@ -241,30 +241,33 @@ def direction_blind(y: np.ndarray) -> ResidualTest:
                         (("absolute_value_sensor", {}),) if hit else ())
 
 
-def run_tests(data: DiagnoseData, e: np.ndarray, start: int, lags: np.ndarray,
+def run_tests(data: DiagnoseData, e: np.ndarray, start: int | np.ndarray, lags: np.ndarray,
               sensor_modelled: bool = False) -> list[ResidualTest]:
-    """All applicable tests on ``e[start:]`` (the held-out residual).
+    """All applicable tests on the held-out residual: ``e[start:]``, or ``e[start]`` for an index array
+    (held-out blocks, joined).
 
     ``sensor_modelled``: the model already has the absolute-value sensor.
     """
-    ev = e[start:]
+    if np.isscalar(start):
+        start = np.arange(int(start), e.size)
+    ev = e[start]
     fs = data.fs_hz
-    out = [whiteness(ev), input_independence(ev, data.u[start:], fs), spectrum(ev, fs)]
+    out = [whiteness(ev), input_independence(ev, data.u[start], fs), spectrum(ev, fs)]
     if len(data.shaft_rates) >= 2:
-        speeds = {n: w[start:] for n, w in data.shaft_speeds_rad_s.items() if n in data.shaft_rates}
+        speeds = {n: w[start] for n, w in data.shaft_speeds_rad_s.items() if n in data.shaft_rates}
         t = rig_orders(ev, speeds, dict(data.shaft_rates), fs)
         if t is not None:
             out.append(t)
     else:
         for name, w in data.shaft_speeds_rad_s.items():
-            t = order_spectrum(ev, w[start:], fs, name)
+            t = order_spectrum(ev, w[start], fs, name)
             if t is not None:
                 out.append(t)
     for name, w in list(data.shaft_speeds_rad_s.items())[:1]:
-        out.append(speed_dependence(ev, w[start:], name))
+        out.append(speed_dependence(ev, w[start], name))
     if data.torsion is not None:
-        out.append(torsion_dependence(ev, data.torsion[start:], lags))
-    t = velocity_sign(ev, data.speed_for_sign[start:], lags)
+        out.append(torsion_dependence(ev, data.torsion[start], lags))
+    t = velocity_sign(ev, data.speed_for_sign[start], lags)
     if t is not None:
         out.append(t)
     blind = direction_blind(data.y)
