@@ -36,7 +36,7 @@ from online_id.diagnose.data import DiagnoseData, Split
 from online_id.diagnose.model import Structure, fit_structure, lag_matrix
 
 ORDER_STEP = 0.5
-ROTATION_LAGS = 2
+SCHEDULE_QUANTILES = (5.0, 50.0, 95.0)
 
 
 def shaft_angle(speed_rad_s: np.ndarray, fs_hz: float) -> np.ndarray:
@@ -45,9 +45,38 @@ def shaft_angle(speed_rad_s: np.ndarray, fs_hz: float) -> np.ndarray:
     return np.concatenate(([0.0], np.cumsum(0.5 * (s[1:] + s[:-1])))) / fs_hz
 
 
+def speed_hats(data: DiagnoseData) -> np.ndarray:
+    """Piecewise-linear weights ``(n, k)`` over the first shaft's speed (they sum to 1 at every sample).
+
+    Knots at the 5, 50 and 95 % quantiles of the speed; one constant column when the speed spans less
+    than 10 % of its mean (one operating point) or no shaft speed is known.
+    """
+    n = len(data)
+    speeds = list(data.shaft_speeds_rad_s.values())
+    if not speeds:
+        return np.ones((n, 1))
+    w = speeds[0]
+    knots = np.percentile(w, SCHEDULE_QUANTILES)
+    if not abs(np.mean(w)) > 0 or knots[-1] - knots[0] <= 0.1 * abs(np.mean(w)):
+        return np.ones((n, 1))
+    return np.column_stack([np.interp(w, knots, np.eye(knots.size)[j]) for j in range(knots.size)])
+
+
 @dataclass(frozen=True)
 class RotationOrder:
-    """Disturbance at ``order`` times the rotation of ``shaft``."""
+    """Disturbance at ``order`` times the rotation of ``shaft``, its amplitude and phase scheduled on speed.
+
+    Notes
+    -----
+    A torque :math:`a \\sin(o\\theta_s + \\phi)` entering a shaft reaches the
+    measured speed through the rig's dynamics at the line's frequency
+    :math:`o\\,\\omega_s/2\\pi`, so its amplitude and phase in the output change
+    with the operating point (near a mode by a factor of ten).  The columns are
+    :math:`h_j(\\omega)\\sin(o\\theta_s(t - n_k))` and the same with cos, for
+    piecewise-linear weights :math:`h_j` over the speed
+    (:func:`speed_hats`): one amplitude and phase per knot, interpolated in
+    between.
+    """
 
     shaft: str
     order: float
@@ -55,12 +84,14 @@ class RotationOrder:
 
     def columns(self, data: DiagnoseData, lags: np.ndarray) -> np.ndarray:
         theta = self.order * shaft_angle(data.shaft_speeds_rad_s[self.shaft], data.fs_hz)
-        # two lags, not all of B's: at one speed every lag of a sinusoid is a mix of sin and cos, so
-        # nb lags make 2 nb nearly collinear columns whose coefficients extrapolate wildly to another
-        # speed (held-out error tripled on the rig evaluation); two lags give amplitude and phase and
-        # their first-order change with the line frequency
-        lags = np.asarray(lags)[:ROTATION_LAGS]
-        return np.hstack((lag_matrix(np.sin(theta), lags), lag_matrix(np.cos(theta), lags)))
+        # one lag (the first of B): several lags of one sinusoid are nearly collinear at one speed and
+        # their coefficients extrapolate wildly to another; the speed schedule carries the change instead
+        h = speed_hats(data)
+        lag = max(int(np.asarray(lags)[0]), 0)
+        x = np.column_stack((h * np.sin(theta)[:, None], h * np.cos(theta)[:, None]))
+        out = np.zeros_like(x)
+        out[lag:] = x[:x.shape[0] - lag]
+        return out
 
     def output_static(self) -> None:
         return None
