@@ -192,3 +192,42 @@ def test_csv_default_format_keeps_time_resolution_of_long_records(tmp_path):
     write_csv_columns(tmp_path / "t.csv", {"time_s": t, "x": np.arange(10.0)})
     back = read_csv_columns(tmp_path / "t.csv", ["time_s"])["time_s"]
     np.testing.assert_allclose(back, t, rtol=0, atol=1e-7)
+
+
+def test_split_interleaves_estimation_and_held_out_blocks():
+    from online_id.diagnose.data import Split
+
+    one = Split(1000, 0.6)
+    assert one.est_runs == [(0, 600)] and one.val_runs == [(600, 1000)]
+    six = Split(1200, 0.6, 6)
+    est, val = six.est_mask, six.val_index
+    assert est.sum() == six.n_est == 720 and val.size == 480
+    assert not np.any(est[val]) and len(six.val_runs) == 6
+    assert all(e[1] == v[0] for e, v in zip(six.est_runs, six.val_runs))  # each block: estimate, then hold out
+    assert np.array_equal(six.est_rows(5), np.flatnonzero(est)[5:])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_line_on_the_ratio_grid_is_found_against_its_shaft_by_order_tracking(seed):
+    """A residual with a line (4.5 % of its variance) at order k of one shaft of a rig whose speed changes (plateaus and a
+    ramp) and coloured noise: the grid test names that shaft and order; without the line it names none."""
+    from scipy.signal import lfilter
+
+    from online_id.diagnose.effects import shaft_angle
+    from online_id.diagnose.residual_tests import RIG_LINE_RATIO, rig_orders
+
+    rng = np.random.default_rng(seed)
+    fs, n = 200.0, 18000
+    w0 = np.repeat(rng.uniform(50, 75) * np.array([1.0, 1.25, 1.5]), n // 3)
+    w0 = lfilter([0.01], [1, -0.99], w0 - w0[0]) + w0[0] + 0.3 * rng.standard_normal(n)  # speed steps, smoothed
+    rates = {"motor": 1.0, "mid": 1 / 3, "load": 1 / 12}
+    speeds = {k: w0 * r for k, r in rates.items()}
+    shaft, k = [("motor", 2), ("mid", 1), ("load", 5)][seed]
+    noise = lfilter([1.0], [1.0, -0.9], rng.standard_normal(n))  # coloured like a rig's residual
+    line = 0.3 * np.std(noise) * np.sin(k * shaft_angle(speeds[shaft], fs) + rng.uniform(0, 6))
+    t = rig_orders(noise + line, speeds, rates, fs)
+    assert t is not None and t.candidates, t.detail
+    kind, hint = t.candidates[0]
+    assert (hint["shaft"], hint["order"]) == (shaft, k), t.detail
+    clean = rig_orders(noise, speeds, rates, fs)
+    assert not clean.candidates and clean.curve["max_ratio"] < RIG_LINE_RATIO, clean.detail

@@ -39,7 +39,7 @@ from online_id.estimation.pem import fit_percent
 from online_id.diagnose import effects as fx
 from online_id.diagnose.data import DiagnoseData, Split
 from online_id.diagnose.model import AugmentedFit, Structure, fit_extension, fit_structure, regressors, windows
-from online_id.diagnose.residual_tests import ResidualTest, run_tests
+from online_id.diagnose.residual_tests import RIG_SPLIT_RATIO, ResidualTest, run_tests
 from online_id.diagnose.wiener import WienerAbsFit, fit_wiener_abs
 from online_id.errors import EstimationError
 
@@ -445,7 +445,7 @@ def diagnose(data: DiagnoseData, *, na: int | None, nb: int | None, nc: int, nk:
             # local floor); a narrow line holds a small share of a broadband residual, so it needs only
             # the held-out significance, not the share
             need = 0.0 if "line_ratio" in hint else min_explained
-            ok = explained >= need and t >= T_CRIT
+            ok = explained >= need and (t >= T_CRIT or hint.get("held_out_ratio", 0.0) >= RIG_SPLIT_RATIO)
             rms_new = float(np.sqrt(np.mean(e_new[val] ** 2)))
             fit_new = fit_percent(data.y[val], ysim_new[val])
             refused = _guard(fig, rms_new, fit_new) if ok else ""

@@ -36,6 +36,7 @@ Z99 = 2.576
 PEAK_RATIO = 8.0
 MAX_LAG = 25
 RIG_LINE_RATIO = 16.0
+RIG_SPLIT_RATIO = 8.0
 RIG_MAX_LINES = 4
 GUARD_BINS = 3
 FLOOR_BINS = 40
@@ -210,14 +211,18 @@ def line_ratio(order: np.ndarray, p: np.ndarray, o: float) -> float:
 
 
 def rig_orders(e: np.ndarray, speeds: dict[str, np.ndarray], rates: dict[str, float],
-               fs_hz: float, band_hz: float | None = None) -> ResidualTest | None:
+               fs_hz: float, band_hz: float | None = None, est: np.ndarray | None = None) -> ResidualTest | None:
     """Lines of the residual on the order grid of the gear ratios, each against its shaft.
 
     The residual is resampled on the slowest shaft's angle (its order axis is the finest) and every
-    order the ratios allow (:func:`order_grid`, up to ``band_hz`` at the lowest speed) is tested: its
-    power over the local floor (:func:`line_ratio`) must reach ``RIG_LINE_RATIO``, a threshold set on
-    clean rigs (docs/diagnose.md).  A line that passes becomes a candidate on the shaft where it is
-    the smallest integer order.  ``None`` if the shafts stop.
+    order the ratios allow (:func:`order_grid`, up to ``band_hz`` at the lowest speed) is tested by its
+    power over the local floor (:func:`line_ratio`).  With ``est`` (a mask of the estimation samples),
+    the estimation and the held-out samples are also looked at apart (each with the other's samples
+    zeroed): a line is a candidate if the whole record reaches ``RIG_LINE_RATIO``, or if both parts
+    reach ``RIG_SPLIT_RATIO`` (two independent looks, the second on data the term is not fitted on:
+    the hint's ``held_out_ratio``).  Both thresholds are set on clean rigs (docs/diagnose.md).  A line
+    becomes a candidate on the shaft where it is the smallest integer order.  ``None`` if the shafts
+    stop.
     """
     slow = min(rates, key=lambda n: abs(rates[n]))
     w = speeds[slow] * np.sign(rates[slow])
@@ -225,23 +230,29 @@ def rig_orders(e: np.ndarray, speeds: dict[str, np.ndarray], rates: dict[str, fl
     if pg is None:
         return None
     order, p = pg
+    parts = []
+    if est is not None:
+        parts = [angle_periodogram(np.where(m, e - e[m].mean(), 0.0), w, fs_hz)[1] for m in (est, ~est)]
     low = float(np.percentile(np.abs(w), 5.0))  # a line in the band at the lowest operating point
     band = band_hz if band_hz is not None else 0.8 * 0.5 * fs_hz
-    hits, largest = [], 0.0
+    hits, largest, largest_split = [], 0.0, 0.0
     for o, shaft, k, aliases in order_grid(rates, slow, band * 2.0 * np.pi / low):
         r = line_ratio(order, p, o)
-        largest = max(largest, r)
-        if r >= RIG_LINE_RATIO:
-            hits.append((r, o, shaft, k, aliases))
+        r_est, r_val = (line_ratio(order, q, o) for q in parts) if parts else (0.0, 0.0)
+        largest, largest_split = max(largest, r), max(largest_split, min(r_est, r_val))
+        if r >= RIG_LINE_RATIO or min(r_est, r_val) >= RIG_SPLIT_RATIO:
+            hits.append((r, o, shaft, k, aliases, r_val))
     hits.sort(reverse=True)
     cands = [("rotation_order_disturbance", {"shaft": shaft, "order": float(k), "aliases": aliases,
-                                             "line_ratio": r})
-             for r, o, shaft, k, aliases in hits[:RIG_MAX_LINES]]
-    text = ", ".join(f"order {k} of {shaft} ({r:.0f}x floor)" for r, o, shaft, k, _ in hits[:RIG_MAX_LINES])
+                                             "line_ratio": r, "held_out_ratio": r_val})
+             for r, o, shaft, k, aliases, r_val in hits[:RIG_MAX_LINES]]
+    text = ", ".join(f"order {k} of {shaft} ({r:.0f}x floor" + (f", held out {rv:.0f}x)" if parts else ")")
+                     for r, o, shaft, k, _, rv in hits[:RIG_MAX_LINES])
     return ResidualTest("rotation orders (rig)", not cands, float("nan"),
-                        "lines: " + (text or "none") + f" (threshold {RIG_LINE_RATIO:g}x the local floor; "
-                        f"grid of {len(rates)} shafts, whole record)",
-                        tuple(cands), {"order": order, "psd": p, "shaft": slow, "max_ratio": largest})
+                        "lines: " + (text or "none") + f" (threshold {RIG_LINE_RATIO:g}x the local floor, or "
+                        f"{RIG_SPLIT_RATIO:g}x in both parts; grid of {len(rates)} shafts)",
+                        tuple(cands), {"order": order, "psd": p, "shaft": slow, "max_ratio": largest,
+                                       "max_split_ratio": largest_split})
 
 
 def _without_order_lines(spec: ResidualTest, orders: ResidualTest, speeds: dict[str, np.ndarray]) -> ResidualTest:
@@ -337,7 +348,9 @@ def run_tests(data: DiagnoseData, e: np.ndarray, start: int | np.ndarray, lags: 
         # a candidate only, accepted on what its term, fitted on the estimation part, gains held out
         skip = min(int(start[0]), 100)
         speeds = {n: w[skip:] for n, w in data.shaft_speeds_rad_s.items() if n in data.shaft_rates}
-        t = rig_orders(e[skip:], speeds, dict(data.shaft_rates), fs)
+        est = np.ones(e.size, dtype=bool)
+        est[start] = False
+        t = rig_orders(e[skip:], speeds, dict(data.shaft_rates), fs, est=est[skip:])
         if t is not None:
             out.append(t)
             out[2] = _without_order_lines(out[2], t, speeds)
