@@ -143,6 +143,10 @@ class Split:
     n: int
     fraction: float
     blocks: int = 1
+    keep: np.ndarray | None = field(default=None, compare=False)
+    """Samples that count (the steady operating points); ``None``: all.  Transitions between
+    operating points driven by an input the model does not have (a set-point step) are left out of
+    both parts alike."""
 
     def __post_init__(self) -> None:
         if not 0.2 <= self.fraction <= 0.9:
@@ -156,11 +160,21 @@ class Split:
 
     @property
     def est_runs(self) -> list[tuple[int, int]]:
-        return [(a, m) for a, m, _ in self._runs()]
+        return self._kept([(a, m) for a, m, _ in self._runs()])
 
     @property
     def val_runs(self) -> list[tuple[int, int]]:
-        return [(m, b) for _, m, b in self._runs() if b > m]
+        return self._kept([(m, b) for _, m, b in self._runs() if b > m])
+
+    def _kept(self, runs: list[tuple[int, int]]) -> list[tuple[int, int]]:
+        if self.keep is None:
+            return runs
+        out = []
+        for a, b in runs:
+            k = np.concatenate(([False], np.asarray(self.keep[a:b], dtype=bool), [False])).astype(int)
+            starts, stops = np.flatnonzero(np.diff(k) == 1), np.flatnonzero(np.diff(k) == -1)
+            out += [(a + int(s), a + int(e)) for s, e in zip(starts, stops)]
+        return out
 
     @property
     def est_mask(self) -> np.ndarray:
