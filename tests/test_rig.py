@@ -120,20 +120,22 @@ def test_guard_in_the_loop_refuses_an_overfitting_step():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed, shaft", [(1001, 0), (1002, 2), (1003, 1)])
-def test_order_on_a_shaft_is_found_against_that_shaft(seed, shaft):
-    # motor, intermediate and intermediate-of-four shafts on three different rigs; the evaluation
-    # (docs/diagnose.md) gives the rates, which are far from 100 % at this magnitude
+@pytest.mark.parametrize("seed, shaft", [(7005, 0), (7006, 1), (7015, 2), (7005, 2)])
+def test_order_on_a_shaft_is_named_first_against_that_shaft(seed, shaft):
+    # motor, intermediate, intermediate of four shafts and load, on three rigs (orders 1, 2, 5); the
+    # evaluation (docs/diagnose.md) gives the rates, below 100 % on the slow shafts
     r = run_case(seed, shaft, 0.3)
-    kinds = [e["kind"] for e in r["effects"]]
-    assert "rotation_order_disturbance" in kinds, r["effects"]
-    e = next(e for e in r["effects"] if e["kind"] == "rotation_order_disturbance")
-    assert e["params"]["shaft"] == r["true_shaft"]
-    assert e["params"]["order"] == r["true_order"]
+    assert r["effects"], r["candidates"]
+    e = r["effects"][0]
+    assert e["kind"] == "rotation_order_disturbance", r["effects"]
+    assert (e["params"]["shaft"], e["params"]["order"]) == (r["true_shaft"], r["true_order"])
+    for e in r["effects"]:  # every accepted step lowers the held-out one-step error and raises the fit
+        assert e["error_after"]["rms"] < e["error_before"]["rms"]
+        assert e["error_after"]["fit_pct"] > e["error_before"]["fit_pct"]
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", [1000, 1002])
+@pytest.mark.parametrize("seed", [7002, 7005])
 def test_clean_rig_reports_no_effect(seed):
     r = run_case(seed, None, 0.0)
     assert r["found_kind"] == "clean", r["effects"]

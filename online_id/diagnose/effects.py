@@ -30,6 +30,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.ndimage import uniform_filter1d
 from scipy.optimize import minimize_scalar
 
 from online_id.diagnose.data import DiagnoseData, Split
@@ -46,7 +47,7 @@ def shaft_angle(speed_rad_s: np.ndarray, fs_hz: float) -> np.ndarray:
 
 
 def speed_hats(data: DiagnoseData) -> np.ndarray:
-    """Piecewise-linear weights ``(n, k)`` over the first shaft's speed (they sum to 1 at every sample).
+    """Piecewise-linear weights ``(n, k)`` over the first shaft's speed averaged over 1 s (they sum to 1).
 
     Knots at the 5, 50 and 95 % quantiles of the speed; one constant column when the speed spans less
     than 10 % of its mean (one operating point) or no shaft speed is known.
@@ -55,7 +56,10 @@ def speed_hats(data: DiagnoseData) -> np.ndarray:
     speeds = list(data.shaft_speeds_rad_s.values())
     if not speeds:
         return np.ones((n, 1))
-    w = speeds[0]
+    # the operating point, not the ripple the excitation puts on the speed: weights that followed the
+    # ripple modulated the line with it, and that modulation, integrated through 1/A, lowered the
+    # simulation fit of true lines
+    w = uniform_filter1d(np.asarray(speeds[0], dtype=float), size=max(1, int(round(data.fs_hz))), mode="nearest")
     knots = np.percentile(w, SCHEDULE_QUANTILES)
     if not abs(np.mean(w)) > 0 or knots[-1] - knots[0] <= 0.1 * abs(np.mean(w)):
         return np.ones((n, 1))
