@@ -153,7 +153,7 @@ def test_cli_diagnose_two_files_with_shafts(tmp_path, capsys):
             "motor_angle_rad", "--differentiate-output", "--time-col", "time_s",
             "--second-file", str(tmp_path / "sensor.csv"), "--angle-col", "motor_angle_rad:motor",
             "--angle-col", f"{spec.names[1]}_angle_rad:mid", "--gear-ratio", "out=mid/" + str(spec.ratios[1]),
-            "--sample-rate", "200", "--max-effects", "0", "--json"]
+            "--sample-rate", "200", "--na", "auto", "--nc", "4", "--max-effects", "0", "--json"]
     assert main(argv) == 0
     import json
     doc = json.loads(capsys.readouterr().out)
@@ -161,6 +161,9 @@ def test_cli_diagnose_two_files_with_shafts(tmp_path, capsys):
     assert set(doc["shaft_rates"]) == {"motor", "mid", "out"}
     assert doc["shaft_rates"]["out"] == pytest.approx(1 / (spec.ratios[0] * spec.ratios[1]))
     assert "modes" in doc["baseline"] and "warnings" in doc
+    assert doc["baseline"]["na"] in (4, 8, 12, 16, 20) and doc["baseline"]["nb"] == doc["baseline"]["na"]
+    assert doc["baseline"]["input_lead"] >= 2 and doc["recording"]["data_path"]["decimation"] == 5
+    assert doc["validation_blocks"] == 6
     # bad input: one line naming the file and column / option
     assert main(argv[:-1] + ["--angle-col", "nope:x"]) == 2
     assert "nope" in capsys.readouterr().err

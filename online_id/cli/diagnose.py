@@ -60,7 +60,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     m = p.add_argument_group("model and test settings")
     m.add_argument("--sample-rate", type=float, metavar="HZ",
                    help="decimate to about this rate (bench default 250 Hz)")
-    m.add_argument("--na", type=int, help="baseline order of A (bench 8, generic 2)")
+    m.add_argument("--na", type=_order, help="baseline order of A (bench 8, generic 2); generic: 'auto' selects "
+                   "na = nb and the input lead on the estimation part")
     m.add_argument("--nb", type=int, help="baseline number of B coefficients")
     m.add_argument("--nc", type=int, help="baseline order of C")
     m.add_argument("--nk", type=int, help="baseline input delay in samples")
@@ -75,6 +76,15 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     m.add_argument("--sim-horizon", type=float, metavar="S",
                    help="restart the simulation every S seconds (bench default 0.5; else whole part)")
     p.set_defaults(func=run)
+
+
+def _order(text: str) -> int | str:
+    if text == "auto":
+        return text
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer or 'auto', got {text!r}") from None
 
 
 def _mat(path: Path, args: argparse.Namespace) -> tuple[np.ndarray, np.ndarray, float]:
@@ -171,7 +181,8 @@ def run_diagnosis(args: argparse.Namespace) -> Diagnosis:
     data, bench = load_data(args)
     na, nb, nc, nk = BENCH_ORDERS if bench else GENERIC_ORDERS
     na = args.na if args.na is not None else na
-    nb = args.nb if args.nb is not None else nb
+    nb = args.nb if args.nb is not None else (None if na == "auto" else nb)
+    na = None if na == "auto" else na  # selected from the estimation part
     nc = args.nc if args.nc is not None else nc
     nk = args.nk if args.nk is not None else nk
     horizon = args.sim_horizon if args.sim_horizon is not None else (0.5 if bench else None)
@@ -307,6 +318,8 @@ def plot_residuals(d: Diagnosis, out: Path) -> list[Path]:
 def run(args: argparse.Namespace) -> int:
     if args.report:
         check_output(args.report, "report", directory=True)  # before the work, not after it
+    if is_bench(args) and "auto" in (args.na, args.nb):
+        raise ConfigError("--na auto selects the generic path's baseline; give the bench path a number")
     if is_bench(args):
         result, text, writer = run_bench(args), bench_text, write_bench_report
     else:
