@@ -258,10 +258,11 @@ def fit_structure(data: DiagnoseData, s: Structure, split: Split | int, *,
     phi, widths = regressors(data, s)
     t0 = s.max_lag + max(abs(s.delay), 0)
     rows = split.est_rows(t0)
-    y = data.y
     if rows.size <= 2 * phi.shape[1]:
         raise EstimationError(f"{data.source}: too few estimation samples ({rows.size}) for "
                               f"{phi.shape[1]} parameters")
+    end = int(rows[-1]) + 1  # the filters are causal: nothing after the last estimation sample counts
+    phi, y = phi[:end], data.y[:end]
     scale = np.maximum(np.sqrt(np.mean(phi[rows] ** 2, axis=0)), 1e-300)
     if C_fixed is not None:
         C = np.asarray(C_fixed, dtype=float)
@@ -300,8 +301,9 @@ def fit_extension(data: DiagnoseData, cur: AugmentedFit, term: object, split: Sp
     phi, widths = regressors(data, s)
     k0 = cur.eta.size - 1  # everything of cur but its constant
     rows = split.est_rows(s.max_lag + max(abs(s.delay), 0))
-    target = lfilter([1.0], cur.C, data.y - phi[:, :k0] @ cur.eta[:k0])[rows]
-    X = lfilter([1.0], cur.C, phi[:, k0:], axis=0)[rows]
+    end = int(rows[-1]) + 1
+    target = lfilter([1.0], cur.C, data.y[:end] - phi[:end, :k0] @ cur.eta[:k0])[rows]
+    X = lfilter([1.0], cur.C, phi[:end, k0:], axis=0)[rows]
     scale = np.maximum(np.sqrt(np.mean(X**2, axis=0)), 1e-300)
     g = _ls(X / scale, target) / scale
     eta = np.concatenate((cur.eta[:k0], g))
