@@ -34,7 +34,8 @@ def bench(seed, points=TWO_POINTS, **kw):
 
 
 def run_bench(data):
-    return diagnose(data, na=8, nb=8, nc=8, nk=0, input_lead=1, sim_horizon_s=0.5)
+    # input lags -1 .. 6 (the lead adds lags before nk)
+    return diagnose(data, na=8, nb=7, nc=8, nk=0, input_lead=1, sim_horizon_s=0.5)
 
 
 def first(result, kind):
@@ -163,3 +164,29 @@ def test_generic_csv_runs(tmp_path, capsys):
     doc = json.loads(out)
     assert status == 0 and doc["effects"] == []
     assert doc["error_before"]["fit_pct"] > 90
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_decimated_clean_plant_on_a_slow_clock_reports_nothing(tmp_path, capsys, seed):
+    """Generic CSV at 1 kHz from a recorder 30 ppm slow (999.97 Hz), decimated to 200 Hz: the data path
+    keeps the factor 5 (not 4), filters input and output alike, and the baseline's input lead covers the
+    band-limited response, so a clean plant shows no sensor delay (lead 0 reported one of 1-2 samples)."""
+    from scipy.signal import cont2discrete, lfilter
+
+    rng = np.random.default_rng(seed)
+    fs, n = 1000.0, 40000
+    w = 2 * np.pi * rng.uniform(8.0, 30.0)
+    b, a, _ = cont2discrete(([w * w], [1, 2 * rng.uniform(0.05, 0.2) * w, w * w]), 1 / fs, method="zoh")
+    u = np.repeat(rng.choice([-1.0, 1.0], n // 7 + 1), 7)[:n]
+    y = lfilter(b.ravel(), a, u) + 0.002 * rng.standard_normal(n)
+    t = np.arange(n) / fs * (1 + 30e-6)
+    f = tmp_path / "plant.csv"
+    np.savetxt(f, np.column_stack((t, u, y)), delimiter=",", header="t,u,y", comments="", fmt="%.10g")
+    status, out = cli(["diagnose", str(f), "--input-col", "u", "--output-col", "y", "--time-col", "t",
+                       "--sample-rate", "200", "--na", "4", "--nb", "4", "--nc", "2", "--json"], capsys)
+    doc = json.loads(out)
+    assert doc["fs_hz"] == pytest.approx(200.0, rel=1e-3)
+    assert doc["effects"] == [], doc["effects"]
+    path = doc["recording"]["data_path"]
+    assert path["decimation"] == 5 and path["fir_taps"] == 81 and path["group_delay_removed_samples"] == 40
+    assert doc["baseline"]["input_lead"] == 2 and doc["baseline"]["nb"] == 4

@@ -120,22 +120,24 @@ def test_guard_in_the_loop_refuses_an_overfitting_step():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed, shaft", [(1001, 0), (1002, 2), (1003, 1)])
-def test_order_on_a_shaft_is_found_against_that_shaft(seed, shaft):
-    # motor, intermediate and intermediate-of-four shafts on three different rigs; the evaluation
-    # (docs/diagnose.md) gives the rates, which are far from 100 % at this magnitude
-    r = run_case(seed, shaft, 0.3)
-    kinds = [e["kind"] for e in r["effects"]]
-    assert "rotation_order_disturbance" in kinds, r["effects"]
-    e = next(e for e in r["effects"] if e["kind"] == "rotation_order_disturbance")
-    assert e["params"]["shaft"] == r["true_shaft"]
-    assert e["params"]["order"] == r["true_order"]
+@pytest.mark.parametrize("seed, shaft", [(7005, 0), (7014, 1), (7015, 2), (7009, 2)])
+def test_order_on_a_shaft_is_named_first_against_that_shaft(seed, shaft):
+    # motor, intermediate, intermediate of four shafts and load, on four rigs (orders 1, 5, 5, 5), with
+    # 15 s plateaus (the evaluation's are 30 s; docs/diagnose.md gives its rates, 57 % on the load)
+    r = run_case(seed, shaft, 0.3, plateau_s=15.0)
+    assert r["effects"], r["candidates"]
+    e = r["effects"][0]
+    assert e["kind"] == "rotation_order_disturbance", r["effects"]
+    assert (e["params"]["shaft"], e["params"]["order"]) == (r["true_shaft"], r["true_order"])
+    for e in r["effects"]:  # every accepted step lowers the held-out one-step error and raises the fit
+        assert e["error_after"]["rms"] < e["error_before"]["rms"]
+        assert e["error_after"]["fit_pct"] > e["error_before"]["fit_pct"]
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", [1000, 1002])
+@pytest.mark.parametrize("seed", [7002, 7005])
 def test_clean_rig_reports_no_effect(seed):
-    r = run_case(seed, None, 0.0)
+    r = run_case(seed, None, 0.0, plateau_s=15.0)
     assert r["found_kind"] == "clean", r["effects"]
 
 
@@ -151,7 +153,7 @@ def test_cli_diagnose_two_files_with_shafts(tmp_path, capsys):
             "motor_angle_rad", "--differentiate-output", "--time-col", "time_s",
             "--second-file", str(tmp_path / "sensor.csv"), "--angle-col", "motor_angle_rad:motor",
             "--angle-col", f"{spec.names[1]}_angle_rad:mid", "--gear-ratio", "out=mid/" + str(spec.ratios[1]),
-            "--sample-rate", "200", "--max-effects", "0", "--json"]
+            "--sample-rate", "200", "--na", "auto", "--nc", "4", "--max-effects", "0", "--json"]
     assert main(argv) == 0
     import json
     doc = json.loads(capsys.readouterr().out)
@@ -159,6 +161,9 @@ def test_cli_diagnose_two_files_with_shafts(tmp_path, capsys):
     assert set(doc["shaft_rates"]) == {"motor", "mid", "out"}
     assert doc["shaft_rates"]["out"] == pytest.approx(1 / (spec.ratios[0] * spec.ratios[1]))
     assert "modes" in doc["baseline"] and "warnings" in doc
+    assert doc["baseline"]["na"] in (4, 8, 12, 16, 20) and doc["baseline"]["nb"] == doc["baseline"]["na"]
+    assert doc["baseline"]["input_lead"] >= 2 and doc["recording"]["data_path"]["decimation"] == 5
+    assert doc["validation_blocks"] == 6
     # bad input: one line naming the file and column / option
     assert main(argv[:-1] + ["--angle-col", "nope:x"]) == 2
     assert "nope" in capsys.readouterr().err
@@ -183,3 +188,51 @@ def test_cli_headerless_csv(tmp_path, capsys):
     assert doc["recording"]["file"]["resampled"] and doc["recording"]["file"]["jitter_rms_s"] > 0
     assert main(argv[:3] + ["--columns", "t,u", *argv[5:]]) == 2
     assert "--columns" in capsys.readouterr().err
+
+
+def test_csv_default_format_keeps_time_resolution_of_long_records(tmp_path):
+    from online_id.io.table_csv import read_csv_columns
+
+    t = 5000.0 + np.arange(10) * 1e-3  # 5000 s into a record, 1 kHz
+    write_csv_columns(tmp_path / "t.csv", {"time_s": t, "x": np.arange(10.0)})
+    back = read_csv_columns(tmp_path / "t.csv", ["time_s"])["time_s"]
+    np.testing.assert_allclose(back, t, rtol=0, atol=1e-7)
+
+
+def test_split_interleaves_estimation_and_held_out_blocks():
+    from online_id.diagnose.data import Split
+
+    one = Split(1000, 0.6)
+    assert one.est_runs == [(0, 600)] and one.val_runs == [(600, 1000)]
+    six = Split(1200, 0.6, 6)
+    est, val = six.est_mask, six.val_index
+    assert est.sum() == six.n_est == 720 and val.size == 480
+    assert not np.any(est[val]) and len(six.val_runs) == 6
+    assert all(e[1] == v[0] for e, v in zip(six.est_runs, six.val_runs))  # each block: estimate, then hold out
+    assert np.array_equal(six.est_rows(5), np.flatnonzero(est)[5:])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_line_on_the_ratio_grid_is_found_against_its_shaft_by_order_tracking(seed):
+    """A residual with a line (4.5 % of its variance) at order k of one shaft of a rig whose speed changes (plateaus and a
+    ramp) and coloured noise: the grid test names that shaft and order; without the line it names none."""
+    from scipy.signal import lfilter
+
+    from online_id.diagnose.effects import shaft_angle
+    from online_id.diagnose.residual_tests import RIG_LINE_RATIO, rig_orders
+
+    rng = np.random.default_rng(seed)
+    fs, n = 200.0, 18000
+    w0 = np.repeat(rng.uniform(50, 75) * np.array([1.0, 1.25, 1.5]), n // 3)
+    w0 = lfilter([0.01], [1, -0.99], w0 - w0[0]) + w0[0] + 0.3 * rng.standard_normal(n)  # speed steps, smoothed
+    rates = {"motor": 1.0, "mid": 1 / 3, "load": 1 / 12}
+    speeds = {k: w0 * r for k, r in rates.items()}
+    shaft, k = [("motor", 2), ("mid", 1), ("load", 5)][seed]
+    noise = lfilter([1.0], [1.0, -0.9], rng.standard_normal(n))  # coloured like a rig's residual
+    line = 0.3 * np.std(noise) * np.sin(k * shaft_angle(speeds[shaft], fs) + rng.uniform(0, 6))
+    t = rig_orders(noise + line, speeds, rates, fs)
+    assert t is not None and t.candidates, t.detail
+    kind, hint = t.candidates[0]
+    assert (hint["shaft"], hint["order"]) == (shaft, k), t.detail
+    clean = rig_orders(noise, speeds, rates, fs)
+    assert not clean.candidates and clean.curve["max_ratio"] < RIG_LINE_RATIO, clean.detail

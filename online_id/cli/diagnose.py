@@ -18,7 +18,6 @@ import numpy as np
 
 from online_id.benchlog import read_bench
 from online_id.config import load_config
-from online_id.estimation.preprocess import decimate, decimation_factor
 from online_id.diagnose.align import resample_uniform
 from online_id.diagnose import DiagnoseData, Diagnosis, diagnose
 from online_id.diagnose.bench_data import TARGET_FS_HZ, prepare
@@ -26,6 +25,7 @@ from online_id.diagnose.bench_diagnosis import BenchDiagnosis, diagnose_bench
 from online_id.cli.diagnose_bench_report import bench_text, write_bench_report
 from online_id.diagnose.effects import shaft_angle
 from online_id.cli.diagnose_records import add_arguments as add_record_arguments, read_records
+from online_id.diagnose.records import data_path, decimate_alike, path_note
 from online_id.errors import ConfigError, InputDataError
 from online_id.io.outfile import check_output
 from online_id.progress import progress_for
@@ -61,7 +61,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     m = p.add_argument_group("model and test settings")
     m.add_argument("--sample-rate", type=float, metavar="HZ",
                    help="decimate to about this rate (bench default 250 Hz)")
-    m.add_argument("--na", type=int, help="baseline order of A (bench 8, generic 2)")
+    m.add_argument("--na", type=_order, help="baseline order of A (bench 8, generic 2); generic: 'auto' selects "
+                   "na = nb and the input lead on the estimation part")
     m.add_argument("--nb", type=int, help="baseline number of B coefficients")
     m.add_argument("--nc", type=int, help="baseline order of C")
     m.add_argument("--nk", type=int, help="baseline input delay in samples")
@@ -76,6 +77,15 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     m.add_argument("--sim-horizon", type=float, metavar="S",
                    help="restart the simulation every S seconds (bench default 0.5; else whole part)")
     p.set_defaults(func=run)
+
+
+def _order(text: str) -> int | str:
+    if text == "auto":
+        return text
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer or 'auto', got {text!r}") from None
 
 
 def _mat(path: Path, args: argparse.Namespace) -> tuple[np.ndarray, np.ndarray, float]:
@@ -135,12 +145,12 @@ def load_data(args: argparse.Namespace) -> tuple[DiagnoseData, bool]:
         y = np.gradient(y) * fs
         names = (names[0], f"d{names[1]}/dt")
     target = args.sample_rate or (250.0 if bench else None)
-    q = decimation_factor(fs, min(target, fs)) if target else 1
-    dec = (lambda x: decimate(x, q)) if q > 1 else (lambda x: np.asarray(x, dtype=float))
-    speeds = {k: dec(v) for k, v in extra.get("speeds", {}).items()}
-    torsion = dec(extra["torsion"]) if "torsion" in extra else None
-    data = DiagnoseData(dec(u), dec(y), fs / q, names[0], names[1], speeds, torsion,
-                        source=str(path))
+    path_ = data_path(fs, target)  # the causal data path of the generic records
+    sig = decimate_alike({"u": u, "y": y, **{f"w:{k}": v for k, v in extra.get("speeds", {}).items()},
+                          **({"torsion": extra["torsion"]} if "torsion" in extra else {})}, path_)
+    speeds = {k[2:]: v for k, v in sig.items() if k.startswith("w:")}
+    data = DiagnoseData(sig["u"], sig["y"], path_.fs_hz, names[0], names[1], speeds, sig.get("torsion"),
+                        source=str(path), notes={"data_path": path_note(path_)})
     return data, bench
 
 
@@ -172,13 +182,14 @@ def run_diagnosis(args: argparse.Namespace) -> Diagnosis:
     data, bench = load_data(args)
     na, nb, nc, nk = BENCH_ORDERS if bench else GENERIC_ORDERS
     na = args.na if args.na is not None else na
-    nb = args.nb if args.nb is not None else nb
+    nb = args.nb if args.nb is not None else (None if na == "auto" else nb)
+    na = None if na == "auto" else na  # selected from the estimation part
     nc = args.nc if args.nc is not None else nc
     nk = args.nk if args.nk is not None else nk
     horizon = args.sim_horizon if args.sim_horizon is not None else (0.5 if bench else None)
     progress = progress_for(args, "diagnose")
     try:
-        return diagnose(data, na=na, nb=nb, nc=nc, nk=nk, input_lead=1 if bench else 0,
+        return diagnose(data, na=na, nb=nb, nc=nc, nk=nk, input_lead=1 if bench else None,
                         estimation_fraction=args.estimation_fraction,
                         min_explained=args.min_explained, max_effects=args.max_effects,
                         sim_horizon_s=horizon, progress=progress)
@@ -194,7 +205,8 @@ def summary_table(d: Diagnosis) -> str:
     """The before/after table (Markdown) printed by the command."""
     rows = ["| step | effect | parameters | explained variance | RMS one-step | sim fit % |",
             "|---|---|---|---|---|---|",
-            f"| 0 | baseline ARMAX({d.baseline.na},{d.baseline.nb},{d.baseline.nc}) | | | "
+            f"| 0 | baseline ARMAX({d.baseline.na},{d.baseline.nb + d.baseline.delay},{d.baseline.nc})"
+            + (f", input lead {-d.baseline.delay}" if d.baseline.delay else "") + " | | | "
             f"{d.error_before.rms:.4g} | {d.error_before.fit_pct:.1f} |"]
     for i, e in enumerate(d.effects, 1):
         rows.append(f"| {i} | {e.kind} | {_fmt_params(e.params)} | {100 * e.explained_variance:.1f} % ({e.basis.replace('_', '-')}) | "
@@ -272,10 +284,10 @@ def plot_residuals(d: Diagnosis, out: Path) -> list[Path]:
     from online_id.diagnose.residual_tests import input_independence, spectrum, whiteness
     from online_id.plots.residuals import psd_before_after
 
-    n0, fs = d.n_est, d.data.fs_hz
+    n0, fs = d.val_index, d.data.fs_hz  # held-out samples
     pairs = [("before", d.residual_before), ("after", d.residual_after)]
     fig, ax = plt.subplots(figsize=(8, 4.5))
-    (sb, rb), (sa, ra) = ((spectrum(e[n0:], fs).curve, np.sqrt(np.mean(e[n0:] ** 2))) for _, e in pairs)
+    (sb, rb), (sa, ra) = ((spectrum(e[n0], fs).curve, np.sqrt(np.mean(e[n0] ** 2))) for _, e in pairs)
     psd_before_after(ax, sb["freq_hz"], sb["psd"], sa["psd"], f"(unit of {d.data.output_name})^2/Hz",
                      f"before (RMS {rb:.3g})", f"after (RMS {ra:.3g})")
     ax.set_title(f"held-out residual spectrum, {Path(d.data.source).name}")
@@ -285,8 +297,8 @@ def plot_residuals(d: Diagnosis, out: Path) -> list[Path]:
     plt.close(fig)
     fig, (a1, a2) = plt.subplots(2, 1, figsize=(8, 6))
     for label, e in pairs:
-        w = whiteness(e[n0:]).curve
-        x = input_independence(e[n0:], d.data.u[n0:], fs).curve
+        w = whiteness(e[n0]).curve
+        x = input_independence(e[n0], d.data.u[n0], fs).curve
         a1.plot(1e3 * np.asarray(w["lags"]) / fs, w["r"], "o-", ms=3, label=label)
         a2.plot(1e3 * np.asarray(x["lags"]) / fs, x["r"], "o-", ms=3, label=label)
     for a, c, title in ((a1, w, "autocorrelation of the residual"),
@@ -307,6 +319,8 @@ def plot_residuals(d: Diagnosis, out: Path) -> list[Path]:
 def run(args: argparse.Namespace) -> int:
     if args.report:
         check_output(args.report, "report", directory=True)  # before the work, not after it
+    if is_bench(args) and "auto" in (args.na, args.nb):
+        raise ConfigError("--na auto selects the generic path's baseline; give the bench path a number")
     if is_bench(args):
         result, text, writer = run_bench(args), bench_text, write_bench_report
     else:

@@ -29,6 +29,9 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--magnitude", type=float, default=0.3,
                    help="disturbance torque over the PRBS torque reflected to its shaft (default 0.3)")
     p.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
+    p.add_argument("--calibrate", action="store_true",
+                   help="clean rigs only, baseline only: the largest order-grid line ratio per rig (sets the "
+                   "line threshold; use seeds apart from the evaluation's); writes rig-calibration.json")
     p.add_argument("--out", metavar="DIR", required=True, help="write rig-evaluation.json here")
     p.set_defaults(func=run)
     s = subparsers.add_parser("simulate-rig", help=command_help("simulate-rig"),
@@ -43,13 +46,16 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from online_id.rig_evaluation import evaluate
+    from online_id.rig_evaluation import calibrate, evaluate
 
     if args.cases < 1 or args.jobs < 1:
         raise ConfigError(f"--cases and --jobs must be >= 1, got {args.cases} and {args.jobs}")
     check_output(args.out, "out", directory=True)
     t0 = time.perf_counter()
-    summary = evaluate(args.cases, args.seed, args.magnitude, args.jobs, Path(args.out))
+    if args.calibrate:
+        summary = calibrate(args.cases, args.seed, args.jobs, Path(args.out))
+    else:
+        summary = evaluate(args.cases, args.seed, args.magnitude, args.jobs, Path(args.out))
     summary["wall_s"] = time.perf_counter() - t0
     print(json.dumps(summary, indent=1, default=float))
     return 0

@@ -124,3 +124,73 @@ def _finite(x: np.ndarray, name: str, source: str) -> None:
     if bad.size:
         raise InputDataError(f"{source}: {name} has {bad.size} non-finite values "
                              f"(first at sample {bad[0]})")
+
+
+@dataclass(frozen=True)
+class Split:
+    """Estimation and held-out samples of a record of ``n`` samples.
+
+    The record is cut into ``blocks`` equal blocks; each is estimated on its
+    first ``fraction`` and held out on the rest.  One block is the classic
+    split (the first ``fraction`` estimates, the tail validates); several
+    interleave them, so that every operating point of a record whose speed
+    changes is both estimated and validated ("compare like with like": a line
+    whose amplitude and phase change with the speed cannot be judged at a
+    speed it was not estimated at).  Filters and predictors run over the whole
+    record; only the criterion and the figures pick their samples.
+    """
+
+    n: int
+    fraction: float
+    blocks: int = 1
+    keep: np.ndarray | None = field(default=None, compare=False)
+    """Samples that count (the steady operating points); ``None``: all.  Transitions between
+    operating points driven by an input the model does not have (a set-point step) are left out of
+    both parts alike."""
+
+    def __post_init__(self) -> None:
+        if not 0.2 <= self.fraction <= 0.9:
+            raise InputDataError(f"estimation fraction must be in [0.2, 0.9], got {self.fraction}")
+        if self.blocks < 1 or self.n < 2 * self.blocks:
+            raise InputDataError(f"cannot cut {self.n} samples into {self.blocks} validation blocks")
+
+    def _runs(self) -> list[tuple[int, int, int]]:
+        edges = np.round(np.linspace(0, self.n, self.blocks + 1)).astype(int)
+        return [(int(a), int(a + round(self.fraction * (b - a))), int(b)) for a, b in zip(edges[:-1], edges[1:])]
+
+    @property
+    def est_runs(self) -> list[tuple[int, int]]:
+        return self._kept([(a, m) for a, m, _ in self._runs()])
+
+    @property
+    def val_runs(self) -> list[tuple[int, int]]:
+        return self._kept([(m, b) for _, m, b in self._runs() if b > m])
+
+    def _kept(self, runs: list[tuple[int, int]]) -> list[tuple[int, int]]:
+        if self.keep is None:
+            return runs
+        out = []
+        for a, b in runs:
+            k = np.concatenate(([False], np.asarray(self.keep[a:b], dtype=bool), [False])).astype(int)
+            starts, stops = np.flatnonzero(np.diff(k) == 1), np.flatnonzero(np.diff(k) == -1)
+            out += [(a + int(s), a + int(e)) for s, e in zip(starts, stops)]
+        return out
+
+    @property
+    def est_mask(self) -> np.ndarray:
+        mask = np.zeros(self.n, dtype=bool)
+        for a, b in self.est_runs:
+            mask[a:b] = True
+        return mask
+
+    @property
+    def val_index(self) -> np.ndarray:
+        return np.concatenate([np.arange(a, b) for a, b in self.val_runs])
+
+    @property
+    def n_est(self) -> int:
+        return int(sum(b - a for a, b in self.est_runs))
+
+    def est_rows(self, t0: int) -> np.ndarray:
+        """Estimation sample indices from ``t0`` on (the first ``t0`` lack their regressors)."""
+        return np.flatnonzero(self.est_mask & (np.arange(self.n) >= t0))

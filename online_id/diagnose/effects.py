@@ -30,13 +30,14 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.ndimage import uniform_filter1d
 from scipy.optimize import minimize_scalar
 
-from online_id.diagnose.data import DiagnoseData
+from online_id.diagnose.data import DiagnoseData, Split
 from online_id.diagnose.model import Structure, fit_structure, lag_matrix
 
 ORDER_STEP = 0.5
-ROTATION_LAGS = 2
+SCHEDULE_QUANTILES = (5.0, 50.0, 95.0)
 
 
 def shaft_angle(speed_rad_s: np.ndarray, fs_hz: float) -> np.ndarray:
@@ -45,9 +46,41 @@ def shaft_angle(speed_rad_s: np.ndarray, fs_hz: float) -> np.ndarray:
     return np.concatenate(([0.0], np.cumsum(0.5 * (s[1:] + s[:-1])))) / fs_hz
 
 
+def speed_hats(data: DiagnoseData) -> np.ndarray:
+    """Piecewise-linear weights ``(n, k)`` over the first shaft's speed averaged over 1 s (they sum to 1).
+
+    Knots at the 5, 50 and 95 % quantiles of the speed; one constant column when the speed spans less
+    than 10 % of its mean (one operating point) or no shaft speed is known.
+    """
+    n = len(data)
+    speeds = list(data.shaft_speeds_rad_s.values())
+    if not speeds:
+        return np.ones((n, 1))
+    # the operating point, not the ripple the excitation puts on the speed: weights that followed the
+    # ripple modulated the line with it, and that modulation, integrated through 1/A, lowered the
+    # simulation fit of true lines
+    w = uniform_filter1d(np.asarray(speeds[0], dtype=float), size=max(1, int(round(data.fs_hz))), mode="nearest")
+    knots = np.percentile(w, SCHEDULE_QUANTILES)
+    if not abs(np.mean(w)) > 0 or knots[-1] - knots[0] <= 0.1 * abs(np.mean(w)):
+        return np.ones((n, 1))
+    return np.column_stack([np.interp(w, knots, np.eye(knots.size)[j]) for j in range(knots.size)])
+
+
 @dataclass(frozen=True)
 class RotationOrder:
-    """Disturbance at ``order`` times the rotation of ``shaft``."""
+    """Disturbance at ``order`` times the rotation of ``shaft``, its amplitude and phase scheduled on speed.
+
+    Notes
+    -----
+    A torque :math:`a \\sin(o\\theta_s + \\phi)` entering a shaft reaches the
+    measured speed through the rig's dynamics at the line's frequency
+    :math:`o\\,\\omega_s/2\\pi`, so its amplitude and phase in the output change
+    with the operating point (near a mode by a factor of ten).  The columns are
+    :math:`h_j(\\omega)\\sin(o\\theta_s(t - n_k))` and the same with cos, for
+    piecewise-linear weights :math:`h_j` over the speed
+    (:func:`speed_hats`): one amplitude and phase per knot, interpolated in
+    between.
+    """
 
     shaft: str
     order: float
@@ -55,12 +88,14 @@ class RotationOrder:
 
     def columns(self, data: DiagnoseData, lags: np.ndarray) -> np.ndarray:
         theta = self.order * shaft_angle(data.shaft_speeds_rad_s[self.shaft], data.fs_hz)
-        # two lags, not all of B's: at one speed every lag of a sinusoid is a mix of sin and cos, so
-        # nb lags make 2 nb nearly collinear columns whose coefficients extrapolate wildly to another
-        # speed (held-out error tripled on the rig evaluation); two lags give amplitude and phase and
-        # their first-order change with the line frequency
-        lags = np.asarray(lags)[:ROTATION_LAGS]
-        return np.hstack((lag_matrix(np.sin(theta), lags), lag_matrix(np.cos(theta), lags)))
+        # one lag (the first of B): several lags of one sinusoid are nearly collinear at one speed and
+        # their coefficients extrapolate wildly to another; the speed schedule carries the change instead
+        h = speed_hats(data)
+        lag = max(int(np.asarray(lags)[0]), 0)
+        x = np.column_stack((h * np.sin(theta)[:, None], h * np.cos(theta)[:, None]))
+        out = np.zeros_like(x)
+        out[lag:] = x[:x.shape[0] - lag]
+        return out
 
     def output_static(self) -> None:
         return None
@@ -152,8 +187,8 @@ class CoulombTerm:
 
 # -- parameter searches --------------------------------------------------------
 
-def _loss(data: DiagnoseData, s: Structure, n_est: int, C: np.ndarray) -> float:
-    return fit_structure(data, s, n_est, C_fixed=C).V_est
+def _loss(data: DiagnoseData, s: Structure, split: Split, C: np.ndarray) -> float:
+    return fit_structure(data, s, split, C_fixed=C).V_est
 
 
 def coulomb_structure(data: DiagnoseData, s: Structure) -> Structure:
@@ -163,7 +198,7 @@ def coulomb_structure(data: DiagnoseData, s: Structure) -> Structure:
     return s.with_term(CoulombTerm(on_output, lags))
 
 
-def search_delay(data: DiagnoseData, s: Structure, n_est: int, C: np.ndarray,
+def search_delay(data: DiagnoseData, s: Structure, split: Split, C: np.ndarray,
                  hint: int, max_delay: int) -> Structure:
     """Best sensor delay (samples, negative = input delayed) by least squares."""
     lo = min(-2, hint - 2)
@@ -173,38 +208,38 @@ def search_delay(data: DiagnoseData, s: Structure, n_est: int, C: np.ndarray,
     best, best_v = s, np.inf
     for d in range(lo, hi + 1):
         trial = replace(s, delay=base + d)
-        v = _loss(data, trial, n_est, C)
+        v = _loss(data, trial, split, C)
         if v < best_v:
             best, best_v = trial, v
     return best
 
 
-def search_frequency(data: DiagnoseData, s: Structure, n_est: int, C: np.ndarray,
+def search_frequency(data: DiagnoseData, s: Structure, split: Split, C: np.ndarray,
                      f0_hz: float, half_width_hz: float) -> Structure:
     """Refine a fixed-frequency disturbance around ``f0_hz`` (grid, then bounded 1-D search)."""
     nyq = 0.5 * data.fs_hz
     lo, hi = max(f0_hz - half_width_hz, 1e-3), min(f0_hz + half_width_hz, 0.999 * nyq)
     grid = np.linspace(lo, hi, 31)
-    losses = [_loss(data, s.with_term(FixedFrequency(f)), n_est, C) for f in grid]
+    losses = [_loss(data, s.with_term(FixedFrequency(f)), split, C) for f in grid]
     i = int(np.argmin(losses))
     step = grid[1] - grid[0]
-    res = minimize_scalar(lambda f: _loss(data, s.with_term(FixedFrequency(f)), n_est, C),
+    res = minimize_scalar(lambda f: _loss(data, s.with_term(FixedFrequency(f)), split, C),
                           bounds=(max(grid[i] - step, lo), min(grid[i] + step, hi)),
                           method="bounded", options={"xatol": 1e-4 * max(f0_hz, 1.0)})
     f = float(res.x) if res.fun <= losses[i] else float(grid[i])
     return s.with_term(FixedFrequency(f))
 
 
-def search_backlash(data: DiagnoseData, s: Structure, n_est: int, C: np.ndarray) -> Structure:
+def search_backlash(data: DiagnoseData, s: Structure, split: Split, C: np.ndarray) -> Structure:
     """Dead-zone width and centre on the torsion proxy by grid search (``s`` holds the linear proxy)."""
-    phi = data.torsion[:n_est]
+    phi = data.torsion[split.est_mask]
     lo, hi = np.percentile(phi, [2.0, 98.0])
     span = max(hi - lo, 1e-12)
     best, best_v = s, np.inf
     for center in lo + span * np.linspace(0.2, 0.8, 7):
         for gap in span * np.geomspace(0.03, 0.6, 12):
             trial = s.with_term(BacklashTerm(float(gap), float(center)))
-            v = _loss(data, trial, n_est, C)
+            v = _loss(data, trial, split, C)
             if v < best_v:
                 best, best_v = trial, v
     return best

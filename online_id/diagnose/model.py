@@ -38,7 +38,7 @@ from scipy.optimize import least_squares
 from scipy.signal import lfilter, lfiltic
 
 from online_id.estimation.pem import reflect_unstable_roots
-from online_id.diagnose.data import DiagnoseData
+from online_id.diagnose.data import DiagnoseData, Split
 from online_id.errors import EstimationError
 
 
@@ -97,8 +97,9 @@ class AugmentedFit:
         Number of columns each term added, in order.
     V_est
         Mean squared one-step error on the estimation samples.
-    n_est
-        Samples of the estimation part (the fit used ``max_lag .. n_est``).
+    split
+        Estimation and held-out samples (the fit used the estimation samples
+        from ``max_lag`` on).
     """
 
     structure: Structure
@@ -106,7 +107,7 @@ class AugmentedFit:
     C: np.ndarray
     n_term_cols: tuple[int, ...]
     V_est: float
-    n_est: int
+    split: Split
 
     @property
     def A(self) -> np.ndarray:
@@ -134,14 +135,14 @@ class AugmentedFit:
         place one near the Nyquist frequency) are reflected inside for the
         simulation, which keeps the amplitude response of ``1/A``.
         """
-        return self.simulate_restarts(data, start, None if stop is None else stop - start, once=True)
+        return self.simulate_windows(data, [(start, data.y.size if stop is None else stop)])
 
-    def simulate_restarts(self, data: DiagnoseData, start: int, horizon: int | None,
-                          once: bool = False) -> np.ndarray:
-        """Simulation restarted from the measured output every ``horizon`` samples from ``start``.
+    def simulate_restarts(self, data: DiagnoseData, start: int, horizon: int | None) -> np.ndarray:
+        """Simulation restarted from the measured output every ``horizon`` samples from ``start``."""
+        return self.simulate_windows(data, windows([(start, data.y.size)], horizon))
 
-        ``horizon=None``: one simulation to the end.  ``once``: only the first window.
-        """
+    def simulate_windows(self, data: DiagnoseData, wins: list[tuple[int, int]]) -> np.ndarray:
+        """Simulation over each window ``(w0, w1)``, started from the measured output before ``w0``."""
         s = self.structure
         phi, _ = regressors(data, s)
         y = data.y
@@ -160,9 +161,7 @@ class AugmentedFit:
             col += m
         w = phi[:, mask] @ self.eta[mask]
         out = y.astype(float).copy()
-        step = (y.size - start) if horizon is None else max(1, int(horizon))
-        for w0 in range(start, y.size, step):
-            w1 = min(w0 + step, y.size)
+        for w0, w1 in wins:
             if not dependent:
                 # y(t) = -sum a_i y(t-i) + w(t): a filter started from the measured output
                 if s.na == 0:
@@ -184,9 +183,16 @@ class AugmentedFit:
                         acc += float(f(vals) @ g)
                     sim[t] = acc
                 out[w0:w1] = sim[w0:w1]
-            if once:
-                break
         return out
+
+
+def windows(runs: list[tuple[int, int]], horizon: int | None) -> list[tuple[int, int]]:
+    """Each run ``(a, b)`` cut into windows of ``horizon`` samples (``None``: the run whole)."""
+    out = []
+    for a, b in runs:
+        step = (b - a) if horizon is None else max(1, int(horizon))
+        out += [(w, min(w + step, b)) for w in range(a, b, step)]
+    return out
 
 
 def align_input(u: np.ndarray, delay: int) -> np.ndarray:
@@ -222,9 +228,16 @@ def regressors(data: DiagnoseData, s: Structure) -> tuple[np.ndarray, tuple[int,
     return np.hstack(cols), tuple(widths)
 
 
-def fit_structure(data: DiagnoseData, s: Structure, n_est: int, *,
+def as_split(data: DiagnoseData, split: Split | int) -> Split:
+    """A :class:`Split`; an integer ``n_est`` means the first ``n_est`` samples estimate."""
+    if isinstance(split, Split):
+        return split
+    return Split(len(data), int(split) / len(data))
+
+
+def fit_structure(data: DiagnoseData, s: Structure, split: Split | int, *,
                   C_fixed: np.ndarray | None = None, max_iter: int = 40) -> AugmentedFit:
-    """Fit a structure on samples ``0 .. n_est`` (criterion from ``max_lag``).
+    """Fit a structure on the estimation samples of ``split`` (criterion from ``max_lag``).
 
     Parameters
     ----------
@@ -232,8 +245,8 @@ def fit_structure(data: DiagnoseData, s: Structure, n_est: int, *,
         The record.
     s
         Model structure.
-    n_est
-        End of the estimation part.
+    split
+        Estimation and held-out samples (an integer: the first ``n`` samples).
     C_fixed
         If given, ``C`` is held at this polynomial and ``eta`` follows by
         least squares on the ``1/C``-filtered equation error (fast; used in
@@ -241,24 +254,26 @@ def fit_structure(data: DiagnoseData, s: Structure, n_est: int, *,
     max_iter
         Maximum residual evaluations of the PEM optimiser.
     """
-    phi_all, widths = regressors(data, s)
+    split = as_split(data, split)
+    phi, widths = regressors(data, s)
     t0 = s.max_lag + max(abs(s.delay), 0)
-    phi = phi_all[:n_est]
-    y = data.y[:n_est]
-    if n_est - t0 <= 2 * phi.shape[1]:
-        raise EstimationError(f"{data.source}: too few estimation samples ({n_est - t0}) for "
+    rows = split.est_rows(t0)
+    if rows.size <= 2 * phi.shape[1]:
+        raise EstimationError(f"{data.source}: too few estimation samples ({rows.size}) for "
                               f"{phi.shape[1]} parameters")
-    scale = np.maximum(np.sqrt(np.mean(phi[t0:] ** 2, axis=0)), 1e-300)
+    end = int(rows[-1]) + 1  # the filters are causal: nothing after the last estimation sample counts
+    phi, y = phi[:end], data.y[:end]
+    scale = np.maximum(np.sqrt(np.mean(phi[rows] ** 2, axis=0)), 1e-300)
     if C_fixed is not None:
         C = np.asarray(C_fixed, dtype=float)
-        eta = _ls(lfilter([1.0], C, phi, axis=0)[t0:] / scale, lfilter([1.0], C, y)[t0:]) / scale
-        eps = lfilter([1.0], C, y - phi @ eta)[t0:]
-        return AugmentedFit(s, eta, C, widths, float(np.mean(eps**2)), n_est)
-    eta0 = _ls(phi[t0:] / scale, y[t0:]) / scale
+        eta = _ls(lfilter([1.0], C, phi, axis=0)[rows] / scale, lfilter([1.0], C, y)[rows]) / scale
+        eps = lfilter([1.0], C, y - phi @ eta)[rows]
+        return AugmentedFit(s, eta, C, widths, float(np.mean(eps**2)), split)
+    eta0 = _ls(phi[rows] / scale, y[rows]) / scale
     if s.nc == 0:
-        eps = (y - phi @ eta0)[t0:]
-        return AugmentedFit(s, eta0, np.ones(1), widths, float(np.mean(eps**2)), n_est)
-    problem = _Pem(phi, y, s.nc, t0, scale)
+        eps = (y - phi @ eta0)[rows]
+        return AugmentedFit(s, eta0, np.ones(1), widths, float(np.mean(eps**2)), split)
+    problem = _Pem(phi, y, s.nc, rows, scale)
     x0 = np.concatenate((eta0 * scale, np.zeros(s.nc)))
     res = least_squares(problem.residuals, x0, jac=problem.jacobian, method="trf",
                         x_scale="jac", ftol=1e-7, xtol=1e-7, gtol=1e-7, max_nfev=max_iter)
@@ -268,10 +283,10 @@ def fit_structure(data: DiagnoseData, s: Structure, n_est: int, *,
     eps = problem.residuals(x)
     if not np.all(np.isfinite(eps)):
         raise EstimationError(f"{data.source}: the prediction-error fit diverged")
-    return AugmentedFit(s, eta, C, widths, float(np.mean(eps**2)), n_est)
+    return AugmentedFit(s, eta, C, widths, float(np.mean(eps**2)), split)
 
 
-def fit_extension(data: DiagnoseData, cur: AugmentedFit, term: object, n_est: int) -> AugmentedFit:
+def fit_extension(data: DiagnoseData, cur: AugmentedFit, term: object, split: Split | int) -> AugmentedFit:
     """``cur`` with one more term, fitted with ``A``, ``B``, ``C`` and the older terms held.
 
     Only the new term's coefficients and the constant are estimated: by least
@@ -281,17 +296,19 @@ def fit_extension(data: DiagnoseData, cur: AugmentedFit, term: object, n_est: in
     which changed the simulation far more than the term did: a true effect
     that lowers the one-step error could then lower the simulation fit.
     """
+    split = as_split(data, split)
     s = cur.structure.with_term(term)
     phi, widths = regressors(data, s)
     k0 = cur.eta.size - 1  # everything of cur but its constant
-    t0 = s.max_lag + max(abs(s.delay), 0)
-    target = lfilter([1.0], cur.C, data.y[:n_est] - phi[:n_est, :k0] @ cur.eta[:k0])[t0:]
-    X = lfilter([1.0], cur.C, phi[:n_est, k0:], axis=0)[t0:]
+    rows = split.est_rows(s.max_lag + max(abs(s.delay), 0))
+    end = int(rows[-1]) + 1
+    target = lfilter([1.0], cur.C, data.y[:end] - phi[:end, :k0] @ cur.eta[:k0])[rows]
+    X = lfilter([1.0], cur.C, phi[:end, k0:], axis=0)[rows]
     scale = np.maximum(np.sqrt(np.mean(X**2, axis=0)), 1e-300)
     g = _ls(X / scale, target) / scale
     eta = np.concatenate((cur.eta[:k0], g))
     eps = target - X @ g
-    return AugmentedFit(s, eta, cur.C, widths, float(np.mean(eps**2)), n_est)
+    return AugmentedFit(s, eta, cur.C, widths, float(np.mean(eps**2)), split)
 
 
 def _ls(phi: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -300,11 +317,12 @@ def _ls(phi: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 class _Pem:
-    """Residuals and Jacobian of the PEM criterion for scaled ``eta`` and ``c``."""
+    """Residuals and Jacobian of the PEM criterion for scaled ``eta`` and ``c`` (filters over the whole
+    record, criterion on ``rows``)."""
 
-    def __init__(self, phi: np.ndarray, y: np.ndarray, nc: int, t0: int, scale: np.ndarray):
+    def __init__(self, phi: np.ndarray, y: np.ndarray, nc: int, rows: np.ndarray, scale: np.ndarray):
         self.phi = phi / scale
-        self.y, self.nc, self.t0 = y, nc, t0
+        self.y, self.nc, self.rows = y, nc, rows
         self.m = phi.shape[1]
 
     def stable(self, x: np.ndarray) -> np.ndarray:
@@ -316,14 +334,14 @@ class _Pem:
     def residuals(self, x: np.ndarray) -> np.ndarray:
         C = np.concatenate(([1.0], x[self.m:]))
         if C.size > 1 and np.max(np.abs(np.roots(C))) >= 1.0:
-            return np.full(self.y.size - self.t0, 1e150)
-        return lfilter([1.0], C, self.y - self.phi @ x[: self.m])[self.t0:]
+            return np.full(self.rows.size, 1e150)
+        return lfilter([1.0], C, self.y - self.phi @ x[: self.m])[self.rows]
 
     def jacobian(self, x: np.ndarray) -> np.ndarray:
         C = np.concatenate(([1.0], x[self.m:]))
         if C.size > 1 and np.max(np.abs(np.roots(C))) >= 1.0:
             C = reflect_unstable_roots(C, 0.999)
         eps = lfilter([1.0], C, self.y - self.phi @ x[: self.m])
-        d_eta = -lfilter([1.0], C, self.phi, axis=0)
-        d_c = -lfilter([1.0], C, lag_matrix(eps, np.arange(1, self.nc + 1)), axis=0)
-        return np.hstack((d_eta, d_c))[self.t0:]
+        d_eta = -lfilter([1.0], C, self.phi, axis=0)[self.rows]
+        d_c = -lfilter([1.0], C, lag_matrix(eps, np.arange(1, self.nc + 1)), axis=0)[self.rows]
+        return np.hstack((d_eta, d_c))

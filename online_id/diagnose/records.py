@@ -6,7 +6,8 @@ record is aligned on the first (:func:`online_id.diagnose.align.estimate_clock`
 on a rotation signal both hold), interpolated at the first record's instants
 and both are cut to their overlap; shafts come from
 :mod:`online_id.diagnose.shafts`; the output may be differentiated and all
-signals are decimated alike.
+signals are decimated alike through the causal data path
+(:func:`data_path`).
 """
 
 from __future__ import annotations
@@ -16,10 +17,59 @@ from dataclasses import dataclass
 import numpy as np
 
 from online_id.diagnose.align import ClockFit, Resampled, estimate_clock
+from online_id.diagnose.bench_data import CausalPath, filter_decimate
 from online_id.diagnose.data import DiagnoseData
 from online_id.diagnose.shafts import ShaftSource, resolve, speed_of
 from online_id.errors import ConfigError, InputDataError
-from online_id.estimation.preprocess import decimate, decimation_factor
+
+RATE_TOL = 1e-3
+LEAD_DECIMATED = 2
+"""Input lead of the baseline on decimated data.  Band-limiting input and output alike keeps their
+relation the plant's, but sampled: the band-limited response of a plant to an input that moves between
+the samples reaches back about a sample before it (a sinc's precursor).  On clean decimated plants a lead
+of 0 or 1 left a spurious one- or two-sample "sensor delay" and negative-lag input correlation; 2 did not
+(``tests/test_diagnose.py``)."""
+
+
+def decimation_q(fs_hz: float, target_hz: float) -> int:
+    """Integer factor to about ``target_hz``: ``fs / target`` rounded when within ``RATE_TOL`` of an integer.
+
+    A rate measured from jittered timestamps (999.97 Hz for 1 kHz) would otherwise floor to one factor
+    less (4 instead of 5 for 200 Hz).
+    """
+    if not (np.isfinite(fs_hz) and np.isfinite(target_hz)) or fs_hz <= 0 or target_hz <= 0:
+        raise ConfigError(f"sample rates must be positive, got {fs_hz} Hz and {target_hz} Hz")
+    r = fs_hz / target_hz
+    k = round(r)
+    return max(1, int(k) if abs(r - k) <= RATE_TOL * r else int(np.floor(r)))
+
+
+def data_path(fs_hz: float, target_hz: float | None) -> CausalPath:
+    """The anti-alias filter and decimation of the generic path (:mod:`online_id.diagnose.bench_data`).
+
+    Every signal passes the same linear-phase FIR (``16 q + 1`` taps) with its group delay removed from
+    all of them alike, so delays and feedback stay at the lag where they are.
+    """
+    q = decimation_q(fs_hz, min(target_hz, fs_hz)) if target_hz else 1
+    return CausalPath(float(fs_hz), q, 1 if q == 1 else 16 * q + 1)
+
+
+def decimate_alike(signals: dict[str, np.ndarray], path: CausalPath) -> dict[str, np.ndarray]:
+    """Every signal through ``path``; the filter's start-up samples are dropped from all alike."""
+    if path.q == 1:
+        return {k: np.asarray(v, dtype=float) for k, v in signals.items()}
+    skip = path.numtaps // path.q + 1
+    return {k: filter_decimate(v, path)[skip:] for k, v in signals.items()}
+
+
+def path_note(path: CausalPath) -> dict:
+    """The data path as reported (JSON ``recording.data_path``), with the input lead it implies."""
+    return {**path.as_dict(), "input_lead": input_lead_for(path)}
+
+
+def input_lead_for(path: CausalPath) -> int:
+    """Baseline input lead the data path implies: :data:`LEAD_DECIMATED` when decimated, else 0."""
+    return LEAD_DECIMATED if path.q > 1 else 0
 
 
 @dataclass(frozen=True)
@@ -91,10 +141,9 @@ def build_data(rec1: Resampled, rec2: Resampled | None, spec: RecordSpec, source
     if spec.differentiate_output:
         y = np.gradient(y) * fs
         out_name = f"d{out_name}/dt"
-    q = decimation_factor(fs, min(spec.sample_rate_hz, fs)) if spec.sample_rate_hz else 1
-    dec = (lambda x: decimate(x, q)) if q > 1 else (lambda x: np.asarray(x, dtype=float))
-    if q > 1:
-        notes["decimated_to_hz"] = fs / q
-    return DiagnoseData(dec(u), dec(y), fs / q, spec.input_col, out_name,
-                        {n: dec(w) for n, w in speeds.items()}, source=source,
+    path = data_path(fs, spec.sample_rate_hz)
+    notes["data_path"] = path_note(path)
+    sig = decimate_alike({"u": u, "y": y, **{f"w:{n}": w for n, w in speeds.items()}}, path)
+    return DiagnoseData(sig["u"], sig["y"], path.fs_hz, spec.input_col, out_name,
+                        {n: sig[f"w:{n}"] for n in speeds}, source=source,
                         shaft_rates=rates if len(rates) >= 2 else {}, notes=notes)

@@ -167,11 +167,15 @@ def _parse_rows(path: Path, chunk: list[str], delim: str, index: dict[str, int],
 
 
 def write_csv_columns(path: str | Path, columns: Mapping[str, np.ndarray], formats: Mapping[str, str] | None = None) -> None:
-    """Write equally long columns as a CSV file with a header line."""
+    """Write equally long columns as a CSV file with a header line.
+
+    Columns without a format get ``%.12g``: twelve significant digits keep a microsecond time stamp
+    to 1e5 s (``%.6g`` wrote 5000.001 s as 5000).
+    """
     path = Path(path)
     names = list(columns)
     data = np.column_stack([np.asarray(columns[n], dtype=float) for n in names])
-    fmt = [(formats or {}).get(n, "%.6g") for n in names]
+    fmt = [(formats or {}).get(n, "%.12g") for n in names]
     with atomic_output(path) as tmp:  # no half-written file: a temporary name, renamed on success
         try:
             np.savetxt(tmp, data, delimiter=",", header=",".join(names), comments="", fmt=fmt)
