@@ -74,6 +74,11 @@ def test_decimation_factor():
     assert decimation_factor(1000.0, 1000.0 / 3) == 3
     with pytest.raises(ConfigError, match="above the data rate"):
         decimation_factor(100.0, 200.0)
+    # a rate measured from a recorder's clock, 30 ppm slow or fast: the factor of the nominal rate
+    for fs in (999.97, 1000.03, 999.9999999):
+        assert decimation_factor(fs, 500.0) == 2 and decimation_factor(fs, 200.0) == 5
+        assert decimation_factor(fs, 1000.0) == 1
+    assert decimation_factor(1000.0, 330.0) == 3 and decimation_factor(990.0, 200.0) == 4  # no integer near
 
 
 def test_angle_to_speed_ramp_uniform_and_not():

@@ -20,9 +20,9 @@ from online_id.diagnose.align import ClockFit, Resampled, estimate_clock
 from online_id.diagnose.bench_data import CausalPath, filter_decimate
 from online_id.diagnose.data import DiagnoseData
 from online_id.diagnose.shafts import ShaftSource, resolve, speed_of
+from online_id.estimation.preprocess import decimation_factor
 from online_id.errors import ConfigError, InputDataError
 
-RATE_TOL = 1e-3
 LEAD_DECIMATED = 2
 """Input lead of the baseline on decimated data.  Band-limiting input and output alike keeps their
 relation the plant's, but sampled: the band-limited response of a plant to an input that moves between
@@ -31,26 +31,13 @@ of 0 or 1 left a spurious one- or two-sample "sensor delay" and negative-lag inp
 (``tests/test_diagnose.py``)."""
 
 
-def decimation_q(fs_hz: float, target_hz: float) -> int:
-    """Integer factor to about ``target_hz``: ``fs / target`` rounded when within ``RATE_TOL`` of an integer.
-
-    A rate measured from jittered timestamps (999.97 Hz for 1 kHz) would otherwise floor to one factor
-    less (4 instead of 5 for 200 Hz).
-    """
-    if not (np.isfinite(fs_hz) and np.isfinite(target_hz)) or fs_hz <= 0 or target_hz <= 0:
-        raise ConfigError(f"sample rates must be positive, got {fs_hz} Hz and {target_hz} Hz")
-    r = fs_hz / target_hz
-    k = round(r)
-    return max(1, int(k) if abs(r - k) <= RATE_TOL * r else int(np.floor(r)))
-
-
 def data_path(fs_hz: float, target_hz: float | None) -> CausalPath:
     """The anti-alias filter and decimation of the generic path (:mod:`online_id.diagnose.bench_data`).
 
     Every signal passes the same linear-phase FIR (``16 q + 1`` taps) with its group delay removed from
     all of them alike, so delays and feedback stay at the lag where they are.
     """
-    q = decimation_q(fs_hz, min(target_hz, fs_hz)) if target_hz else 1
+    q = decimation_factor(fs_hz, min(target_hz, fs_hz)) if target_hz else 1
     return CausalPath(float(fs_hz), q, 1 if q == 1 else 16 * q + 1)
 
 

@@ -124,15 +124,26 @@ def check_uniform(time_s: np.ndarray, max_jitter: float = 0.01) -> float:
     return float(mean_dt)
 
 
+RATE_TOL = 1e-3
+"""Relative distance of ``fs / target`` from an integer within which :func:`decimation_factor` rounds."""
+
+
 def decimation_factor(fs_hz: float, target_fs_hz: float) -> int:
-    """Largest integer factor ``q`` with ``fs_hz / q >= target_fs_hz``."""
+    """Largest integer factor ``q`` with ``fs_hz / q >= target_fs_hz``; ``fs / target`` is rounded instead
+    when within :data:`RATE_TOL` of an integer.
+
+    A rate measured from jittered or rounded timestamps (999.97 Hz for 1 kHz) would otherwise floor to one
+    factor less (4 instead of 5 for 200 Hz; 1, no decimation at all, for 500 Hz).
+    """
     if not (np.isfinite(fs_hz) and np.isfinite(target_fs_hz)) or fs_hz <= 0 or target_fs_hz <= 0:
         raise ConfigError(f"sample rates must be positive, got fs_hz={fs_hz}, "
                           f"target_fs_hz={target_fs_hz}")
-    if target_fs_hz > fs_hz * (1 + 1e-9):
+    if target_fs_hz > fs_hz * (1 + RATE_TOL):
         raise ConfigError(f"target sample rate {target_fs_hz} Hz is above the data rate "
                           f"{fs_hz} Hz; decimation cannot raise it")
-    return max(1, int(np.floor(fs_hz / target_fs_hz * (1 + 1e-9))))
+    r = fs_hz / target_fs_hz
+    k = round(r)
+    return max(1, int(k) if abs(r - k) <= RATE_TOL * r else int(np.floor(r)))
 
 
 def decimate(x: np.ndarray, factor: int, axis: int = -1) -> np.ndarray:
