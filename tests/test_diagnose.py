@@ -116,6 +116,9 @@ def test_emps_coulomb_friction(capsys, tmp_path):
     assert doc["effects"][0]["kind"] == "coulomb_friction"
     assert doc["error_after"]["rms"] < doc["error_before"]["rms"]
     assert doc["error_after"]["fit_pct"] > doc["error_before"]["fit_pct"] + 5
+    # each candidate model once per step (a delay found by a test and the one always tried were listed twice)
+    tried = [(c["step"], c["kind"], json.dumps(c["params"], sort_keys=True)) for c in doc["candidates"]]
+    assert len(tried) == len(set(tried)) and any(c["kind"] == "sensor_delay" for c in doc["candidates"])
     for name in ("summary.md", "diagnosis.json", "residual_spectrum.png", "residual_correlation.png"):
         assert (tmp_path / name).stat().st_size > 0
 

@@ -463,6 +463,7 @@ def diagnose(data: DiagnoseData, *, na: int | None, nb: int | None, nc: int, nk:
         if isinstance(cur, AugmentedFit) and any(t.kind == "rotation_order_disturbance" for t in cur.structure.terms):
             refit = fit_structure(data, cur.structure, split).errors(data)
         best = None
+        seen: set[tuple[str, str]] = set()
         for i, (kind, hint) in enumerate(cands):
             report((step + i / len(cands)) / max_effects, f"step {step + 1}: {kind}")
             try:
@@ -472,6 +473,10 @@ def diagnose(data: DiagnoseData, *, na: int | None, nb: int | None, nc: int, nk:
             if built is None:
                 continue
             model, params, e_ref = built
+            key = (kind, repr(sorted(params.items())))
+            if key in seen:  # two hints that fit the same model (a delay found by a test and the one always tried)
+                continue
+            seen.add(key)
             e_new = model.errors(data)
             if not np.all(np.isfinite(e_new[val])):
                 continue
