@@ -23,22 +23,30 @@ TimedFrame = tuple[float, int, bytes]
 
 def send_paced(bus: CanBus, frames: Sequence[TimedFrame], speed: float = 1.0,
                stop: threading.Event | None = None, on_sent: Callable[[int, float], None] | None = None,
-               keep_timestamps: bool = True, min_sleep_s: float = 0.001) -> int:
+               keep_timestamps: bool = True, min_sleep_s: float = 0.001,
+               slow_down: Callable[[], bool] | None = None, check_every: int = 300) -> int:
     """Send ``frames`` in order at ``speed`` times real time; returns how many were sent.
 
     ``on_sent(index, perf_counter_s)`` is called just before each send (for
-    latency measurements); ``stop`` ends the sending early.  A bus error is
-    raised (:class:`BusError`, naming the frame it failed on).
+    latency measurements); ``stop`` ends the sending early.  ``slow_down()``,
+    asked every ``check_every`` frames, makes the pace real time while it is
+    true (the demo's backpressure: its service's slow work fell behind a
+    stream sent faster than real time); the frames keep flowing, so the
+    receiver sees no silence.  A bus error is raised (:class:`BusError`,
+    naming the frame it failed on).
     """
     if not frames:
         return 0
     if not speed > 0:
         raise ValueError(f"send_paced: expected speed > 0, but got {speed!r}")
-    t_first = frames[0][0]
-    wall0 = time.perf_counter()
+    t_ref, wall_ref, pace = frames[0][0], time.perf_counter(), speed  # the pace holds from (t_ref, wall_ref)
     sent = 0
     for i, (t_s, ident, data) in enumerate(frames):
-        delay = (t_s - t_first) / speed - (time.perf_counter() - wall0)
+        if slow_down is not None and i % check_every == 0:
+            want = 1.0 if slow_down() else speed
+            if want != pace:  # the new pace from this frame on, without a burst or a pause
+                t_ref, wall_ref, pace = t_s, max(time.perf_counter(), wall_ref + (t_s - t_ref) / pace), want
+        delay = (t_s - t_ref) / pace - (time.perf_counter() - wall_ref)
         if delay > min_sleep_s:
             if stop is not None and stop.is_set():
                 break
