@@ -80,9 +80,6 @@ class InlineWorker:
     def wait(self, timeout_s: float) -> bool:
         return True
 
-    def oldest_in_flight_s(self) -> float:
-        return 0.0
-
     def close(self) -> None:
         pass
 
@@ -145,7 +142,6 @@ class ProcessWorker:
         self._ctx = mp.get_context("spawn")
         self._next_id = 0
         self._pending: dict[int, tuple[str, Callback]] = {}
-        self._submitted: dict[int, float] = {}  # job id -> time.monotonic() when it was submitted
         self._lanes: set[str] = set()
         self._start()
 
@@ -165,7 +161,6 @@ class ProcessWorker:
         self._next_id += 1
         self.stats.count(self.stats.submitted, lane)
         self._pending[self._next_id] = (lane, callback)
-        self._submitted[self._next_id] = time.monotonic()
         self._lanes.add(lane)
         try:
             self._conn.send((self._next_id, fn, args))
@@ -205,12 +200,7 @@ class ProcessWorker:
                 self.poll()
         return not self._pending
 
-    def oldest_in_flight_s(self) -> float:
-        """Seconds since the oldest job still in flight was submitted (0 when none is)."""
-        return time.monotonic() - min(self._submitted.values()) if self._submitted else 0.0
-
     def _finish(self, job_id: int, result: Any, error: str | None) -> int:
-        self._submitted.pop(job_id, None)
         entry = self._pending.pop(job_id, None)
         if entry is None:
             return 0
@@ -224,7 +214,6 @@ class ProcessWorker:
     def _restart(self, why: str) -> None:
         self.stats.restarts += 1
         pending, self._pending = self._pending, {}
-        self._submitted.clear()
         self._lanes.clear()
         self._close_child(wait_s=0.1)
         self._start()
@@ -246,6 +235,5 @@ class ProcessWorker:
     def close(self) -> None:
         """Stop the child (a job in flight is abandoned)."""
         self._pending.clear()
-        self._submitted.clear()
         self._lanes.clear()
         self._close_child(wait_s=2.0)

@@ -112,6 +112,7 @@ class Pipeline:
         self.t_first: float | None = None
         self._next_publish: float | None = None
         self._poll_deferred = False  # the worker was not polled on the last sample (it published)
+        self._window_since: float | None = None  # stream time the last window job was submitted
         self._next_physical: float | None = None
         self._physical: DrivelineParameters | None = None
         self._refit_pending = False
@@ -302,11 +303,21 @@ class Pipeline:
         """Adopt the results of finished slow work (also done before every sample)."""
         return self.worker.poll()
 
+    @property
+    def slow_work_lag_s(self) -> float:
+        """Stream seconds since the window job in flight (a refit or check) was submitted, 0 when none is: how
+        far the stream has run ahead of the slow work (on a bench, well under a second; a stream fed faster
+        than real time, as the demo and the soak feed it, can outrun a worker the machine starves)."""
+        if self._window_since is None or not self.worker.busy(WINDOW):
+            return 0.0
+        return max(0.0, self.t_s - self._window_since)
+
     def _submit_refit(self) -> None:
         """The due window refit (10-20 ms, a cold one about 0.5 s) to the worker."""
         estimator = self.estimator
         job = estimator.refit_job()
         if job is not None:
+            self._window_since = self.t_s
             self.worker.submit(WINDOW, solve, (job,), lambda fit, err: estimator.complete(job, fit, err))
 
     def _submit_physical(self) -> None:
@@ -347,6 +358,7 @@ class Pipeline:
             self._verify_results[purpose] = (t_s, estimator.complete(job, fit, error))
 
         self._verify_running.add(purpose)
+        self._window_since = self.t_s
         self.worker.submit(WINDOW, solve, (job,), finished)
         done = self._verify_results.pop(purpose, None)
         return PENDING if done is None else done[1]

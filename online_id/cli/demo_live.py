@@ -87,11 +87,10 @@ def run_live(args: argparse.Namespace) -> int:
     svc_thread = threading.Thread(target=service.run, name="service", daemon=True)
     svc_thread.start()
     time.sleep(0.2)
-    worker = service.runtime.pipeline.worker
     slowed = [0]
 
     def slow_down() -> bool:  # backpressure (see LAG_STREAM_S); counted in checks of 300 frames (0.1 s of stream)
-        behind = worker.oldest_in_flight_s() * args.speed > LAG_STREAM_S
+        behind = service.runtime.pipeline.slow_work_lag_s > LAG_STREAM_S
         slowed[0] += behind
         return behind
 
