@@ -210,23 +210,32 @@ def test_evaluate_diagnose_resummarises_earlier_cases(tmp_path, capsys):
     run = tmp_path / "run"
     run.mkdir()
     delay = {"gain": 0.3, "t": 9.0, "params": {"signal": "dyno_speed", "delay_s": 3e-4, "heldout_gain": 0.0}}
+    backlash = {"backlash": {"gain": 0.02, "t": 4.0, "params": {"gap_rad": 1e-3}}}
     clean = {"case": "clean-100000", "kind": "clean", "magnitude": 0.0, "truth": {"kind": "clean"},
-             "best": {"backlash": {"gain": 0.02, "t": 4.0, "params": {"gap_rad": 1e-3}}}}
+             "no_demand": {"best": backlash}, "demand": {"best": {}}}
     (run / "calibration.jsonl").write_text(json.dumps(clean) + "\n")
-    cases = [{**clean, "case": "clean-1", "best": {"sensor_delay": delay}},
+    found = {"sensor_delay": {**delay, "gain": 4.2, "params": {**delay["params"], "delay_s": 0.0042}}}
+    cases = [{**clean, "case": "clean-1", "no_demand": {"best": {"sensor_delay": delay}},
+              "demand": {"best": {"sensor_delay": delay}}},
              {"case": "sensor_delay-1", "kind": "sensor_delay", "magnitude": 0.5,
               "truth": {"kind": "sensor_delay", "signal": "dyno_speed", "delay_s": 0.004},
-              "best": {"sensor_delay": {**delay, "gain": 4.2,
-                                        "params": {**delay["params"], "delay_s": 0.0042}}}}]
+              "no_demand": {"best": found}, "demand": {"best": {}}}]
     (run / "cases.jsonl").write_text("".join(json.dumps(c) + "\n" for c in cases))
     out = tmp_path / "final"
     assert main(["evaluate-diagnose", "--cases", "0", "--include", str(run),
                  "--calibration-from", str(run), "--out", str(out)]) == 0
     thr = json.loads((out / "thresholds.json").read_text())
-    assert thr["backlash"] == pytest.approx(0.022) and thr["sensor_delay"] == 0.5  # 1.1 x; the ms floor
-    kinds = {r["case"]: r["named"] for r in json.loads((out / "diagnose_evaluation.json").read_text())
-             ["summary"]["cases"]}
+    # per path, 1.1 x the largest significant clean gain, else the floors
+    assert thr["no_demand"]["backlash"] == pytest.approx(0.022) and thr["demand"]["backlash"] == 0.005
+    assert thr["no_demand"]["sensor_delay"] == 0.5
+    summary = json.loads((out / "diagnose_evaluation.json").read_text())["summary"]
+    kinds = {r["case"]: r["named"] for r in summary["no_demand"]["cases"]}
     assert kinds == {"clean-1": "clean", "sensor_delay-1": "sensor_delay"}  # 0.3 ms is below the floor
-    assert "2 test and 1 calibration cases" in capsys.readouterr().out
+    assert {r["case"]: r["named"] for r in summary["demand"]["cases"]}["sensor_delay-1"] == "clean"
+    right = summary["no_demand"]["per_kind"]["sensor_delay"]["right_first"]
+    assert right["k"] == right["n"] == 1 and right["ci95"][0] == pytest.approx(20.65, abs=0.01)  # Wilson
+    text = capsys.readouterr().out
+    assert "2 test and 1 calibration cases" in text and "path: no_demand" in text and "path: demand" in text
+    assert (out / "confusion.png").stat().st_size > 0 and (out / "confusion_demand.png").stat().st_size > 0
     assert main(["evaluate-diagnose", "--cases", "0", "--out", str(out)]) != 0
     assert "--cases (0 only with --include)" in capsys.readouterr().err

@@ -27,7 +27,9 @@ def bench_text(b: BenchDiagnosis) -> str:
              f"causal data path: {path.fs_in_hz:g} Hz -> {path.fs_hz:g} Hz, linear-phase FIR of "
              f"{path.numtaps} taps, its delay ({path.group_delay_samples} samples) removed from "
              "torque and both speeds alike",
-             f"declared: compression pulses, {s.pulses_per_rev:g} per revolution", "",
+             f"declared: compression pulses, {s.pulses_per_rev:g} per revolution",
+             "reference of the speed transfer: " + ("the recorded torque demand" if s.demand is not None
+                                                     else "the measured dyno torque (no demand recorded)"), "",
              "| plateau | speed rpm | t s | declared orders |", "|---|---|---|---|"]
     for i, (p, q) in enumerate(zip(s.plateaus, b.baseline.plateaus), 1):
         lines.append(f"| {i} | {p.speed_rpm:.0f} | {p.t_start_s:.1f}-{p.t_end_s:.1f} | "

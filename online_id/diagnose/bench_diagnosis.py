@@ -61,6 +61,18 @@ THRESHOLDS = {
     "sensor_delay": 0.5,
     "coulomb_friction": 0.0136,
 }
+# with a recorded torque demand (the PRBS) as the reference of the speed transfer and the coherence
+THRESHOLDS_DEMAND = dict(THRESHOLDS)
+
+
+def default_thresholds(series: BenchSeries) -> dict[str, float]:
+    """The calibrated thresholds of the record's path: with or without a recorded demand."""
+    return dict(THRESHOLDS_DEMAND if series.demand is not None else THRESHOLDS)
+
+
+def is_accepted(kind: str, gain: float, t_stat: float, thresholds: dict[str, float]) -> bool:
+    """A candidate is accepted when its score reaches the kind's threshold and it is significant."""
+    return gain >= thresholds[kind] and t_stat >= T_CRIT
 
 
 @dataclass(frozen=True)
@@ -122,6 +134,7 @@ class BenchDiagnosis:
         s = self.series
         return {
             "source": s.source, "data_path": s.path.as_dict(), "pulses_per_rev": s.pulses_per_rev,
+            "demand": s.demand is not None,
             "plateaus": [{"speed_rpm": p.speed_rpm, "t_start_s": p.t_start_s, "t_end_s": p.t_end_s,
                           "declared_orders": q.declared}
                          for p, q in zip(s.plateaus, self.baseline.plateaus)],
@@ -257,7 +270,7 @@ def diagnose_bench(series: BenchSeries, *, na: int = 6, nb: int = 6, max_effects
                    thresholds: dict | None = None,
                    progress: Callable[[float, str], None] | None = None) -> BenchDiagnosis:
     """Find, in order, the effects a bench record holds beyond the declared model."""
-    thr = dict(THRESHOLDS if thresholds is None else thresholds)
+    thr = default_thresholds(series) if thresholds is None else dict(thresholds)
     report = progress or (lambda f, m: None)
     spec = Spec(na, nb)
     report(0.0, "baseline")
@@ -271,7 +284,7 @@ def diagnose_bench(series: BenchSeries, *, na: int = 6, nb: int = 6, max_effects
                  for s in steps}
         cands = [c for c in cands if (c.kind, c.params.get("signal"), c.params.get("order")) not in taken]
         all_cands.append(cands)
-        ok = [c for c in cands if c.gain >= thr[c.kind] and c.t_stat >= T_CRIT]
+        ok = [c for c in cands if is_accepted(c.kind, c.gain, c.t_stat, thr)]
         if not ok:
             stop = "no significant effect" if step == 0 else "no further candidate is significant"
             break
