@@ -42,10 +42,11 @@ from scipy.optimize import minimize_scalar
 from online_id.diagnose import bench_effects as bx
 from online_id.diagnose import bench_transfer as bt
 from online_id.diagnose.bench_data import RPM_PER_RAD_S, BenchSeries
-from online_id.diagnose.bench_model import EQS, BenchFit, Spec, batch_t, fit_plateau, fit_spec
+from online_id.diagnose.bench_model import BALANCE, EQS, BenchFit, Spec, batch_t, fit_plateau, fit_spec
 
 T_CRIT = 2.86
 COHERENCE_MODE = 0.7  # coherence contrast with the excitation at a line: a mode (else a disturbance)
+COHERENCE_LEVEL = 0.3  # ... and the coherence there: a line the excitation explains this well is driven
 SIDE_UNDETERMINED = 0.8  # the weaker side explains at least this share of the stronger
 MAX_DELAY_S = 0.012
 FREQ_GRID_HZ = 0.002  # line frequency grid (a 60 s record resolves about 0.017 Hz)
@@ -118,15 +119,16 @@ class BenchDiagnosis:
         return [s.candidate for s in self.steps]
 
     def errors(self, fit: BenchFit) -> dict:
-        """Held-out one-step RMS [rpm] per equation, overall and per plateau.
+        """Held-out RMS per equation, overall and per plateau: one-step [rpm], torque balance [Nm].
 
         ``rms`` is the dyno equation's in rad/s (the dyno-speed one-step error
         the generic path reports).
         """
-        out: dict = {eq: {"rms_rpm": float(np.sqrt(fit.mse(eq)) * RPM_PER_RAD_S),
-                          "per_plateau_rpm": [x * RPM_PER_RAD_S
-                                              for x in fit.eqs[eq].plateau_rms(fit.plateaus)]}
-                     for eq in fit.eqs}
+        out: dict = {}
+        for eq in fit.eqs:
+            unit, k = ("nm", 1.0) if eq == BALANCE else ("rpm", RPM_PER_RAD_S)
+            out[eq] = {f"rms_{unit}": float(np.sqrt(fit.mse(eq)) * k),
+                       f"per_plateau_{unit}": [x * k for x in fit.eqs[eq].plateau_rms(fit.plateaus)]}
         out["rms"] = float(np.sqrt(fit.mse("dyno")))
         return out
 
@@ -195,50 +197,55 @@ def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
     """Fit every screened candidate against ``base`` (the current model)."""
     fs = series.fs_hz
     out: list[BenchCandidate] = []
-    lines = bx.screen_lines(base)
+    lines = bx.screen_lines(base, EQS)
     report("rotation orders")
     orders: dict[float, dict[str, tuple]] = {}
     for term in bx.order_candidates(lines, base):
         new = fit_spec(series, spec.with_term(term), base.plateaus, only=(term.shaft,))
         g, t = _gain(new, base, (term.shaft,))
         orders.setdefault(term.order, {})[term.shaft] = (g, t, new.spec)
+    bal = base if BALANCE in base.eqs else fit_spec(series, spec, base.plateaus, only=(BALANCE,))
     for k, sides in orders.items():
-        (s1, (g1, t1, sp1)), *rest = sorted(sides.items(), key=lambda kv: -kv[1][0])
+        (s1, (g1, t1, _)), *rest = sorted(sides.items(), key=lambda kv: -kv[1][0])
         g2 = rest[0][1][0] if rest else 0.0
         shaft = s1 if not (g2 > SIDE_UNDETERMINED * g1 > 0) else "undetermined"
+        # scored in the torque balance, as a fixed-frequency line is: an external torque at order k
+        # explains its line on every plateau, a line fixed in Hz at most where the two coincide
+        new = fit_spec(series, spec.with_term(bx.OrderTerm(s1, k)), base.plateaus, only=(s1, BALANCE))
+        g_b, t_b = _gain(new, bal, (BALANCE,))
         out.append(BenchCandidate("rotation_order_disturbance",
-                                  {"order": k, "shaft": shaft, "gains": {s: v[0] for s, v in sides.items()}},
-                                  g1, t1, sp1))
+                                  {"order": k, "shaft": shaft, "gains": {s: v[0] for s, v in sides.items()},
+                                   "t_shaft": t1},
+                                  g_b, t_b, new.spec))
     report("fixed-frequency lines")
+    # lines fixed in Hz in the torque balance: an external torque shows there whatever the shaft
+    # it enters, and nothing in the balance predicts it from the speeds' past
+    coh_f, coh = bx.excitation_coherence(bal, BALANCE)
     seen: list[float] = []
-    coh_spec = {eq: bx.excitation_coherence(base, eq) for eq in EQS}
-    for line in lines:
-        if line.axis != "hz" or any(abs(line.at - f) < 1.0 for f in seen):
+    for line in bx.screen_lines(bal, axes=("hz",)):
+        if any(abs(line.at - f) < 1.0 for f in seen):
             continue
         seen.append(line.at)
-        eq = line.eq
-        f = _refine_freq(series, spec, base, line.at, eq)
-        coh = bx.coherence_contrast(*coh_spec[eq], f)
-        if coh >= COHERENCE_MODE:
-            continue  # driven by the demand: not a disturbance (a mode shows in the transfer below)
-        for p, r in zip(base.plateaus, base.eqs[eq].residuals):
-            p.residual[eq] = r
-        fixed = fit_spec(series, spec.with_term(bx.FixedTerm(f, eq)), base.plateaus, only=(eq,))
-        for p in base.plateaus:
-            p.residual.pop(eq, None)
-        g_f, t_f = _gain(fixed, base, (eq,))
-        out.append(BenchCandidate("fixed_frequency_disturbance", {"freq_hz": f, "shaft": eq,
-                                                                  "coherence": coh},
+        f = _refine_freq(series, spec, bal, line.at, BALANCE)
+        contrast = bx.coherence_contrast(coh_f, coh, f)
+        level = float(coh[int(np.argmin(np.abs(coh_f - f)))])
+        if contrast >= COHERENCE_MODE and level >= COHERENCE_LEVEL:
+            continue  # driven by the excitation: a misfit or a mode (the transfer tests modes)
+        term = bx.FixedTerm(f, BALANCE, tuple(bal.eqs[BALANCE].residuals))
+        fixed = fit_spec(series, spec.with_term(term), bal.plateaus, only=(BALANCE,))
+        g_f, t_f = _gain(fixed, bal, (BALANCE,))
+        out.append(BenchCandidate("fixed_frequency_disturbance",
+                                  {"freq_hz": f, "coherence_contrast": contrast, "coherence": level},
                                   g_f, t_f, fixed.spec))
     report("backlash")
     ref_spec = spec.with_term(bx.TwistTerm(nb=spec.nb))
-    ref = fit_spec(series, ref_spec)
+    ref = fit_spec(series, ref_spec, only=EQS)
     term = bx.search_backlash(series, ref_spec)
-    new = fit_spec(series, ref_spec.with_term(term))
+    new = fit_spec(series, ref_spec.with_term(term), only=EQS)
     g, t = _gain(new, ref, EQS)
     out.append(BenchCandidate("backlash", term.params(), g, t, new.spec))
     report("coulomb friction")
-    new = fit_spec(series, spec.with_term(bx.CoulombTerm(spec.nb)))
+    new = fit_spec(series, spec.with_term(bx.CoulombTerm(spec.nb)), only=EQS)
     g, t = _gain(new, base, EQS)
     out.append(BenchCandidate("coulomb_friction", {}, g, t, new.spec))
     report("speed transfer: delay and additional mode")
@@ -247,7 +254,7 @@ def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
     signal = "engine" if td["tau_s"] > 0 else "dyno"
     attr = "shift_engine" if signal == "engine" else "shift_dyno"
     trial = replace(spec, **{attr: getattr(spec, attr) + abs(td["tau_s"]) * fs})
-    onestep, _ = _gain(fit_spec(series, trial), base, EQS)
+    onestep, _ = _gain(fit_spec(series, trial, only=EQS), base, EQS)
     # score: the delay in ms (clean benches show a small bias; the threshold is calibrated on them);
     # heldout_gain: the share of the held-out transfer misfit the delay removes
     out.append(BenchCandidate("sensor_delay", {"signal": f"{signal}_speed", "delay_s": abs(td["tau_s"]),
@@ -261,7 +268,7 @@ def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
     # score: the share of the held-out transfer misfit one more pole pair removes
     out.append(BenchCandidate("additional_mode", {"freq_hz": tm["freq_hz"], "shaft": "engine",
                                                   "heldout_gain": tm["heldout_gain"], "onestep_gain": onestep,
-                                                  "jackknife_gain": tm["jackknife_gain"], "in_band": tm["in_band"]},
+                                                  "in_band": tm["in_band"]},
                               tm["heldout_gain"], tm["t"], mode_spec))
     return out
 
@@ -297,4 +304,5 @@ def diagnose_bench(series: BenchSeries, *, na: int = 6, nb: int = 6, max_effects
 
 
 def _rms(fit: BenchFit) -> dict:
-    return {eq: float(np.sqrt(fit.mse(eq)) * RPM_PER_RAD_S) for eq in fit.eqs}
+    """Held-out RMS per equation: the speed equations in rpm, the torque balance in Nm."""
+    return {eq: float(np.sqrt(fit.mse(eq)) * (1.0 if eq == BALANCE else RPM_PER_RAD_S)) for eq in fit.eqs}

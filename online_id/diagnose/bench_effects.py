@@ -34,14 +34,14 @@ disturbance is not (:func:`coherence_contrast`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.ndimage import median_filter, uniform_filter1d
 from scipy.signal import csd, find_peaks, iirpeak, lfilter, welch
 
-from online_id.diagnose.bench_model import (EQS, BenchFit, PlateauSignals, Spec, fit_plateau,
-                                            fit_spec, plateau_signals)
+from online_id.diagnose.bench_model import (BALANCE, EQS, BenchFit, PlateauSignals, Spec, design, fit_plateau,
+                                            fit_spec, output, plateau_signals)
 from online_id.diagnose.bench_data import BenchSeries
 
 ORDER_GRID_STEP = 0.5
@@ -50,6 +50,7 @@ WELCH_S = 2.0
 PEAK_MIN = 4.0      # average normalised PSD a line must reach to be screened
 N_LINES = 3         # lines of each type screened per equation
 BAND_Q = 8.0
+BALANCE_BP_LAG = 5  # first lag of the band-passed torque-balance residual (past its speed-noise window)
 COH_SMOOTH_BINS = 5  # +-2 Hz at 1 Hz resolution
 LOCAL_BINS = {"hz": 121, "order": 41}  # running median over +-15 Hz, or +-0.2 orders
 
@@ -63,7 +64,8 @@ class OrderTerm:
     kind: str = "rotation_order_disturbance"
 
     def columns(self, p: PlateauSignals, eq: str) -> np.ndarray | None:
-        if eq != self.shaft or self.order * p.rev_hz >= 0.5 * p.fs_hz:
+        # an external torque: in the equation of its shaft and in the torque balance
+        if eq not in (self.shaft, BALANCE) or self.order * p.rev_hz >= 0.5 * p.fs_hz:
             return None
         theta = (p.theta1 if self.shaft == "dyno" else p.theta2)[p.rows]
         return np.column_stack((np.sin(self.order * theta), np.cos(self.order * theta)))
@@ -74,10 +76,18 @@ class OrderTerm:
 
 @dataclass(frozen=True)
 class FixedTerm:
-    """Line at ``freq_hz`` in equation ``eq``: a sinusoid and a narrow-band noise model."""
+    """Line at ``freq_hz`` in equation ``eq``: a sinusoid and a narrow-band noise model.
+
+    ``residuals`` holds, per plateau, the residual of the model the line was
+    found in (on the plateau's rows); its causal band-pass at ``freq_hz`` at
+    two lags a quarter period apart predicts a narrow-band torque from its
+    own past.  In the torque balance the lags start at ``BALANCE_BP_LAG``:
+    its residual at ``n`` holds the speed noise up to ``n + 2``.
+    """
 
     freq_hz: float
     eq: str
+    residuals: tuple = field(default=(), compare=False, repr=False)
     kind: str = "fixed_frequency_disturbance"
 
     def columns(self, p: PlateauSignals, eq: str) -> np.ndarray | None:
@@ -85,15 +95,16 @@ class FixedTerm:
             return None
         w = 2.0 * np.pi * self.freq_hz * p.time_s[p.rows]
         cols = [np.sin(w), np.cos(w)]
-        r = p.residual.get(eq)
-        if r is not None:  # baseline residual on the plateau rows, band-passed causally
+        if self.residuals:
             b, a = iirpeak(self.freq_hz, BAND_Q, fs=p.fs_hz)
-            bp = lfilter(b, a, r)
-            cols += [np.concatenate(([0.0] * k, bp[:-k])) for k in (1, 2)]
+            bp = lfilter(b, a, self.residuals[p.index])
+            k0 = BALANCE_BP_LAG if eq == BALANCE else 1
+            quarter = max(1, int(round(p.fs_hz / (4.0 * self.freq_hz))))
+            cols += [np.concatenate((np.zeros(k), bp[:-k])) for k in (k0, k0 + quarter)]
         return np.column_stack(cols)
 
     def params(self) -> dict:
-        return {"freq_hz": float(self.freq_hz), "shaft": self.eq}
+        return {"freq_hz": float(self.freq_hz)}
 
 
 @dataclass(frozen=True)
@@ -105,11 +116,13 @@ class TwistTerm:
     nb: int = 4
     kind: str = "backlash"
 
-    def columns(self, p: PlateauSignals, eq: str) -> np.ndarray:
+    def columns(self, p: PlateauSignals, eq: str) -> np.ndarray | None:
+        if eq == BALANCE:
+            return None  # the shaft torque cancels in the torque balance
         x = p.twist
         if self.gap > 0:
             x = np.clip(x - self.centers[p.index], -0.5 * self.gap, 0.5 * self.gap)
-        return p.lagged(x, np.arange(self.nb))
+        return p.lagged(x, np.arange(1, self.nb + 1))
 
     def params(self) -> dict:
         return {"gap_rad": float(self.gap)}
@@ -122,8 +135,10 @@ class CoulombTerm:
     nb: int = 4
     kind: str = "coulomb_friction"
 
-    def columns(self, p: PlateauSignals, eq: str) -> np.ndarray:
-        return p.lagged(np.sign(p.y1 - p.y2), np.arange(self.nb))
+    def columns(self, p: PlateauSignals, eq: str) -> np.ndarray | None:
+        if eq == BALANCE:
+            return None  # a torque inside the coupling cancels in the torque balance
+        return p.lagged(np.sign(p.y1 - p.y2), np.arange(1, self.nb + 1))
 
     def params(self) -> dict:
         return {}
@@ -141,15 +156,16 @@ class Line:
     value: float
 
 
-def screen_lines(fit: BenchFit) -> list[Line]:
-    """Peaks of the plateau-averaged residual spectra, on the Hz and on the order axis."""
+def screen_lines(fit: BenchFit, eqs: tuple[str, ...] | None = None,
+                 axes: tuple[str, ...] = ("hz", "order")) -> list[Line]:
+    """Peaks of the plateau-averaged residual spectra of ``eqs`` (default all), on the Hz and order axes."""
     out = []
     ps = fit.plateaus
     fs = ps[0].fs_hz
     f_axis = np.arange(0.5, 0.45 * fs, 0.25)
     k_axis = np.arange(0.25, MAX_ORDER + 1e-9, 0.01)
     k_axis = k_axis[k_axis * min(p.rev_hz for p in ps) < 0.45 * fs]
-    for eq in fit.eqs:
+    for eq in (fit.eqs if eqs is None else eqs):
         hz, order = [], []
         for p, r in zip(ps, fit.eqs[eq].residuals):
             f, pxx = welch(r, fs=fs, nperseg=int(WELCH_S * fs))
@@ -159,6 +175,8 @@ def screen_lines(fit: BenchFit) -> list[Line]:
             order.append(np.where(kf < 0.45 * fs, np.interp(kf, f, pxx), np.nan))
         for axis, grid, spec in (("hz", f_axis, np.mean(hz, axis=0)),
                                  ("order", k_axis, np.nanmean(np.array(order), axis=0))):
+            if axis not in axes:
+                continue
             spec = np.nan_to_num(spec)
             local = median_filter(spec, size=LOCAL_BINS[axis], mode="nearest")
             spec = spec / np.maximum(local, 1e-12)  # a line stands out of its neighbourhood
@@ -225,28 +243,70 @@ def coherence_contrast(f: np.ndarray, coh: np.ndarray, freq_hz: float) -> float:
 
 # -- searches ---------------------------------------------------------------------
 
+GAP_GRID = np.geomspace(0.04, 1.5, 12)  # gaps searched, times the twist's 5-95 % span
+N_CENTRES = 17  # dead-zone centres searched per plateau, between the twist's 1st and 99th percentiles
+SEARCH_LAG = 1
+
+
+class _Projector:
+    """Least-squares residual maker of one equation's regressors on one plateau's estimation rows."""
+
+    def __init__(self, phi: np.ndarray, y: np.ndarray) -> None:
+        scale = np.maximum(np.sqrt(np.mean(phi**2, axis=0)), 1e-300)
+        self.q, _ = np.linalg.qr(phi / scale)
+        self.r = self.off(y)
+        self.ssr = float(self.r @ self.r)
+
+    def off(self, x: np.ndarray) -> np.ndarray:
+        return x - self.q @ (self.q.T @ x)
+
+    def share(self, x: np.ndarray) -> float:
+        """Share of the residual sum of squares that the column ``x`` removes."""
+        xo = self.off(x)
+        den = float(xo @ xo)
+        return float(self.r @ xo) ** 2 / den / self.ssr if den > 0 and self.ssr > 0 else 0.0
+
+
 def search_backlash(series: BenchSeries, spec: Spec) -> TwistTerm:
-    """Gap (shared) and dead-zone centre (per plateau) by grid search on the estimation blocks."""
+    """Gap (shared) and dead-zone centre (per plateau) of ``clip(twist - c_p, +-gap/2)``.
+
+    ``spec`` is the reference model with the linear twist.  The share of each
+    equation's estimation-block residual sum of squares that the dead-zone
+    column (at lag 1) removes is computed by projection (Frisch-Waugh: the
+    reference regressors are factored once per plateau and equation), summed
+    over both equations, maximised over the centre per plateau and summed
+    over the plateaus for each gap.  A coarse grid (gaps 0.04-1.5 x the
+    twist's 5-95 % span on a geometric grid, 17 centres across the twist's
+    range) is refined once around its best point.
+    """
     ps = plateau_signals(series, spec)
     span = float(np.median([np.subtract(*np.percentile(p.twist[p.rows], [95, 5])) for p in ps]))
-    best = (np.inf, None)
-    for gap in span * np.geomspace(0.05, 1.0, 5):
-        total, centers = 0.0, []
-        for p in ps:
-            lo, hi = np.percentile(p.twist[p.rows], [10, 90])
-            pick = (np.inf, 0.0)
-            for c in np.linspace(lo, hi, 4):
-                x = np.clip(p.twist - c, -0.5 * gap, 0.5 * gap)
-                cols = p.lagged(x, np.arange(spec.nb))
-                v = 0.0
-                for eq in EQS:
-                    r, _, _ = fit_plateau(p, spec, eq, [p.lagged(p.twist, np.arange(spec.nb)), cols])
-                    v += float(np.log(np.mean(r[p.est] ** 2)))
-                pick = min(pick, (v, float(c)))
-            total += pick[0]
-            centers.append(pick[1])
-        best = min(best, (total, (float(gap), tuple(centers))), key=lambda b: b[0])
-    gap, centers = best[1]
-    return TwistTerm(gap, centers, spec.nb)
+    proj = {}
+    for p in ps:
+        for eq in EQS:
+            phi = design(p, spec, eq)[p.est]
+            proj[p.index, eq] = _Projector(phi, output(p, eq)[p.est])
 
+    def score(p: PlateauSignals, gap: float, c: float) -> float:
+        x = np.clip(p.twist - c, -0.5 * gap, 0.5 * gap)[p.rows - SEARCH_LAG][p.est]
+        return sum(proj[p.index, eq].share(x) for eq in EQS)
 
+    def best_centres(gaps: np.ndarray, centres: list[np.ndarray]) -> tuple[float, tuple[float, ...], float]:
+        best = (-np.inf, 0.0, ())
+        for g in gaps:
+            total, picks = 0.0, []
+            for p, cs in zip(ps, centres):
+                vals = [score(p, g, c) for c in cs]
+                i = int(np.argmax(vals))
+                total += vals[i]
+                picks.append(float(cs[i]))
+            if total > best[0]:
+                best = (total, float(g), tuple(picks))
+        return best[1], best[2], best[0]
+
+    coarse = [np.percentile(p.twist[p.rows], np.linspace(1, 99, N_CENTRES)) for p in ps]
+    gap, centres, _ = best_centres(span * GAP_GRID, coarse)
+    step_g = GAP_GRID[1] / GAP_GRID[0]
+    fine = [c + np.linspace(-1, 1, 9) * float(np.mean(np.diff(cs))) for c, cs in zip(centres, coarse)]
+    gap, centres, _ = best_centres(gap * step_g ** np.linspace(-1, 1, 7), fine)
+    return TwistTerm(gap, centres, spec.nb)
