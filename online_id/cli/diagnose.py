@@ -166,12 +166,12 @@ def bench_series(path: Path, s: Settings, *, pulses_per_rev: float | None = None
     :data:`DEMAND_COLUMN` if the CSV has it; none with ``use_demand=False`` or
     for CAN logs and signal recordings (their DBC and channels carry no demand).
     """
-    d = read_bench(path, s, notify)
-    demand = None
     csv_file = not (is_can_log(path) or is_mdf(path))
     if demand_col is not None and not csv_file:
         raise ConfigError(f"--demand-col {demand_col}: {path} is not a bench CSV; only a CSV carries a "
                           "demand column")
+    d = read_bench(path, s, notify)
+    demand = None
     if use_demand and csv_file:
         name = demand_col or (DEMAND_COLUMN if DEMAND_COLUMN in read_csv_header(path) else None)
         if name is not None:

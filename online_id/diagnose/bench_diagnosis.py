@@ -42,11 +42,12 @@ from scipy.optimize import minimize_scalar
 from online_id.diagnose import bench_effects as bx
 from online_id.diagnose import bench_transfer as bt
 from online_id.diagnose.bench_data import RPM_PER_RAD_S, BenchSeries
-from online_id.diagnose.bench_model import BALANCE, EQS, BenchFit, Spec, batch_t, fit_plateau, fit_spec
+from online_id.diagnose.bench_model import BALANCE, EQS, BenchFit, Spec, batch_mean_t, fit_plateau, fit_spec
 
 T_CRIT = 2.86
 COHERENCE_MODE = 0.7  # coherence contrast with the excitation at a line: a mode (else a disturbance)
 COHERENCE_LEVEL = 0.3  # ... and the coherence there: a line the excitation explains this well is driven
+FIXED_UNIFORMITY = 1 / 3  # a line fixed in Hz removes on its weakest plateau >= this share of its strongest
 SIDE_UNDETERMINED = 0.8  # the weaker side explains at least this share of the stronger
 MAX_DELAY_S = 0.012
 FREQ_GRID_HZ = 0.002  # line frequency grid (a 60 s record resolves about 0.017 Hz)
@@ -150,13 +151,20 @@ class BenchDiagnosis:
 
 
 def _gain(new: BenchFit, ref: BenchFit, eqs: tuple[str, ...]) -> tuple[float, float]:
-    ratios, e_old, e_new = [], [], []
+    """Share of the held-out error variance removed (mean over ``eqs``) and its batch-means t.
+
+    The equations' held-out errors are normalised by the reference's and
+    their squared improvements averaged sample by sample (the same instants
+    in every equation), so a batch holds one stretch of time of all of them.
+    """
+    ratios, d = [], 0.0
     for eq in eqs:
         v_ref = ref.mse(eq)
         ratios.append(new.mse(eq) / v_ref)
-        e_old.append(ref.eqs[eq].val_errors(ref.plateaus) / np.sqrt(v_ref))
-        e_new.append(new.eqs[eq].val_errors(new.plateaus) / np.sqrt(v_ref))
-    return 1.0 - float(np.mean(ratios)), batch_t(np.concatenate(e_old), np.concatenate(e_new))
+        e_old = ref.eqs[eq].val_errors(ref.plateaus)
+        e_new = new.eqs[eq].val_errors(new.plateaus)
+        d = d + (e_old**2 - e_new**2) / v_ref / len(eqs)
+    return 1.0 - float(np.mean(ratios)), batch_mean_t(d)
 
 
 def _refine_freq(series: BenchSeries, spec: Spec, base: BenchFit, f0: float, eq: str) -> float:
@@ -204,22 +212,17 @@ def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
         new = fit_spec(series, spec.with_term(term), base.plateaus, only=(term.shaft,))
         g, t = _gain(new, base, (term.shaft,))
         orders.setdefault(term.order, {})[term.shaft] = (g, t, new.spec)
-    bal = base if BALANCE in base.eqs else fit_spec(series, spec, base.plateaus, only=(BALANCE,))
     for k, sides in orders.items():
         (s1, (g1, t1, _)), *rest = sorted(sides.items(), key=lambda kv: -kv[1][0])
         g2 = rest[0][1][0] if rest else 0.0
         shaft = s1 if not (g2 > SIDE_UNDETERMINED * g1 > 0) else "undetermined"
-        # scored in the torque balance, as a fixed-frequency line is: an external torque at order k
-        # explains its line on every plateau, a line fixed in Hz at most where the two coincide
-        new = fit_spec(series, spec.with_term(bx.OrderTerm(s1, k)), base.plateaus, only=(s1, BALANCE))
-        g_b, t_b = _gain(new, bal, (BALANCE,))
         out.append(BenchCandidate("rotation_order_disturbance",
-                                  {"order": k, "shaft": shaft, "gains": {s: v[0] for s, v in sides.items()},
-                                   "t_shaft": t1},
-                                  g_b, t_b, new.spec))
+                                  {"order": k, "shaft": shaft, "gains": {s: v[0] for s, v in sides.items()}},
+                                  g1, t1, sides[s1][2]))
     report("fixed-frequency lines")
     # lines fixed in Hz in the torque balance: an external torque shows there whatever the shaft
     # it enters, and nothing in the balance predicts it from the speeds' past
+    bal = base if BALANCE in base.eqs else fit_spec(series, spec, base.plateaus, only=(BALANCE,))
     coh_f, coh = bx.excitation_coherence(bal, BALANCE)
     seen: list[float] = []
     for line in bx.screen_lines(bal, axes=("hz",)):
@@ -234,8 +237,13 @@ def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
         term = bx.FixedTerm(f, BALANCE, tuple(bal.eqs[BALANCE].residuals))
         fixed = fit_spec(series, spec.with_term(term), bal.plateaus, only=(BALANCE,))
         g_f, t_f = _gain(fixed, bal, (BALANCE,))
+        per = [1.0 - (a / b) ** 2 for a, b in zip(fixed.eqs[BALANCE].plateau_rms(fixed.plateaus),
+                                                  bal.eqs[BALANCE].plateau_rms(bal.plateaus))]
+        if min(per) < FIXED_UNIFORMITY * max(per):
+            continue  # not on every plateau: not fixed in Hz (a rotation order passing f at one speed)
         out.append(BenchCandidate("fixed_frequency_disturbance",
-                                  {"freq_hz": f, "coherence_contrast": contrast, "coherence": level},
+                                  {"freq_hz": f, "coherence_contrast": contrast, "coherence": level,
+                                   "plateau_gains": per},
                                   g_f, t_f, fixed.spec))
     report("backlash")
     ref_spec = spec.with_term(bx.TwistTerm(nb=spec.nb))

@@ -290,7 +290,11 @@ def fit_spec(series: BenchSeries, spec: Spec, ps: list[PlateauSignals] | None = 
 
 def batch_t(e_old: np.ndarray, e_new: np.ndarray, n_batch: int = 20) -> float:
     """Batch-means t statistic of the held-out improvement ``e_old^2 - e_new^2``."""
-    d = e_old**2 - e_new**2
+    return batch_mean_t(e_old**2 - e_new**2, n_batch)
+
+
+def batch_mean_t(d: np.ndarray, n_batch: int = 20) -> float:
+    """Batch-means t statistic of the mean of ``d`` (consecutive batches absorb its correlation)."""
     means = np.array([b.mean() for b in np.array_split(d, n_batch)])
     se = means.std(ddof=1) / np.sqrt(n_batch)
     return float(means.mean() / se) if se > 0 else 0.0

@@ -307,8 +307,14 @@ def heldout_z(segs: list[Spectra], two: RatioModel, four: RatioModel, fs: float)
     variance ``sigma_k^2`` of that sum.  ``Q(M) = sum_k |sum_j E_jk|^2 /
     sigma_k^2`` is then about chi-square with ``2 K`` degrees of freedom for
     a right model (``K`` bins in the band), and the statistic is
-    ``(Q(two) - Q(four)) / sqrt(2 K)``: every held-out segment of every
-    plateau and every bin count, not only three or four plateaus.
+    ``(Q(two) - Q(four)) / (2 sqrt(D))`` with ``D = sum_k |(M_4 - M_2)_k
+    sum_j S_{x y_1, jk}|^2 / sigma_k^2``.  Writing ``S_4 = S_2 - Delta``,
+    ``Q(two) - Q(four) = -D + 2 Re sum S_2^* Delta / sigma^2``: when the
+    two-mass model is right it has mean ``-D`` and standard deviation ``2
+    sqrt(D)``, when the mode model is right mean ``+D``; the statistic is a
+    Wald-type z of the mode model's held-out advantage (mean ``-sqrt(D)/2``
+    under the two-mass model).  Every held-out segment of every plateau and
+    every bin counts, not only three or four plateaus.
     """
     if len(segs) < 3:
         return 0.0
@@ -324,8 +330,12 @@ def heldout_z(segs: list[Spectra], two: RatioModel, four: RatioModel, fs: float)
     j = len(segs)
     s2, s4 = e2.sum(axis=0), e4.sum(axis=0)
     var = np.maximum(j / (j - 1) * np.sum(np.abs(e2 - s2 / j) ** 2, axis=0), 1e-300)
+    sx1 = sum(sg.sx1[band] for sg in segs)
+    d = float(np.sum(np.abs(s2 - s4) ** 2 / var))  # = sum |(M4 - M2) S_x1|^2 / sigma^2
+    if d <= 0:
+        return 0.0
     q2, q4 = float(np.sum(np.abs(s2) ** 2 / var)), float(np.sum(np.abs(s4) ** 2 / var))
-    return (q2 - q4) / np.sqrt(2.0 * fb.size)
+    return (q2 - q4) / (2.0 * np.sqrt(d))
 
 
 def _farthest_pole(p2: np.ndarray, p4: np.ndarray) -> float:
