@@ -51,6 +51,14 @@ def bench_text(b: BenchDiagnosis) -> str:
         pairs = zip(e0[eq][f"per_plateau_{unit}"], e1[eq][f"per_plateau_{unit}"])
         lines.append(f"  {eq:7s} equation: " + ", ".join(f"{a:.4g} -> {c:.4g}" for a, c in pairs)
                      + (" [Nm]" if unit == "nm" else ""))
+    notes = b.balance_notes()
+    if notes:
+        lines += ["", "torque balance (shaft torque cancelled): J1 " + ", ".join(
+            f"{x['J1']:.3g}" for x in notes["inertias_kgm2"]) + ", J2 " + ", ".join(
+            f"{x['J2']:.3g}" for x in notes["inertias_kgm2"]) + " kg m^2 per plateau; shaft torque reversed "
+            + ", ".join(f"{x:.1f}" for x in notes["shaft_torque_reversed_pct"]) + " % of the time"]
+        if not notes["backlash_testable"]:
+            lines.append("  the shaft torque hardly reverses on any plateau: a backlash may not be seen")
     lines += ["", "strongest candidates of step 1 (gain, t; accepted when gain >= threshold and t >= 2.86):"]
     for c in sorted(b.candidates[0], key=lambda c: -c.gain)[:6] if b.candidates else []:
         lines.append(f"  {c.kind:28s} {100 * c.gain:6.2f} %  t={c.t_stat:5.1f}  threshold "

@@ -47,8 +47,11 @@ from online_id.diagnose.bench_model import BALANCE, EQS, BenchFit, Spec, batch_m
 T_CRIT = 2.86
 COHERENCE_MODE = 0.7  # coherence contrast with the excitation at a line: a mode (else a disturbance)
 COHERENCE_LEVEL = 0.3  # ... and the coherence there: a line the excitation explains this well is driven
-FIXED_UNIFORMITY = 1 / 3  # a line fixed in Hz removes on its weakest plateau >= this share of its strongest
-SIDE_UNDETERMINED = 0.8  # the weaker side explains at least this share of the stronger
+LINE_ON_EVERY_PLATEAU = 2.0  # a line fixed in Hz: its PSD over the local median on every plateau at least this
+SIDE_UNDETERMINED = 0.8
+# below this share of time reversed on every plateau the shaft torque hardly reverses and a backlash may not
+# be seen (the estimate reads a few per cent on shafts that never reverse: speed noise in J1 y1')
+REVERSAL_MIN_PCT = 10.0  # the weaker side explains at least this share of the stronger
 MAX_DELAY_S = 0.012
 FREQ_GRID_HZ = 0.002  # line frequency grid (a 60 s record resolves about 0.017 Hz)
 # Calibrated on 30 clean randomised benches (seeds 100000-100029, apart from every test seed) by
@@ -133,6 +136,15 @@ class BenchDiagnosis:
         out["rms"] = float(np.sqrt(fit.mse("dyno")))
         return out
 
+    def balance_notes(self) -> dict:
+        """Inertias per plateau from the torque balance and how often the shaft torque reverses."""
+        if BALANCE not in self.baseline.eqs:
+            return {}
+        rev = bx.shaft_torque_reversed(self.baseline)
+        return {"inertias_kgm2": [{"J1": a, "J2": b} for a, b in bx.balance_inertias(self.baseline)],
+                "shaft_torque_reversed_pct": rev,
+                "backlash_testable": bool(max(rev) >= REVERSAL_MIN_PCT)}
+
     def as_dict(self) -> dict:
         s = self.series
         return {
@@ -145,6 +157,7 @@ class BenchDiagnosis:
             "effects": [{**st.candidate.as_dict(), "score": st.ratio} for st in self.steps],
             "result": (self.steps[0].candidate.kind if self.steps else "no significant effect"),
             "error_before": self.errors(self.baseline), "error_after": self.errors(self.final),
+            "torque_balance": self.balance_notes(),
             "candidates": [[c.as_dict() for c in step] for step in self.candidates],
             "thresholds": self.thresholds, "stop_reason": self.stop_reason,
         }
@@ -237,13 +250,12 @@ def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
         term = bx.FixedTerm(f, BALANCE, tuple(bal.eqs[BALANCE].residuals))
         fixed = fit_spec(series, spec.with_term(term), bal.plateaus, only=(BALANCE,))
         g_f, t_f = _gain(fixed, bal, (BALANCE,))
-        per = [1.0 - (a / b) ** 2 for a, b in zip(fixed.eqs[BALANCE].plateau_rms(fixed.plateaus),
-                                                  bal.eqs[BALANCE].plateau_rms(bal.plateaus))]
-        if min(per) < FIXED_UNIFORMITY * max(per):
+        strength = bx.line_strength(bal, BALANCE, f)
+        if min(strength) < LINE_ON_EVERY_PLATEAU:
             continue  # not on every plateau: not fixed in Hz (a rotation order passing f at one speed)
         out.append(BenchCandidate("fixed_frequency_disturbance",
                                   {"freq_hz": f, "coherence_contrast": contrast, "coherence": level,
-                                   "plateau_gains": per},
+                                   "line_strength": strength},
                                   g_f, t_f, fixed.spec))
     report("backlash")
     ref_spec = spec.with_term(bx.TwistTerm(nb=spec.nb))
@@ -251,7 +263,8 @@ def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
     term = bx.search_backlash(series, ref_spec)
     new = fit_spec(series, ref_spec.with_term(term), only=EQS)
     g, t = _gain(new, ref, EQS)
-    out.append(BenchCandidate("backlash", term.params(), g, t, new.spec))
+    out.append(BenchCandidate("backlash", {**term.params(), "shaft_torque_reversed_pct": bx.shaft_torque_reversed(bal)},
+                              g, t, new.spec))
     report("coulomb friction")
     new = fit_spec(series, spec.with_term(bx.CoulombTerm(spec.nb)), only=EQS)
     g, t = _gain(new, base, EQS)

@@ -38,9 +38,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.ndimage import median_filter, uniform_filter1d
-from scipy.signal import csd, find_peaks, iirpeak, lfilter, welch
+from scipy.signal import butter, csd, find_peaks, iirpeak, lfilter, sosfilt, welch
 
-from online_id.diagnose.bench_model import (BALANCE, EQS, BenchFit, PlateauSignals, Spec, design, fit_plateau,
+from online_id.diagnose.bench_model import (BALANCE, BALANCE_LAGS, EQS, BenchFit, PlateauSignals, Spec, design, fit_plateau,
                                             fit_spec, output, plateau_signals)
 from online_id.diagnose.bench_data import BenchSeries
 
@@ -186,6 +186,22 @@ def screen_lines(fit: BenchFit, eqs: tuple[str, ...] | None = None,
     return out
 
 
+def line_strength(fit: BenchFit, eq: str, freq_hz: float) -> list[float]:
+    """Per plateau, the residual PSD of ``eq`` at ``freq_hz`` over its median within +-15 Hz.
+
+    A line fixed in Hz stands out on every plateau; an order line that passes
+    ``freq_hz`` at one speed stands out on that plateau only.
+    """
+    out = []
+    for p, r in zip(fit.plateaus, fit.eqs[eq].residuals):
+        f, pxx = welch(r, fs=p.fs_hz, nperseg=int(WELCH_S * p.fs_hz))
+        near = np.abs(f - freq_hz) <= 15.0
+        i = int(np.argmin(np.abs(f - freq_hz)))
+        peak = float(np.max(pxx[max(i - 1, 0):i + 2]))
+        out.append(peak / max(float(np.median(pxx[near])), 1e-300))
+    return out
+
+
 def order_candidates(lines: list[Line], fit: BenchFit) -> list[OrderTerm]:
     """Order terms at the half-order grid points nearest the order lines (declared orders excluded)."""
     declared = set()
@@ -239,6 +255,46 @@ def coherence_contrast(f: np.ndarray, coh: np.ndarray, freq_hz: float) -> float:
     ring = (d > 3.0) & (d <= 15.0) & (f > 1.0)
     ref = float(np.median(coh[ring])) if ring.any() else 0.0
     return float(coh[i] / ref) if ref > 0 else 0.0
+
+
+# -- the shaft torque ------------------------------------------------------------------
+
+SHAFT_TORQUE_LOWPASS_HZ = 60.0
+
+
+def balance_inertias(fit: BenchFit) -> list[tuple[float, float]]:
+    """``(J1, J2)`` per plateau from the torque balance's speed coefficients.
+
+    The balance ``u[n] = sum_k a_k y1[n - k] + sum_k b_k y2[n - k] + ...``
+    stands for ``u = -J1 y1' - J2 y2' - w``: on a ramp ``y = c n / fs`` its
+    speed terms give ``-J c``, so ``J1 = sum_k k a_k / fs`` (and ``J2`` from
+    ``b``).  Speed noise biases them low by a few per cent.
+    """
+    lags = BALANCE_LAGS
+    out = []
+    for p, coef in zip(fit.plateaus, fit.eqs[BALANCE].coefs):
+        a, b = coef[:lags.size], coef[lags.size:2 * lags.size]
+        out.append((float(np.sum(lags * a) / p.fs_hz), float(np.sum(lags * b) / p.fs_hz)))
+    return out
+
+
+def shaft_torque_reversed(fit: BenchFit) -> list[float]:
+    """Per plateau, the share of time [%] the shaft torque has the sign opposite to its median.
+
+    The shaft torque is read from the dyno equation, ``T_s = -u - J1 y1'``
+    with ``J1`` from the torque balance, low-passed at 60 Hz (causal).  A
+    backlash shows only where the shaft torque reverses and the twist
+    crosses the gap; where it never reverses the dead zone cannot be seen.
+    Speed noise makes the share a little larger than the truth.
+    """
+    sos = butter(2, SHAFT_TORQUE_LOWPASS_HZ, fs=fit.plateaus[0].fs_hz, output="sos")
+    out = []
+    for p, (j1, _) in zip(fit.plateaus, balance_inertias(fit)):
+        y1 = p.y1[p.rows[0] - 1:p.rows[-1] + 2]
+        acc = 0.5 * (y1[2:] - y1[:-2]) * p.fs_hz
+        ts = sosfilt(sos, -p.u[p.rows] - j1 * acc)[int(p.fs_hz):]  # 1 s for the filter to settle
+        out.append(float(100.0 * np.mean(np.sign(ts) != np.sign(np.median(ts)))) if ts.size else 0.0)
+    return out
 
 
 # -- searches ---------------------------------------------------------------------
