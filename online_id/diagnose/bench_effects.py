@@ -2,34 +2,34 @@
 
 Notes
 -----
-Screening reads the residual of both equations on every plateau.  Each
-plateau's Welch spectrum is divided by its median and averaged twice: on a
-frequency axis (a line fixed in Hz adds up, an order line is smeared) and on
-an order axis ``f / rev_hz`` (the reverse).  Peaks of the two averages give
-the fixed-frequency and the rotation-order candidates.
+Screening reads the residuals on every plateau.  Each plateau's Welch
+spectrum is divided by its median and averaged: the inertia equations' on
+an order axis ``f / rev_hz`` (an order line adds up, a line fixed in Hz is
+smeared), the torque balance's on a frequency axis.  Peaks give the
+rotation-order and the fixed-frequency candidates.
 
 Candidates are fitted as real model extensions (:mod:`bench_model`):
 
 ======================  ==================================================
 rotation order          sin/cos(k theta) of the entering shaft in the
-                        equation of that shaft
-fixed frequency         sin/cos(2 pi f t) and two lags of the residual
-                        band-passed at f (a narrow-band noise model)
+                        equation of that shaft (and the torque balance)
+fixed frequency         sin/cos(2 pi f t) and the residual band-passed at
+                        f at two lags (a narrow-band noise model), in the
+                        torque balance
 additional mode         one more pole pair (na, nb + 2) in the engine
-                        equation
-backlash                clip(twist - centre, +-gap/2) at the input lags in
-                        both equations, judged against the linear twist
-coulomb friction        sign(y1 - y2) at the input lags in both equations
+                        equation (found in the speed transfer,
+                        :mod:`bench_transfer`)
+backlash                clip(twist - centre, +-gap/2) at lags 1..nb in both
+                        inertia equations, judged against the linear twist
+coulomb friction        sign(y1 - y2) at lags 1..nb in both inertia equations
 sensor delay            one speed advanced by a fraction of a sample (the
-                        delay and the additional mode are fitted to the
-                        speed transfer, :mod:`bench_transfer`)
+                        delay is fitted to the speed transfer)
 ======================  ==================================================
 
-A line fixed in Hz is told a mode or a disturbance by its coherence with
-the recorded torque demand (the PRBS): the speed controller reacts to a
-disturbance, so the measured torque is coherent with everything in the
-speeds, but the demand is not; a mode is excited by the demand, a
-disturbance is not (:func:`coherence_contrast`).
+Terms acting inside the coupling (twist, Coulomb friction) add nothing to
+the torque balance: the shaft torque cancels there.  A line fixed in Hz is
+told a mode or a disturbance by its coherence with the reference (the
+recorded demand, else the measured torque; :func:`coherence_contrast`).
 """
 
 from __future__ import annotations
@@ -40,8 +40,8 @@ import numpy as np
 from scipy.ndimage import median_filter, uniform_filter1d
 from scipy.signal import butter, csd, find_peaks, iirpeak, lfilter, sosfilt, welch
 
-from online_id.diagnose.bench_model import (BALANCE, BALANCE_LAGS, EQS, BenchFit, PlateauSignals, Spec, design, fit_plateau,
-                                            fit_spec, output, plateau_signals)
+from online_id.diagnose.bench_model import (BALANCE, BALANCE_LAGS, EQS, BenchFit, PlateauSignals, Spec, design,
+                                            output, plateau_signals)
 from online_id.diagnose.bench_data import BenchSeries
 
 ORDER_GRID_STEP = 0.5

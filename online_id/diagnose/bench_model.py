@@ -1,9 +1,9 @@
-"""Per-plateau baseline of the two-mass bench: one equation per inertia.
+"""Per-plateau baseline of the two-mass bench: one equation per inertia and the torque balance.
 
 Notes
 -----
-The driveline is written as two local equations, each an ARX model fitted
-by least squares on the estimation blocks of every plateau separately:
+The driveline is written as three local equations, each fitted by least
+squares on the estimation blocks of every plateau separately:
 
 .. math::
 
@@ -11,18 +11,23 @@ by least squares on the estimation blocks of every plateau separately:
 
     \\text{engine:}\\quad A_2(q) y_2 = C_2(q) y_1 + \\sum_k h_k^T s_k(\\theta_2) + k_2 + r_2
 
+    \\text{balance:}\\quad u = D_1(q) y_1 + D_2(q) y_2 + \\sum_k m_k^T s_k(\\theta_2) + k_3 + r_3
+
 with :math:`s_k(\\theta) = [\\sin k\\theta, \\cos k\\theta]` at the declared
 compression orders (multiples of ``pulses_per_rev`` below Nyquist), speed
 lags ``0 .. nb - 1`` and torque lags ``1 .. nb`` (at lag 0 the torque holds
-the speed controller's reaction to the measured dyno speed).  The continuous plant gives exactly these
-second-order relations (:math:`(J_1 s^2 + d s + c) y_1 = (d s + c) y_2 - s u`
+the speed controller's reaction to the measured dyno speed).  The continuous plant gives exactly the
+two inertia relations (:math:`(J_1 s^2 + d s + c) y_1 = (d s + c) y_2 - s u`
 and its twin for :math:`J_2`), so the residual :math:`r_1` holds only what
 acts on the dyno inertia and :math:`r_2` only what acts on the engine
 inertia: an undeclared torque shows in the equation of the shaft it enters.
-Effects add columns to one or both equations (:class:`Term`), raise the
-orders of one (an additional mode) or shift a speed signal by a fraction of
-a sample (a sensor delay; cubic-spline interpolation of the band-limited
-signal).
+The torque balance :math:`u = -J_1 y_1' - J_2 y_2' - w` (the speeds at
+``n - 2 .. n + 2``, ``D_1, D_2`` derivative filters) has no output lags and
+the shaft torque cancels in it: it holds every external torque, and a
+narrow-band one is not predicted away from the speeds' past.
+Effects add columns to some equations (:class:`Term`), raise the orders of
+one (an additional mode) or shift a speed signal by a fraction of a sample
+(a sensor delay; an all-pass phase ramp).
 """
 
 from __future__ import annotations
@@ -32,7 +37,6 @@ from typing import Protocol
 
 import numpy as np
 from scipy.linalg import lstsq as scipy_lstsq
-from scipy.ndimage import uniform_filter1d
 from scipy.signal import lfilter, lfiltic
 
 from online_id.diagnose.bench_data import BenchSeries
@@ -286,11 +290,6 @@ def fit_spec(series: BenchSeries, spec: Spec, ps: list[PlateauSignals] | None = 
             width = phi.shape[1]
         eqs[eq] = EquationFit(eq, res, coefs, width)
     return BenchFit(spec, ps, eqs)
-
-
-def batch_t(e_old: np.ndarray, e_new: np.ndarray, n_batch: int = 20) -> float:
-    """Batch-means t statistic of the held-out improvement ``e_old^2 - e_new^2``."""
-    return batch_mean_t(e_old**2 - e_new**2, n_batch)
 
 
 def batch_mean_t(d: np.ndarray, n_batch: int = 20) -> float:

@@ -1,4 +1,4 @@
-"""The engine-over-dyno speed transfer through the torque demand: sensor delay and additional mode.
+"""The engine-over-dyno speed transfer through the reference (demand or torque): sensor delay and additional mode.
 
 Notes
 -----
@@ -9,10 +9,12 @@ demand-to-speed transfers
 
     T(s) = \\frac{S_{x y_2}}{S_{x y_1}} = \\frac{y_2}{y_1}\\Big|_{\\text{driven by } x}
 
-(``x`` the recorded test-torque demand, the PRBS) is the engine side of the
-driveline seen from the dyno shaft, with the controller cancelled.  Noise on
-either speed and the controller's reaction to it are uncorrelated with the
-demand and do not bias it; the causal FIR acts on both speeds alike and
+(``x`` the reference: the recorded test-torque demand, the PRBS, or without
+one the measured dyno torque) is the engine side of the driveline seen from
+the dyno shaft, with the controller cancelled.  Noise on either speed is
+uncorrelated with the demand and does not bias it; the measured torque
+holds the controller's reaction to the dyno-speed noise, a small share
+where the PRBS dominates it.  The causal FIR acts on both speeds alike and
 cancels.  For the declared two-mass plant (``a = c_s / J_2``, ``b = d_s /
 J_2``) and a relative sensor delay ``tau``
 
