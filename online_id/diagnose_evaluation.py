@@ -1,23 +1,33 @@
 """Evaluation of the bench diagnosis on randomised benches, with calibrated thresholds.
 
-Each case (:mod:`online_id.bench.diagnose_cases`) is simulated, passed
-through the causal data path and diagnosed once; the best candidate of every
-kind (gain, t, parameters) is kept, so that acceptance can be re-applied with
-any thresholds.  Thresholds are calibrated on *clean* benches with seeds
-apart from the test seeds: for each kind, the largest gain that a
-significant (``t >= T_CRIT``) candidate reached on a clean calibration
-bench, times ``MARGIN``.  The test cases are then classified with them:
-the kind named first is the accepted candidate with the largest
-``gain / threshold`` (``clean`` when none is accepted).
+Each case (:mod:`online_id.bench.diagnose_cases`) is simulated and written
+as the bench CSV ``online-id simulate --with-demand`` writes (time, both
+speeds, dyno torque and the test-torque demand); the CSV is read back and prepared by
+:func:`online_id.cli.diagnose.bench_series`, the same reader and
+arguments as ``online-id diagnose bench.csv``, and diagnosed twice:
 
-It lives above ``bench`` and ``diagnose`` (the simulator and the diagnosis
-may not import each other).
+- ``no_demand``: torque and both speeds only (the demand column ignored),
+  what a bench CSV or a CAN log of the bench gives a user;
+- ``demand``: with the recorded test-torque demand as the reference.
+
+The best candidate of every kind (gain, t, parameters) is kept per path, so
+that acceptance can be re-applied with any thresholds.  Thresholds are
+calibrated per path on *clean* benches with seeds apart from the test
+seeds: for each kind, the largest gain that a significant (``t >=
+T_CRIT``) candidate reached on a clean calibration bench, times
+``MARGIN``.  The test cases are then classified with them: the kind named
+first is the accepted candidate with the largest ``gain / threshold``
+(``clean`` when none is accepted), as :func:`diagnose_bench` names it.
+
+It lives above ``bench``, ``diagnose`` and ``cli`` (the simulator and the
+diagnosis may not import each other).
 """
 
 from __future__ import annotations
 
 import json
 import math
+import tempfile
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
@@ -26,45 +36,63 @@ from typing import Any
 
 import numpy as np
 
-from online_id.bench.diagnose_cases import KINDS, make_case
+from online_id.bench.diagnose_cases import KINDS, make_case, twist_passages
 from online_id.bench.simulate import simulate_bench
 
+PATHS = ("no_demand", "demand")
 MARGIN = 1.1
 MIN_THRESHOLD = 0.005
 # the sensor delay's score is its size in ms: clean benches show up to about 0.5 ms of bias
 MIN_THRESHOLDS = {"sensor_delay": 0.5}
 CALIBRATION_SEED0 = 100_000
 SMALLEST_DECILE = 0.1
-PLATEAU_S = (12.0, 15.0)
+Z95 = 1.96
 
 
 def run_case(args: tuple[str, int]) -> dict[str, Any]:
-    """Simulate and diagnose one case; the best candidate of each kind."""
-    from online_id.diagnose.bench_data import prepare
+    """Simulate one case, write it as a bench CSV, diagnose it on both paths."""
+    from online_id.cli.diagnose import bench_series
+    from online_id.cli.simulate import write_csv
+    from online_id.config import load_config
     from online_id.diagnose.bench_diagnosis import diagnose_bench
 
     kind, seed = args
-    case = make_case(kind, seed, plateau_s=PLATEAU_S)
+    case = make_case(kind, seed)
     t0 = time.perf_counter()
     rec = simulate_bench(case.scenario)
-    d = rec.to_data(case.case_id)
+    truth = dict(case.truth)
+    if kind == "backlash":
+        truth.update(twist_passages(case.scenario))
     out: dict[str, Any] = {"case": case.case_id, "kind": kind, "seed": seed,
-                           "magnitude": case.magnitude, "truth": _plain(case.truth)}
-    try:
-        series = prepare(d.time_s, d.dyno_torque_nm, d.dyno_speed_rad_s, d.engine_speed_rad_s,
-                         source=case.case_id, pulses_per_rev=case.scenario.n_cyl / 2.0,
-                         demand_nm=rec.test_torque_nm)
-        result = diagnose_bench(series, max_effects=1)
-    except Exception as err:  # noqa: BLE001 - recorded as a failed case, the run goes on
-        out.update(error=f"{type(err).__name__}: {err}", best={}, seconds=time.perf_counter() - t0)
-        return out
-    best: dict[str, dict] = {}
-    for c in result.candidates[0]:
-        if c.kind not in best or c.gain > best[c.kind]["gain"]:
-            best[c.kind] = {"gain": c.gain, "t": c.t_stat, "params": _plain(c.params)}
-    out.update(best=best, seconds=time.perf_counter() - t0,
-               n_plateaus=len(series.plateaus), rms_before=result.errors(result.baseline))
+                           "magnitude": case.magnitude, "truth": _plain(truth)}
+    settings = load_config(None)
+    with tempfile.TemporaryDirectory(prefix="online-id-eval-") as tmp:
+        csv = Path(tmp) / f"{case.case_id}.csv"
+        write_csv(rec, csv, demand=True)
+        for path in PATHS:
+            t1 = time.perf_counter()
+            try:
+                series = bench_series(csv, settings, pulses_per_rev=case.scenario.n_cyl / 2.0,
+                                      use_demand=path == "demand")
+                result = diagnose_bench(series, max_effects=1)
+            except Exception as err:  # noqa: BLE001 - recorded as a failed case, the run goes on
+                out[path] = {"error": f"{type(err).__name__}: {err}", "best": {},
+                             "seconds": time.perf_counter() - t1}
+                continue
+            best: dict[str, dict] = {}
+            for c in result.candidates[0]:
+                if c.kind not in best or c.gain > best[c.kind]["gain"]:
+                    best[c.kind] = {"gain": c.gain, "t": c.t_stat, "params": _plain(c.params)}
+            out[path] = {"best": best, "seconds": time.perf_counter() - t1,
+                         "n_plateaus": len(series.plateaus), "demand": series.demand is not None,
+                         "rms_before": result.errors(result.baseline)}
+    out["seconds"] = time.perf_counter() - t0
     return out
+
+
+def path_result(result: dict, path: str) -> dict:
+    """The diagnosis of ``result`` on ``path`` (``best``, ``error``, ...)."""
+    return result.get(path, {"best": {}, "error": f"no {path} diagnosis in this case"})
 
 
 def _plain(x: Any) -> Any:
@@ -95,24 +123,29 @@ def run_cases(jobs: list[tuple[str, int]], workers: int,
     return out
 
 
-def calibrate(clean: list[dict]) -> dict[str, float]:
-    """Per-kind thresholds from clean calibration benches (see module notes)."""
+def calibrate(clean: list[dict], path: str = "no_demand") -> dict[str, float]:
+    """Per-kind thresholds of ``path`` from clean calibration benches (see module notes)."""
     from online_id.diagnose.bench_diagnosis import T_CRIT, THRESHOLDS
 
     thr = {}
     for kind in THRESHOLDS:
-        gains = [r["best"][kind]["gain"] for r in clean
-                 if kind in r.get("best", {}) and r["best"][kind]["t"] >= T_CRIT]
+        gains = [b[kind]["gain"] for b in (path_result(r, path)["best"] for r in clean)
+                 if kind in b and b[kind]["t"] >= T_CRIT]
         thr[kind] = max(MIN_THRESHOLDS.get(kind, MIN_THRESHOLD), MARGIN * max(gains, default=0.0))
     return thr
 
 
-def classify(result: dict, thresholds: dict[str, float]) -> tuple[str, dict | None]:
-    """The kind named first (``clean`` = no significant effect) and its candidate."""
-    from online_id.diagnose.bench_diagnosis import T_CRIT
+def calibrate_paths(clean: list[dict]) -> dict[str, dict[str, float]]:
+    """Thresholds of every path, each calibrated on its own diagnoses of the clean benches."""
+    return {path: calibrate(clean, path) for path in PATHS}
 
-    ok = [(c["gain"] / thresholds[k], k, c) for k, c in result.get("best", {}).items()
-          if c["gain"] >= thresholds[k] and c["t"] >= T_CRIT]
+
+def classify(best: dict, thresholds: dict[str, float]) -> tuple[str, dict | None]:
+    """The kind named first (``clean`` = no significant effect) and its candidate."""
+    from online_id.diagnose.bench_diagnosis import is_accepted
+
+    ok = [(c["gain"] / thresholds[k], k, c) for k, c in best.items()
+          if is_accepted(k, c["gain"], c["t"], thresholds)]
     if not ok:
         return "clean", None
     _, kind, cand = max(ok, key=lambda x: x[0])
@@ -125,7 +158,8 @@ def parameter_check(kind: str, truth: dict, cand: dict | None) -> dict[str, Any]
         return {}
     p = cand["params"]
     if kind == "rotation_order_disturbance":
-        return {"order_exact": p["order"] == truth["order"], "shaft_right": p["shaft"] == truth["shaft"]}
+        return {"order_exact": p["order"] == truth["order"], "shaft_right": p["shaft"] == truth["shaft"],
+                "order_and_shaft": p["order"] == truth["order"] and p["shaft"] == truth["shaft"]}
     if kind in ("fixed_frequency_disturbance", "additional_mode"):
         err = abs(p["freq_hz"] - truth["freq_hz"]) / truth["freq_hz"]
         return {"freq_err_pct": 100 * err, "freq_within_2pct": err <= 0.02}
@@ -138,23 +172,49 @@ def parameter_check(kind: str, truth: dict, cand: dict | None) -> dict[str, Any]
     return {}
 
 
-def summarise(results: list[dict], thresholds: dict[str, float]) -> dict[str, Any]:
-    """Confusion matrix, right-kind rates, parameter figures and the clean false-effect rate."""
+def wilson(k: int, n: int) -> tuple[float, float] | None:
+    """95 % Wilson score interval [%] of a rate of ``k`` in ``n``."""
+    if n == 0:
+        return None
+    p, z2 = k / n, Z95 * Z95
+    centre = (p + z2 / (2 * n)) / (1 + z2 / n)
+    half = Z95 * math.sqrt(p * (1 - p) / n + z2 / (4 * n * n)) / (1 + z2 / n)
+    return 100 * max(0.0, centre - half), 100 * min(1.0, centre + half)
+
+
+def _rate(sel: list[dict], key: str) -> dict | None:
+    vals = [bool(x[key]) for x in sel if key in x]
+    if not vals:
+        return None
+    k, n = sum(vals), len(vals)
+    return {"pct": 100 * k / n, "k": k, "n": n, "ci95": wilson(k, n)}
+
+
+def _count(sel: list[dict], pred: Callable[[dict], bool]) -> dict | None:
+    if not sel:
+        return None
+    k, n = sum(bool(pred(x)) for x in sel), len(sel)
+    return {"pct": 100 * k / n, "k": k, "n": n, "ci95": wilson(k, n)}
+
+
+def summarise(results: list[dict], thresholds: dict[str, float], path: str = "no_demand") -> dict[str, Any]:
+    """Confusion matrix, right-kind rates (with 95 % intervals), parameter figures, false effects."""
     labels = list(KINDS)
     conf = np.zeros((len(labels), len(labels)), dtype=int)
     rows = []
     for r in results:
-        named, cand = classify(r, thresholds)
+        res = path_result(r, path)
+        named, cand = classify(res["best"], thresholds)
         checks = parameter_check(named, r["truth"], cand)
-        # held-out one-step gain (the delay's score is its size in ms, its held-out gain a parameter)
+        # held-out error of the named effect's own measure (the delay's score is its size in ms and
+        # the mode's the transfer gain: their held-out transfer gain is a parameter)
         gain = cand["params"].get("heldout_gain", cand["gain"]) if cand else 0.0
-        rows.append({"case": r["case"], "kind": r["kind"], "named": named, "magnitude": r["magnitude"],
-                     "gain": gain, **checks, "error": r.get("error")})
+        row = {"case": r["case"], "kind": r["kind"], "named": named, "magnitude": r["magnitude"],
+               "gain": gain, **checks, "error": res.get("error")}
+        if r["kind"] == "backlash" and "passages" in r["truth"]:
+            row["passages"] = r["truth"]["passages"]
+        rows.append(row)
         conf[labels.index(r["kind"]), labels.index(named)] += 1
-
-    def rate(sel: list[dict], key: str) -> float | None:
-        vals = [x[key] for x in sel if key in x]
-        return float(np.mean(vals)) if vals else None
 
     per_kind = {}
     for kind in labels:
@@ -163,23 +223,29 @@ def summarise(results: list[dict], thresholds: dict[str, float]) -> dict[str, An
         right = [x for x in big if x["named"] == kind]
         per_kind[kind] = {
             "n": len(sel), "n_above_decile": len(big),
-            "right_first_pct": 100 * len(right) / len(big) if big else None,
-            "right_first_all_pct": 100 * sum(x["named"] == kind for x in sel) / len(sel) if sel else None,
-            "error_lower_pct": (100 * sum(x["gain"] > 0 for x in big if x["named"] != "clean") / len(big)
-                                if big and kind != "clean" else None),
-            **{k: rate(right, k) for k in ("order_exact", "shaft_right", "freq_within_2pct",
-                                           "delay_within_1ms", "signal_right")},
+            "right_first": _count(big, lambda x: x["named"] == kind),
+            "right_first_all": _count(sel, lambda x: x["named"] == kind),
+            "error_lower": (_count(big, lambda x: x["named"] != "clean" and x["gain"] > 0)
+                            if kind != "clean" else None),
+            **{k: _rate(right, k) for k in ("order_exact", "shaft_right", "order_and_shaft",
+                                           "freq_within_2pct", "delay_within_1ms", "signal_right")},
             "median_freq_err_pct": _median(right, "freq_err_pct"),
             "median_delay_err_ms": _median(right, "delay_err_ms"),
             "median_gap_err_pct": _median(right, "gap_err_pct"),
+            "named_as": {k: sum(x["named"] == k for x in big) for k in labels if any(x["named"] == k for x in big)},
         }
+        if kind == "backlash":
+            moving = [x for x in big if x.get("passages", 1) > 0]
+            per_kind[kind]["right_first_with_passages"] = _count(moving, lambda x: x["named"] == kind)
+            per_kind[kind]["without_passages"] = len(big) - len(moving)
     effect = [x for x in rows if x["kind"] != "clean" and x["magnitude"] >= SMALLEST_DECILE]
     clean = [x for x in rows if x["kind"] == "clean"]
     return {
-        "labels": labels, "confusion": conf.tolist(), "per_kind": per_kind,
-        "overall_right_first_pct": 100 * float(np.mean([x["named"] == x["kind"] for x in effect])) if effect else None,
-        "false_effect_clean_pct": 100 * float(np.mean([x["named"] != "clean" for x in clean])) if clean else None,
-        "error_lower_pct": 100 * float(np.mean([x["gain"] > 0 and x["named"] != "clean" for x in effect])) if effect else None,
+        "path": path, "labels": labels, "confusion": conf.tolist(), "per_kind": per_kind,
+        "overall_right_first": _count(effect, lambda x: x["named"] == x["kind"]),
+        "false_effect_clean": _count(clean, lambda x: x["named"] != "clean"),
+        "error_lower": _count(effect, lambda x: x["gain"] > 0 and x["named"] != "clean"),
+        "failed_cases": sum(1 for x in rows if x["error"]),
         "thresholds": thresholds, "cases": rows,
     }
 
@@ -189,30 +255,46 @@ def _median(rows: list[dict], key: str) -> float | None:
     return float(np.median(vals)) if vals else None
 
 
-def table(summary: dict) -> str:
-    """Markdown table of the per-kind figures."""
-    def f(x: Any, fmt: str = "{:.0f}") -> str:
-        return "-" if x is None else fmt.format(x * 100 if isinstance(x, float) and fmt == "{:.0%}" else x)
+def _pct(r: dict | None, ci: bool = True) -> str:
+    if r is None:
+        return "-"
+    text = f"{r['pct']:.0f}"
+    if ci and r["ci95"] is not None:
+        text += f" ({r['ci95'][0]:.0f}-{r['ci95'][1]:.0f})"
+    return text
 
-    lines = ["| true kind | cases (above smallest decile) | right kind first % | held-out error lower % | "
-             "parameters |", "|---|---|---|---|---|"]
+
+def table(summary: dict) -> str:
+    """Markdown table of the per-kind figures, rates with their 95 % (Wilson) intervals."""
+    lines = [f"path: {summary['path']}", "",
+             "| true kind | cases (above smallest decile) | right kind first % (95 % interval) | "
+             "held-out error lower % | parameters | named instead |", "|---|---|---|---|---|---|"]
     for kind, s in summary["per_kind"].items():
         par = []
         if s["order_exact"] is not None:
-            par.append(f"order exact {100 * s['order_exact']:.0f} %, shaft right {100 * s['shaft_right']:.0f} %")
+            par.append(f"order exact and shaft right {_pct(s['order_and_shaft'], False)} % "
+                       f"(order {_pct(s['order_exact'], False)} %, shaft {_pct(s['shaft_right'], False)} %)")
         if s["freq_within_2pct"] is not None:
-            par.append(f"freq within 2 % {100 * s['freq_within_2pct']:.0f} % (median {s['median_freq_err_pct']:.2f} %)")
+            par.append(f"freq within 2 % {_pct(s['freq_within_2pct'], False)} % "
+                       f"(median {s['median_freq_err_pct']:.2f} %)")
         if s["delay_within_1ms"] is not None:
-            par.append(f"delay within 1 ms {100 * s['delay_within_1ms']:.0f} %, signal right "
-                       f"{100 * s['signal_right']:.0f} % (median {s['median_delay_err_ms']:.2f} ms)")
+            par.append(f"delay within 1 ms {_pct(s['delay_within_1ms'], False)} %, signal right "
+                       f"{_pct(s['signal_right'], False)} % (median {s['median_delay_err_ms']:.2f} ms)")
         if s["median_gap_err_pct"] is not None:
             par.append(f"gap error median {s['median_gap_err_pct']:.0f} %")
-        lines.append(f"| {kind} | {s['n']} ({s['n_above_decile']}) | {f(s['right_first_pct'])} | "
-                     f"{f(s['error_lower_pct'])} | {'; '.join(par)} |")
-    lines += ["", f"overall right kind first (effects above the smallest decile): "
-              f"{f(summary['overall_right_first_pct'], '{:.1f}')} %",
-              f"held-out error lower (same cases): {f(summary['error_lower_pct'], '{:.1f}')} %",
-              f"clean benches reporting an effect: {f(summary['false_effect_clean_pct'], '{:.1f}')} %"]
+        if "right_first_with_passages" in s:
+            par.append(f"{s['without_passages']} without a torque reversal through the gap; with: "
+                       f"{_pct(s['right_first_with_passages'], False)} %")
+        other = ", ".join(f"{k} {v}" for k, v in s["named_as"].items() if k != kind)
+        lines.append(f"| {kind} | {s['n']} ({s['n_above_decile']}) | {_pct(s['right_first'])} | "
+                     f"{_pct(s['error_lower'], False)} | {'; '.join(par)} | {other} |")
+    ov, fe, el = summary["overall_right_first"], summary["false_effect_clean"], summary["error_lower"]
+    lines += ["", f"overall right kind first (effects above the smallest decile): {_pct(ov)} % "
+              f"({ov['k'] if ov else 0} of {ov['n'] if ov else 0})",
+              f"held-out error lower (same cases): {_pct(el)} %",
+              f"clean benches reporting an effect: {_pct(fe)} % ({fe['k'] if fe else 0} of {fe['n'] if fe else 0})"]
+    if summary.get("failed_cases"):
+        lines.append(f"cases that failed with an error: {summary['failed_cases']}")
     return "\n".join(lines)
 
 
@@ -236,17 +318,23 @@ def plot_confusion(summary: dict, path: Path) -> None:
     ax.set_yticks(range(len(labels)), labels)
     ax.set_xlabel("named first (clean = no significant effect)")
     ax.set_ylabel("true effect")
-    ax.set_title("online-id diagnose on randomised benches")
+    what = "torque and both speeds only" if summary["path"] == "no_demand" else "with the recorded demand"
+    ax.set_title(f"online-id diagnose on randomised benches ({what})", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
 
 
-def write_outputs(out: Path, summary: dict, calibration: list[dict], results: list[dict]) -> list[Path]:
+def write_outputs(out: Path, summaries: dict[str, dict], calibration: list[dict],
+                  results: list[dict]) -> list[Path]:
+    """``diagnose_evaluation.json``, a confusion matrix PNG per path and ``diagnose_evaluation.md``."""
     out.mkdir(parents=True, exist_ok=True)
-    files = [out / "diagnose_evaluation.json", out / "confusion.png", out / "diagnose_evaluation.md"]
-    doc = {"summary": summary, "calibration_cases": calibration, "test_cases": results}
+    files = [out / "diagnose_evaluation.json", out / "diagnose_evaluation.md"]
+    doc = {"summary": summaries, "calibration_cases": calibration, "test_cases": results}
     files[0].write_text(json.dumps(doc, indent=1, default=float) + "\n", encoding="utf-8")
-    plot_confusion(summary, files[1])
-    files[2].write_text(table(summary) + "\n", encoding="utf-8")
+    files[1].write_text("\n\n".join(table(s) for s in summaries.values()) + "\n", encoding="utf-8")
+    for path, s in summaries.items():
+        png = out / ("confusion.png" if path == "no_demand" else f"confusion_{path}.png")
+        plot_confusion(s, png)
+        files.append(png)
     return files

@@ -34,6 +34,7 @@ RANGES = {
     "sensor_delay": (1e-3, 1e-2),                # s
     "coulomb_friction": (1.0, 5.0),              # Nm
 }
+PLATEAU_S = (30.0, 45.0)  # plateau durations drawn uniformly (issue 14's benches: 40-45 s)
 MAX_LINE_HZ = 180.0  # keep every undeclared line inside the diagnosis passband (200 Hz at 500 Hz)
 
 
@@ -69,7 +70,7 @@ def random_speeds(rng: np.random.Generator, n: int, lo: float = 800.0, hi: float
             return [float(x) for x in rng.permutation(v)]
 
 
-def make_case(kind: str, seed: int, *, plateau_s: tuple[float, float] = (20.0, 25.0)) -> Case:
+def make_case(kind: str, seed: int, *, plateau_s: tuple[float, float] = PLATEAU_S) -> Case:
     """The randomised bench number ``seed`` with one effect of ``kind`` (or none: ``clean``)."""
     if kind not in KINDS:
         raise ValueError(f"unknown effect kind {kind!r}")
@@ -137,3 +138,35 @@ def make_case(kind: str, seed: int, *, plateau_s: tuple[float, float] = (20.0, 2
         truth["torque_nm"] = fc
     scenario = BenchScenario(effects=effects, third_inertia=third, **base)
     return Case(f"{kind}-{seed}", kind, mag, scenario, truth)
+
+
+def twist_passages(scenario: BenchScenario) -> dict[str, float]:
+    """How often the shaft passes through its backlash gap, from a noise-free run of ``scenario``.
+
+    The twist is integrated from the true speeds, starting at the simulator's
+    initial twist.  ``in_gap_pct`` is the share of time spent inside the gap
+    (no torque transmitted); ``passages`` counts the moves from one flank to
+    the other (a torque reversal that crosses the whole gap).  A shaft whose
+    torque never reverses has no passages: its backlash cannot be seen.
+    """
+    import dataclasses
+
+    from online_id.bench.simulate import simulate_bench
+
+    if scenario.effects.backlash is None:
+        return {"in_gap_pct": 0.0, "passages": 0, "passages_per_min": 0.0}
+    quiet = dataclasses.replace(scenario, noise=Noise(0.0, 0.0, 0.0, 0.0, 0.0))
+    rec = simulate_bench(quiet)
+    w = math.pi / 30.0
+    y1, y2 = rec.dyno_speed_rpm * w, rec.engine_speed_rpm * w
+    gap = scenario.effects.backlash.gap_rad
+    fr = scenario.friction
+    load = plant.friction_torque_nm(float(y1[0]), fr.b0, fr.b1, fr.b2)
+    phi0 = load / scenario.c_s + math.copysign(0.5 * gap, load) + scenario.initial_twist_rad
+    phi = phi0 + np.concatenate(([0.0], np.cumsum(y1 - y2)[:-1])) / scenario.fs_hz
+    side = np.where(phi > 0.5 * gap, 1, np.where(phi < -0.5 * gap, -1, 0))
+    flanks = side[side != 0]
+    passages = int(np.count_nonzero(np.diff(flanks))) if flanks.size else 0
+    minutes = phi.size / scenario.fs_hz / 60.0
+    return {"in_gap_pct": float(100.0 * np.mean(side == 0)), "passages": passages,
+            "passages_per_min": passages / minutes}

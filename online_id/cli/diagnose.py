@@ -12,27 +12,31 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
-from online_id.benchlog import read_bench
-from online_id.config import load_config
+from online_id.benchlog import is_can_log, read_bench
+from online_id.config import Settings, load_config
 from online_id.diagnose.align import resample_uniform
 from online_id.diagnose import DiagnoseData, Diagnosis, diagnose
-from online_id.diagnose.bench_data import TARGET_FS_HZ, prepare
+from online_id.diagnose.bench_data import TARGET_FS_HZ, BenchSeries, prepare
 from online_id.diagnose.bench_diagnosis import BenchDiagnosis, diagnose_bench
 from online_id.cli.diagnose_bench_report import bench_text, write_bench_report
 from online_id.diagnose.effects import shaft_angle
 from online_id.cli.diagnose_records import add_arguments as add_record_arguments, read_records
 from online_id.diagnose.records import data_path, decimate_alike, path_note
 from online_id.errors import ConfigError, InputDataError
+from online_id.io.mdf import is_mdf
 from online_id.io.outfile import check_output
+from online_id.io.table_csv import read_csv_columns, read_csv_header
 from online_id.progress import progress_for
 from online_id.cli import command_help
 
 BENCH_ORDERS = (8, 8, 8, 0)
 DEFAULT_PULSES_PER_REV = 2.0  # four-stroke four-cylinder
+DEMAND_COLUMN = "torque_demand_nm"  # the test-torque demand column `online-id simulate --with-demand` writes
 GENERIC_ORDERS = (2, 2, 2, 1)
 
 
@@ -74,6 +78,11 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     m.add_argument("--pulses-per-rev", type=float, metavar="F",
                    help="bench: compression pulses per revolution (declared orders; default from the "
                    "config's model.pulses_per_rev, else 2 = four-stroke four-cylinder)")
+    m.add_argument("--demand-col", metavar="NAME",
+                   help=f"bench CSV: column of the recorded test-torque demand [Nm] (default: {DEMAND_COLUMN} "
+                   "when the CSV has it; without a demand the measured torque is the input)")
+    m.add_argument("--no-demand", action="store_true",
+                   help="bench CSV: ignore a recorded demand column (diagnose from torque and both speeds only)")
     m.add_argument("--sim-horizon", type=float, metavar="S",
                    help="restart the simulation every S seconds (bench default 0.5; else whole part)")
     p.set_defaults(func=run)
@@ -159,17 +168,42 @@ def is_bench(args: argparse.Namespace) -> bool:
     return not (Path(args.path).suffix.lower() == ".mat" or args.input_col or args.output_col)
 
 
+def bench_series(path: Path, s: Settings, *, pulses_per_rev: float | None = None,
+                 target_hz: float | None = None, demand_col: str | None = None, use_demand: bool = True,
+                 notify: Callable[[str], None] | None = None) -> BenchSeries:
+    """Read a bench file and prepare it for the bench diagnosis (what ``diagnose BENCH_FILE`` does).
+
+    The demand is the column ``demand_col`` of a bench CSV, or, when not named,
+    :data:`DEMAND_COLUMN` if the CSV has it; none with ``use_demand=False`` or
+    for CAN logs and signal recordings (their DBC and channels carry no demand).
+    """
+    csv_file = not (is_can_log(path) or is_mdf(path))
+    if demand_col is not None and not csv_file:
+        raise ConfigError(f"--demand-col {demand_col}: {path} is not a bench CSV; only a CSV carries a "
+                          "demand column")
+    d = read_bench(path, s, notify)
+    demand = None
+    if use_demand and csv_file:
+        name = demand_col or (DEMAND_COLUMN if DEMAND_COLUMN in read_csv_header(path) else None)
+        if name is not None:
+            cols = read_csv_columns(path, [s.columns.time, name])
+            demand = cols[name] * (1.0 if s.units.torque_sign == "braking" else -1.0)
+    ppr = pulses_per_rev or s.model.pulses_per_rev or DEFAULT_PULSES_PER_REV
+    return prepare(d.time_s, d.dyno_torque_nm, d.dyno_speed_rad_s, d.engine_speed_rad_s,
+                   source=str(path), pulses_per_rev=ppr, target_hz=target_hz or TARGET_FS_HZ,
+                   demand_nm=demand)
+
+
 def run_bench(args: argparse.Namespace) -> BenchDiagnosis:
     """Bench files: causal data path, plateaus, per-plateau baseline, calibrated candidates."""
     path = Path(args.path)
     if not path.exists():
         raise InputDataError(f"{path}: no such file")
-    s = load_config(args.config)
-    d = read_bench(path, s, lambda text: print(text, file=sys.stderr))
-    ppr = args.pulses_per_rev or s.model.pulses_per_rev or DEFAULT_PULSES_PER_REV
-    series = prepare(d.time_s, d.dyno_torque_nm, d.dyno_speed_rad_s, d.engine_speed_rad_s,
-                     source=str(path), pulses_per_rev=ppr,
-                     target_hz=args.sample_rate or TARGET_FS_HZ)
+    if args.demand_col and args.no_demand:
+        raise ConfigError("--demand-col and --no-demand exclude each other")
+    series = bench_series(path, load_config(args.config), pulses_per_rev=args.pulses_per_rev,
+                          target_hz=args.sample_rate, demand_col=args.demand_col,
+                          use_demand=not args.no_demand, notify=lambda text: print(text, file=sys.stderr))
     progress = progress_for(args, "diagnose")
     try:
         return diagnose_bench(series, na=args.na or 6, nb=args.nb or 6,

@@ -27,27 +27,38 @@ def bench_text(b: BenchDiagnosis) -> str:
              f"causal data path: {path.fs_in_hz:g} Hz -> {path.fs_hz:g} Hz, linear-phase FIR of "
              f"{path.numtaps} taps, its delay ({path.group_delay_samples} samples) removed from "
              "torque and both speeds alike",
-             f"declared: compression pulses, {s.pulses_per_rev:g} per revolution", "",
+             f"declared: compression pulses, {s.pulses_per_rev:g} per revolution",
+             "reference of the speed transfer: " + ("the recorded torque demand" if s.demand is not None
+                                                     else "the measured dyno torque (no demand recorded)"), "",
              "| plateau | speed rpm | t s | declared orders |", "|---|---|---|---|"]
     for i, (p, q) in enumerate(zip(s.plateaus, b.baseline.plateaus), 1):
         lines.append(f"| {i} | {p.speed_rpm:.0f} | {p.t_start_s:.1f}-{p.t_end_s:.1f} | "
                      f"{', '.join(f'{k:g}' for k in q.declared)} |")
     e0 = b.errors(b.baseline)
-    lines += ["", "| step | effect | parameters | gain (held-out) | t | RMS dyno eq rpm | RMS engine eq rpm |",
-              "|---|---|---|---|---|---|---|",
+    lines += ["", "| step | effect | parameters | gain (held-out) | t | RMS dyno eq rpm | RMS engine eq rpm "
+              "| RMS torque balance Nm |", "|---|---|---|---|---|---|---|---|",
               f"| 0 | baseline per plateau (na={b.baseline.spec.na}, nb={b.baseline.spec.nb}) | | | | "
-              f"{e0['dyno']['rms_rpm']:.4g} | {e0['engine']['rms_rpm']:.4g} |"]
+              f"{e0['dyno']['rms_rpm']:.4g} | {e0['engine']['rms_rpm']:.4g} | {e0['balance']['rms_nm']:.4g} |"]
     for i, st in enumerate(b.steps, 1):
         c = st.candidate
         lines.append(f"| {i} | {c.kind} | {_fmt(c.params)} | {100 * c.gain:.1f} % | {c.t_stat:.1f} | "
-                     f"{st.rms_after['dyno']:.4g} | {st.rms_after['engine']:.4g} |")
+                     f"{st.rms_after['dyno']:.4g} | {st.rms_after['engine']:.4g} | {st.rms_after['balance']:.4g} |")
     lines += ["", "result: " + (", then ".join(c.kind for c in b.effects) if b.steps
                                 else "no significant effect"), f"stopped: {b.stop_reason}", "",
-              "held-out one-step error per plateau [rpm], before -> after:"]
+              "held-out error per plateau [rpm; torque balance Nm], before -> after:"]
     e1 = b.errors(b.final)
-    for eq in ("dyno", "engine"):
-        pairs = zip(e0[eq]["per_plateau_rpm"], e1[eq]["per_plateau_rpm"])
-        lines.append(f"  {eq:6s} equation: " + ", ".join(f"{a:.4g} -> {c:.4g}" for a, c in pairs))
+    for eq, unit in (("dyno", "rpm"), ("engine", "rpm"), ("balance", "nm")):
+        pairs = zip(e0[eq][f"per_plateau_{unit}"], e1[eq][f"per_plateau_{unit}"])
+        lines.append(f"  {eq:7s} equation: " + ", ".join(f"{a:.4g} -> {c:.4g}" for a, c in pairs)
+                     + (" [Nm]" if unit == "nm" else ""))
+    notes = b.balance_notes()
+    if notes:
+        lines += ["", "torque balance (shaft torque cancelled): J1 " + ", ".join(
+            f"{x['J1']:.3g}" for x in notes["inertias_kgm2"]) + ", J2 " + ", ".join(
+            f"{x['J2']:.3g}" for x in notes["inertias_kgm2"]) + " kg m^2 per plateau; shaft torque reversed "
+            + ", ".join(f"{x:.1f}" for x in notes["shaft_torque_reversed_pct"]) + " % of the time"]
+        if not notes["backlash_testable"]:
+            lines.append("  the shaft torque hardly reverses on any plateau: a backlash may not be seen")
     lines += ["", "strongest candidates of step 1 (gain, t; accepted when gain >= threshold and t >= 2.86):"]
     for c in sorted(b.candidates[0], key=lambda c: -c.gain)[:6] if b.candidates else []:
         lines.append(f"  {c.kind:28s} {100 * c.gain:6.2f} %  t={c.t_stat:5.1f}  threshold "

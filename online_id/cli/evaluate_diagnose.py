@@ -16,14 +16,18 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "evaluate-diagnose", help=command_help("evaluate-diagnose"),
         description="Simulate randomised benches (compression pulses, PI speed control, PRBS, "
-        "3-4 plateaus, noise), each clean or with one undeclared effect; calibrate the acceptance "
-        "thresholds on clean benches with their own seeds, then diagnose the test benches and "
-        "report the kind named first, parameter errors and the false-effect rate.")
+        "3-4 plateaus of 30-45 s, noise and quantisation), each clean or with one undeclared effect, "
+        "write each as a bench CSV and diagnose it as `online-id diagnose` does, from torque and both "
+        "speeds only and again with the recorded torque demand; calibrate the acceptance thresholds "
+        "of each path on clean benches with their own seeds, then report the kind named first, "
+        "parameter errors and the false-effect rate with 95 % intervals.")
     p.add_argument("--cases", type=int, default=30, metavar="N", help="test cases per kind (default 30)")
     p.add_argument("--calibration-cases", type=int, default=30, metavar="N",
                    help="clean calibration benches (default 30)")
     p.add_argument("--seed", type=int, default=1, help="first test seed (default 1)")
-    p.add_argument("--thresholds", metavar="JSON", help="use these thresholds instead of calibrating")
+    p.add_argument("--thresholds", metavar="JSON",
+                   help="use these thresholds instead of calibrating ({kind: value}, or per path "
+                   "{no_demand: {...}, demand: {...}} as thresholds.json holds them)")
     p.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
     p.add_argument("--quick", action="store_true", help="3 cases per kind, 6 calibration benches")
     p.add_argument("--include", metavar="DIR", action="append", default=[],
@@ -74,17 +78,17 @@ def run(args: argparse.Namespace) -> int:
             thresholds = json.loads(Path(args.thresholds).read_text(encoding="utf-8"))
         except (OSError, ValueError) as err:
             raise ConfigError(f"{args.thresholds}: cannot read thresholds: {err}") from err
-    elif args.calibration_from:
-        calibration = _read_cases(Path(args.calibration_from) / "calibration.jsonl")
-        thresholds = ev.calibrate(calibration)
-        Path(args.out).mkdir(parents=True, exist_ok=True)
-        (Path(args.out) / "thresholds.json").write_text(json.dumps(thresholds, indent=1) + "\n",
-                                                        encoding="utf-8")
+        if not all(p in thresholds for p in ev.PATHS):
+            thresholds = {p: thresholds for p in ev.PATHS}
     else:
-        jobs = [("clean", ev.CALIBRATION_SEED0 + i) for i in range(n_cal)]
-        calibration = ev.run_cases(jobs, args.jobs, _progress("calibration (clean benches)",
-                                                              Path(args.out) / "calibration.jsonl"))
-        thresholds = ev.calibrate(calibration)
+        if args.calibration_from:
+            calibration = _read_cases(Path(args.calibration_from) / "calibration.jsonl")
+        else:
+            jobs = [("clean", ev.CALIBRATION_SEED0 + i) for i in range(n_cal)]
+            calibration = ev.run_cases(jobs, args.jobs, _progress("calibration (clean benches)",
+                                                                  Path(args.out) / "calibration.jsonl"))
+        thresholds = ev.calibrate_paths(calibration)
+        Path(args.out).mkdir(parents=True, exist_ok=True)
         (Path(args.out) / "thresholds.json").write_text(json.dumps(thresholds, indent=1) + "\n",
                                                         encoding="utf-8")
     jobs = [(k, args.seed + i) for i in range(n_test) for k in KINDS]
@@ -92,13 +96,19 @@ def run(args: argparse.Namespace) -> int:
                if jobs else [])
     for d in args.include:
         results += _read_cases(Path(d) / "cases.jsonl")
-    summary = ev.summarise(results, thresholds)
-    summary["seconds"] = time.monotonic() - t0
-    summary["command"] = " ".join(["online-id"] + sys.argv[1:]) if sys.argv else ""
-    files = ev.write_outputs(Path(args.out), summary, calibration, results)
-    print("thresholds: " + ", ".join(f"{k} {v:.3f}" for k, v in thresholds.items()))
-    print(ev.table(summary))
-    print(f"{len(results)} test and {len(calibration)} calibration cases in {summary['seconds']:.0f} s")
+    seconds = time.monotonic() - t0
+    summaries = {}
+    for path in ev.PATHS:
+        summaries[path] = ev.summarise(results, thresholds[path], path)
+        summaries[path]["seconds"] = seconds
+        summaries[path]["command"] = " ".join(["online-id"] + sys.argv[1:]) if sys.argv else ""
+    files = ev.write_outputs(Path(args.out), summaries, calibration, results)
+    for path in ev.PATHS:
+        print(f"thresholds ({path}): " + ", ".join(f"{k} {v:.4g}" for k, v in thresholds[path].items()))
+    for path in ev.PATHS:
+        print()
+        print(ev.table(summaries[path]))
+    print(f"\n{len(results)} test and {len(calibration)} calibration cases in {seconds:.0f} s")
     for f in files:
         print(f"wrote {f}")
     return 0

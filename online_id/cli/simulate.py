@@ -18,6 +18,7 @@ from online_id.progress import add_quiet_option, progress_for
 from online_id.cli import command_help
 
 CSV_FORMATS = ("%.6f", "%.4f", "%.4f", "%.4f")
+DEMAND_COLUMN = ("torque_demand_nm", "%.4f")  # the PRBS test-torque demand (CSV only; not a DBC signal)
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
@@ -39,15 +40,19 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--can-log", type=Path, metavar="FILE.{log,asc,blf,mf4}",
                         help="also write the measured signals as CAN input frames (online_id.dbc) "
                              "to this log; the format follows the suffix")
+    parser.add_argument("--with-demand", action="store_true",
+                        help="CSV: add the test-torque demand (the PRBS) as a column torque_demand_nm, as a "
+                             "bench that records its demand would (diagnose then uses it)")
     add_quiet_option(parser)
     parser.set_defaults(func=run)
 
 
-def write_csv(record: BenchRecord, path: Path) -> None:
+def write_csv(record: BenchRecord, path: Path, demand: bool = False) -> None:
     """Write the record's columns with a header line; a ``.mf4`` path gets an MDF 4 signal recording.
 
     The ``.mf4`` channels hold the values the CSV holds (rounded to its
-    decimals), so that the two are twins sample for sample.
+    decimals), so that the two are twins sample for sample.  With ``demand``
+    the CSV also holds the test-torque demand (the PRBS) as ``torque_demand_nm``.
     """
     columns = record.columns()
     if Path(path).suffix.lower() == ".mf4":
@@ -58,7 +63,11 @@ def write_csv(record: BenchRecord, path: Path) -> None:
         units = {"dyno_speed_rpm": "rpm", "engine_speed_rpm": "rpm", "dyno_torque_nm": "Nm"}
         write_mdf_signals(path, rounded["time_s"], {name: (rounded[name], unit) for name, unit in units.items()})
         return
-    write_csv_columns(path, columns, dict(zip(columns, CSV_FORMATS)))
+    formats = dict(zip(columns, CSV_FORMATS))
+    if demand and record.test_torque_nm is not None:
+        columns[DEMAND_COLUMN[0]] = record.test_torque_nm
+        formats[DEMAND_COLUMN[0]] = DEMAND_COLUMN[1]
+    write_csv_columns(path, columns, formats)
 
 
 def write_can_log(record: BenchRecord, path: Path) -> int:
@@ -93,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
         record = simulate_bench(scenario, progress=progress)
     # every output under a temporary name, all renamed only when all are written
     with atomic_output(out) as out_tmp, atomic_output(truth_path) as truth_tmp:
-        write_csv(record, out_tmp)
+        write_csv(record, out_tmp, demand=args.with_demand)
         truth_tmp.write_text(json.dumps(record.truth, indent=2) + "\n", encoding="utf-8")
         can_note = ""
         if args.can_log is not None:

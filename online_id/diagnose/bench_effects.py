@@ -2,46 +2,46 @@
 
 Notes
 -----
-Screening reads the residual of both equations on every plateau.  Each
-plateau's Welch spectrum is divided by its median and averaged twice: on a
-frequency axis (a line fixed in Hz adds up, an order line is smeared) and on
-an order axis ``f / rev_hz`` (the reverse).  Peaks of the two averages give
-the fixed-frequency and the rotation-order candidates.
+Screening reads the residuals on every plateau.  Each plateau's Welch
+spectrum is divided by its median and averaged: the inertia equations' on
+an order axis ``f / rev_hz`` (an order line adds up, a line fixed in Hz is
+smeared), the torque balance's on a frequency axis.  Peaks give the
+rotation-order and the fixed-frequency candidates.
 
 Candidates are fitted as real model extensions (:mod:`bench_model`):
 
 ======================  ==================================================
 rotation order          sin/cos(k theta) of the entering shaft in the
-                        equation of that shaft
-fixed frequency         sin/cos(2 pi f t) and two lags of the residual
-                        band-passed at f (a narrow-band noise model)
+                        equation of that shaft (and the torque balance)
+fixed frequency         sin/cos(2 pi f t) and the residual band-passed at
+                        f at two lags (a narrow-band noise model), in the
+                        torque balance
 additional mode         one more pole pair (na, nb + 2) in the engine
-                        equation
-backlash                clip(twist - centre, +-gap/2) at the input lags in
-                        both equations, judged against the linear twist
-coulomb friction        sign(y1 - y2) at the input lags in both equations
+                        equation (found in the speed transfer,
+                        :mod:`bench_transfer`)
+backlash                clip(twist - centre, +-gap/2) at lags 1..nb in both
+                        inertia equations, judged against the linear twist
+coulomb friction        sign(y1 - y2) at lags 1..nb in both inertia equations
 sensor delay            one speed advanced by a fraction of a sample (the
-                        delay and the additional mode are fitted to the
-                        speed transfer, :mod:`bench_transfer`)
+                        delay is fitted to the speed transfer)
 ======================  ==================================================
 
-A line fixed in Hz is told a mode or a disturbance by its coherence with
-the recorded torque demand (the PRBS): the speed controller reacts to a
-disturbance, so the measured torque is coherent with everything in the
-speeds, but the demand is not; a mode is excited by the demand, a
-disturbance is not (:func:`coherence_contrast`).
+Terms acting inside the coupling (twist, Coulomb friction) add nothing to
+the torque balance: the shaft torque cancels there.  A line fixed in Hz is
+told a mode or a disturbance by its coherence with the reference (the
+recorded demand, else the measured torque; :func:`coherence_contrast`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.ndimage import median_filter, uniform_filter1d
-from scipy.signal import csd, find_peaks, iirpeak, lfilter, welch
+from scipy.signal import butter, csd, find_peaks, iirpeak, lfilter, sosfilt, welch
 
-from online_id.diagnose.bench_model import (EQS, BenchFit, PlateauSignals, Spec, fit_plateau,
-                                            fit_spec, plateau_signals)
+from online_id.diagnose.bench_model import (BALANCE, BALANCE_LAGS, EQS, BenchFit, PlateauSignals, Spec, design,
+                                            output, plateau_signals)
 from online_id.diagnose.bench_data import BenchSeries
 
 ORDER_GRID_STEP = 0.5
@@ -50,6 +50,7 @@ WELCH_S = 2.0
 PEAK_MIN = 4.0      # average normalised PSD a line must reach to be screened
 N_LINES = 3         # lines of each type screened per equation
 BAND_Q = 8.0
+BALANCE_BP_LAG = 5  # first lag of the band-passed torque-balance residual (past its speed-noise window)
 COH_SMOOTH_BINS = 5  # +-2 Hz at 1 Hz resolution
 LOCAL_BINS = {"hz": 121, "order": 41}  # running median over +-15 Hz, or +-0.2 orders
 
@@ -63,7 +64,8 @@ class OrderTerm:
     kind: str = "rotation_order_disturbance"
 
     def columns(self, p: PlateauSignals, eq: str) -> np.ndarray | None:
-        if eq != self.shaft or self.order * p.rev_hz >= 0.5 * p.fs_hz:
+        # an external torque: in the equation of its shaft and in the torque balance
+        if eq not in (self.shaft, BALANCE) or self.order * p.rev_hz >= 0.5 * p.fs_hz:
             return None
         theta = (p.theta1 if self.shaft == "dyno" else p.theta2)[p.rows]
         return np.column_stack((np.sin(self.order * theta), np.cos(self.order * theta)))
@@ -74,10 +76,18 @@ class OrderTerm:
 
 @dataclass(frozen=True)
 class FixedTerm:
-    """Line at ``freq_hz`` in equation ``eq``: a sinusoid and a narrow-band noise model."""
+    """Line at ``freq_hz`` in equation ``eq``: a sinusoid and a narrow-band noise model.
+
+    ``residuals`` holds, per plateau, the residual of the model the line was
+    found in (on the plateau's rows); its causal band-pass at ``freq_hz`` at
+    two lags a quarter period apart predicts a narrow-band torque from its
+    own past.  In the torque balance the lags start at ``BALANCE_BP_LAG``:
+    its residual at ``n`` holds the speed noise up to ``n + 2``.
+    """
 
     freq_hz: float
     eq: str
+    residuals: tuple = field(default=(), compare=False, repr=False)
     kind: str = "fixed_frequency_disturbance"
 
     def columns(self, p: PlateauSignals, eq: str) -> np.ndarray | None:
@@ -85,15 +95,16 @@ class FixedTerm:
             return None
         w = 2.0 * np.pi * self.freq_hz * p.time_s[p.rows]
         cols = [np.sin(w), np.cos(w)]
-        r = p.residual.get(eq)
-        if r is not None:  # baseline residual on the plateau rows, band-passed causally
+        if self.residuals:
             b, a = iirpeak(self.freq_hz, BAND_Q, fs=p.fs_hz)
-            bp = lfilter(b, a, r)
-            cols += [np.concatenate(([0.0] * k, bp[:-k])) for k in (1, 2)]
+            bp = lfilter(b, a, self.residuals[p.index])
+            k0 = BALANCE_BP_LAG if eq == BALANCE else 1
+            quarter = max(1, int(round(p.fs_hz / (4.0 * self.freq_hz))))
+            cols += [np.concatenate((np.zeros(k), bp[:-k])) for k in (k0, k0 + quarter)]
         return np.column_stack(cols)
 
     def params(self) -> dict:
-        return {"freq_hz": float(self.freq_hz), "shaft": self.eq}
+        return {"freq_hz": float(self.freq_hz)}
 
 
 @dataclass(frozen=True)
@@ -105,11 +116,13 @@ class TwistTerm:
     nb: int = 4
     kind: str = "backlash"
 
-    def columns(self, p: PlateauSignals, eq: str) -> np.ndarray:
+    def columns(self, p: PlateauSignals, eq: str) -> np.ndarray | None:
+        if eq == BALANCE:
+            return None  # the shaft torque cancels in the torque balance
         x = p.twist
         if self.gap > 0:
             x = np.clip(x - self.centers[p.index], -0.5 * self.gap, 0.5 * self.gap)
-        return p.lagged(x, np.arange(self.nb))
+        return p.lagged(x, np.arange(1, self.nb + 1))
 
     def params(self) -> dict:
         return {"gap_rad": float(self.gap)}
@@ -122,8 +135,10 @@ class CoulombTerm:
     nb: int = 4
     kind: str = "coulomb_friction"
 
-    def columns(self, p: PlateauSignals, eq: str) -> np.ndarray:
-        return p.lagged(np.sign(p.y1 - p.y2), np.arange(self.nb))
+    def columns(self, p: PlateauSignals, eq: str) -> np.ndarray | None:
+        if eq == BALANCE:
+            return None  # a torque inside the coupling cancels in the torque balance
+        return p.lagged(np.sign(p.y1 - p.y2), np.arange(1, self.nb + 1))
 
     def params(self) -> dict:
         return {}
@@ -141,15 +156,16 @@ class Line:
     value: float
 
 
-def screen_lines(fit: BenchFit) -> list[Line]:
-    """Peaks of the plateau-averaged residual spectra, on the Hz and on the order axis."""
+def screen_lines(fit: BenchFit, eqs: tuple[str, ...] | None = None,
+                 axes: tuple[str, ...] = ("hz", "order")) -> list[Line]:
+    """Peaks of the plateau-averaged residual spectra of ``eqs`` (default all), on the Hz and order axes."""
     out = []
     ps = fit.plateaus
     fs = ps[0].fs_hz
     f_axis = np.arange(0.5, 0.45 * fs, 0.25)
     k_axis = np.arange(0.25, MAX_ORDER + 1e-9, 0.01)
     k_axis = k_axis[k_axis * min(p.rev_hz for p in ps) < 0.45 * fs]
-    for eq in fit.eqs:
+    for eq in (fit.eqs if eqs is None else eqs):
         hz, order = [], []
         for p, r in zip(ps, fit.eqs[eq].residuals):
             f, pxx = welch(r, fs=fs, nperseg=int(WELCH_S * fs))
@@ -159,12 +175,30 @@ def screen_lines(fit: BenchFit) -> list[Line]:
             order.append(np.where(kf < 0.45 * fs, np.interp(kf, f, pxx), np.nan))
         for axis, grid, spec in (("hz", f_axis, np.mean(hz, axis=0)),
                                  ("order", k_axis, np.nanmean(np.array(order), axis=0))):
+            if axis not in axes:
+                continue
             spec = np.nan_to_num(spec)
             local = median_filter(spec, size=LOCAL_BINS[axis], mode="nearest")
             spec = spec / np.maximum(local, 1e-12)  # a line stands out of its neighbourhood
             idx, _ = find_peaks(spec, height=PEAK_MIN, distance=4)
             idx = idx[np.argsort(spec[idx])[::-1]][:N_LINES]
             out += [Line(eq, axis, float(grid[i]), float(spec[i])) for i in idx]
+    return out
+
+
+def line_strength(fit: BenchFit, eq: str, freq_hz: float) -> list[float]:
+    """Per plateau, the residual PSD of ``eq`` at ``freq_hz`` over its median within +-15 Hz.
+
+    A line fixed in Hz stands out on every plateau; an order line that passes
+    ``freq_hz`` at one speed stands out on that plateau only.
+    """
+    out = []
+    for p, r in zip(fit.plateaus, fit.eqs[eq].residuals):
+        f, pxx = welch(r, fs=p.fs_hz, nperseg=int(WELCH_S * p.fs_hz))
+        near = np.abs(f - freq_hz) <= 15.0
+        i = int(np.argmin(np.abs(f - freq_hz)))
+        peak = float(np.max(pxx[max(i - 1, 0):i + 2]))
+        out.append(peak / max(float(np.median(pxx[near])), 1e-300))
     return out
 
 
@@ -223,30 +257,112 @@ def coherence_contrast(f: np.ndarray, coh: np.ndarray, freq_hz: float) -> float:
     return float(coh[i] / ref) if ref > 0 else 0.0
 
 
+# -- the shaft torque ------------------------------------------------------------------
+
+SHAFT_TORQUE_LOWPASS_HZ = 60.0
+
+
+def balance_inertias(fit: BenchFit) -> list[tuple[float, float]]:
+    """``(J1, J2)`` per plateau from the torque balance's speed coefficients.
+
+    The balance ``u[n] = sum_k a_k y1[n - k] + sum_k b_k y2[n - k] + ...``
+    stands for ``u = -J1 y1' - J2 y2' - w``: on a ramp ``y = c n / fs`` its
+    speed terms give ``-J c``, so ``J1 = sum_k k a_k / fs`` (and ``J2`` from
+    ``b``).  Speed noise biases them low by a few per cent.
+    """
+    lags = BALANCE_LAGS
+    out = []
+    for p, coef in zip(fit.plateaus, fit.eqs[BALANCE].coefs):
+        a, b = coef[:lags.size], coef[lags.size:2 * lags.size]
+        out.append((float(np.sum(lags * a) / p.fs_hz), float(np.sum(lags * b) / p.fs_hz)))
+    return out
+
+
+def shaft_torque_reversed(fit: BenchFit) -> list[float]:
+    """Per plateau, the share of time [%] the shaft torque has the sign opposite to its median.
+
+    The shaft torque is read from the dyno equation, ``T_s = -u - J1 y1'``
+    with ``J1`` from the torque balance, low-passed at 60 Hz (causal).  A
+    backlash shows only where the shaft torque reverses and the twist
+    crosses the gap; where it never reverses the dead zone cannot be seen.
+    Speed noise makes the share a little larger than the truth.
+    """
+    sos = butter(2, SHAFT_TORQUE_LOWPASS_HZ, fs=fit.plateaus[0].fs_hz, output="sos")
+    out = []
+    for p, (j1, _) in zip(fit.plateaus, balance_inertias(fit)):
+        y1 = p.y1[p.rows[0] - 1:p.rows[-1] + 2]
+        acc = 0.5 * (y1[2:] - y1[:-2]) * p.fs_hz
+        ts = sosfilt(sos, -p.u[p.rows] - j1 * acc)[int(p.fs_hz):]  # 1 s for the filter to settle
+        out.append(float(100.0 * np.mean(np.sign(ts) != np.sign(np.median(ts)))) if ts.size else 0.0)
+    return out
+
+
 # -- searches ---------------------------------------------------------------------
 
+GAP_GRID = np.geomspace(0.04, 1.5, 12)  # gaps searched, times the twist's 5-95 % span
+N_CENTRES = 17  # dead-zone centres searched per plateau, between the twist's 1st and 99th percentiles
+SEARCH_LAG = 1
+
+
+class _Projector:
+    """Least-squares residual maker of one equation's regressors on one plateau's estimation rows."""
+
+    def __init__(self, phi: np.ndarray, y: np.ndarray) -> None:
+        scale = np.maximum(np.sqrt(np.mean(phi**2, axis=0)), 1e-300)
+        self.q, _ = np.linalg.qr(phi / scale)
+        self.r = self.off(y)
+        self.ssr = float(self.r @ self.r)
+
+    def off(self, x: np.ndarray) -> np.ndarray:
+        return x - self.q @ (self.q.T @ x)
+
+    def share(self, x: np.ndarray) -> float:
+        """Share of the residual sum of squares that the column ``x`` removes."""
+        xo = self.off(x)
+        den = float(xo @ xo)
+        return float(self.r @ xo) ** 2 / den / self.ssr if den > 0 and self.ssr > 0 else 0.0
+
+
 def search_backlash(series: BenchSeries, spec: Spec) -> TwistTerm:
-    """Gap (shared) and dead-zone centre (per plateau) by grid search on the estimation blocks."""
+    """Gap (shared) and dead-zone centre (per plateau) of ``clip(twist - c_p, +-gap/2)``.
+
+    ``spec`` is the reference model with the linear twist.  The share of each
+    equation's estimation-block residual sum of squares that the dead-zone
+    column (at lag 1) removes is computed by projection (Frisch-Waugh: the
+    reference regressors are factored once per plateau and equation), summed
+    over both equations, maximised over the centre per plateau and summed
+    over the plateaus for each gap.  A coarse grid (gaps 0.04-1.5 x the
+    twist's 5-95 % span on a geometric grid, 17 centres across the twist's
+    range) is refined once around its best point.
+    """
     ps = plateau_signals(series, spec)
     span = float(np.median([np.subtract(*np.percentile(p.twist[p.rows], [95, 5])) for p in ps]))
-    best = (np.inf, None)
-    for gap in span * np.geomspace(0.05, 1.0, 5):
-        total, centers = 0.0, []
-        for p in ps:
-            lo, hi = np.percentile(p.twist[p.rows], [10, 90])
-            pick = (np.inf, 0.0)
-            for c in np.linspace(lo, hi, 4):
-                x = np.clip(p.twist - c, -0.5 * gap, 0.5 * gap)
-                cols = p.lagged(x, np.arange(spec.nb))
-                v = 0.0
-                for eq in EQS:
-                    r, _, _ = fit_plateau(p, spec, eq, [p.lagged(p.twist, np.arange(spec.nb)), cols])
-                    v += float(np.log(np.mean(r[p.est] ** 2)))
-                pick = min(pick, (v, float(c)))
-            total += pick[0]
-            centers.append(pick[1])
-        best = min(best, (total, (float(gap), tuple(centers))), key=lambda b: b[0])
-    gap, centers = best[1]
-    return TwistTerm(gap, centers, spec.nb)
+    proj = {}
+    for p in ps:
+        for eq in EQS:
+            phi = design(p, spec, eq)[p.est]
+            proj[p.index, eq] = _Projector(phi, output(p, eq)[p.est])
 
+    def score(p: PlateauSignals, gap: float, c: float) -> float:
+        x = np.clip(p.twist - c, -0.5 * gap, 0.5 * gap)[p.rows - SEARCH_LAG][p.est]
+        return sum(proj[p.index, eq].share(x) for eq in EQS)
 
+    def best_centres(gaps: np.ndarray, centres: list[np.ndarray]) -> tuple[float, tuple[float, ...], float]:
+        best = (-np.inf, 0.0, ())
+        for g in gaps:
+            total, picks = 0.0, []
+            for p, cs in zip(ps, centres):
+                vals = [score(p, g, c) for c in cs]
+                i = int(np.argmax(vals))
+                total += vals[i]
+                picks.append(float(cs[i]))
+            if total > best[0]:
+                best = (total, float(g), tuple(picks))
+        return best[1], best[2], best[0]
+
+    coarse = [np.percentile(p.twist[p.rows], np.linspace(1, 99, N_CENTRES)) for p in ps]
+    gap, centres, _ = best_centres(span * GAP_GRID, coarse)
+    step_g = GAP_GRID[1] / GAP_GRID[0]
+    fine = [c + np.linspace(-1, 1, 9) * float(np.mean(np.diff(cs))) for c, cs in zip(centres, coarse)]
+    gap, centres, _ = best_centres(gap * step_g ** np.linspace(-1, 1, 7), fine)
+    return TwistTerm(gap, centres, spec.nb)

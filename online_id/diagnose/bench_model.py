@@ -1,9 +1,9 @@
-"""Per-plateau baseline of the two-mass bench: one equation per inertia.
+"""Per-plateau baseline of the two-mass bench: one equation per inertia and the torque balance.
 
 Notes
 -----
-The driveline is written as two local equations, each an ARX model fitted
-by least squares on the estimation blocks of every plateau separately:
+The driveline is written as three local equations, each fitted by least
+squares on the estimation blocks of every plateau separately:
 
 .. math::
 
@@ -11,18 +11,23 @@ by least squares on the estimation blocks of every plateau separately:
 
     \\text{engine:}\\quad A_2(q) y_2 = C_2(q) y_1 + \\sum_k h_k^T s_k(\\theta_2) + k_2 + r_2
 
+    \\text{balance:}\\quad u = D_1(q) y_1 + D_2(q) y_2 + \\sum_k m_k^T s_k(\\theta_2) + k_3 + r_3
+
 with :math:`s_k(\\theta) = [\\sin k\\theta, \\cos k\\theta]` at the declared
 compression orders (multiples of ``pulses_per_rev`` below Nyquist), speed
 lags ``0 .. nb - 1`` and torque lags ``1 .. nb`` (at lag 0 the torque holds
-the speed controller's reaction to the measured dyno speed).  The continuous plant gives exactly these
-second-order relations (:math:`(J_1 s^2 + d s + c) y_1 = (d s + c) y_2 - s u`
+the speed controller's reaction to the measured dyno speed).  The continuous plant gives exactly the
+two inertia relations (:math:`(J_1 s^2 + d s + c) y_1 = (d s + c) y_2 - s u`
 and its twin for :math:`J_2`), so the residual :math:`r_1` holds only what
 acts on the dyno inertia and :math:`r_2` only what acts on the engine
 inertia: an undeclared torque shows in the equation of the shaft it enters.
-Effects add columns to one or both equations (:class:`Term`), raise the
-orders of one (an additional mode) or shift a speed signal by a fraction of
-a sample (a sensor delay; cubic-spline interpolation of the band-limited
-signal).
+The torque balance :math:`u = -J_1 y_1' - J_2 y_2' - w` (the speeds at
+``n - 2 .. n + 2``, ``D_1, D_2`` derivative filters) has no output lags and
+the shaft torque cancels in it: it holds every external torque, and a
+narrow-band one is not predicted away from the speeds' past.
+Effects add columns to some equations (:class:`Term`), raise the orders of
+one (an additional mode) or shift a speed signal by a fraction of a sample
+(a sensor delay; an all-pass phase ramp).
 """
 
 from __future__ import annotations
@@ -32,13 +37,15 @@ from typing import Protocol
 
 import numpy as np
 from scipy.linalg import lstsq as scipy_lstsq
-from scipy.ndimage import uniform_filter1d
 from scipy.signal import lfilter, lfiltic
 
 from online_id.diagnose.bench_data import BenchSeries
 from online_id.errors import EstimationError
 
 EQS = ("dyno", "engine")
+BALANCE = "balance"  # the torque balance of the whole driveline (shaft torque cancelled)
+BALANCE_LAGS = np.arange(-2, 3)  # speed samples around n whose differences give the accelerations
+ALL_EQS = EQS + (BALANCE,)
 BLOCK_S = 5.0
 HOLDOUT_S = 1.0
 MAX_DECLARED_HARMONICS = 12
@@ -67,7 +74,7 @@ class Spec:
     terms: tuple = ()
 
     def orders(self, eq: str) -> tuple[int, int]:
-        m = self.modes[EQS.index(eq)]
+        m = self.modes[EQS.index(eq)] if eq in EQS else 0
         return self.na + 2 * m, self.nb + 2 * m
 
     @property
@@ -101,7 +108,8 @@ class PlateauSignals:
     residual: dict = field(default_factory=dict)  # eq -> baseline residual on the full plateau span
 
     def lagged(self, x: np.ndarray, lags: np.ndarray) -> np.ndarray:
-        return np.column_stack([x[self.rows - k] for k in lags])
+        """Columns ``x[n - k]`` for the lags ``k`` (negative: later samples, held at the record's end)."""
+        return np.column_stack([np.take(x, self.rows - k, mode="clip") for k in lags])
 
 
 def declared_orders(series: BenchSeries, rev_hz: float) -> list[float]:
@@ -133,6 +141,18 @@ def shifted(x: np.ndarray, advance: float, pad: int = 1024) -> np.ndarray:
     return out[pad:pad + x.size]
 
 
+def causal_highpass(x: np.ndarray, n: int) -> np.ndarray:
+    """``x`` less its trailing mean over ``n`` samples (the first ``n`` against the mean so far).
+
+    Causal: the value at ``k`` uses samples up to ``k`` only, so a regressor
+    built from it at lag 1 holds nothing of the output it predicts.
+    """
+    c = np.concatenate(([0.0], np.cumsum(x)))
+    k = np.arange(1, x.size + 1)
+    lo = np.maximum(k - n, 0)
+    return x - (c[k] - c[lo]) / (k - lo)
+
+
 def plateau_signals(series: BenchSeries, spec: Spec) -> list[PlateauSignals]:
     """Per-plateau signal views with the spec's speed shifts and block masks."""
     fs = series.fs_hz
@@ -148,8 +168,7 @@ def plateau_signals(series: BenchSeries, spec: Spec) -> list[PlateauSignals]:
         val = pos >= block - hold
         span = slice(p.start, p.stop)
         tw = np.zeros(series.dyno.size)
-        seg = np.cumsum(y1[span] - y2[span]) / fs
-        tw[span] = seg - uniform_filter1d(seg, int(TWIST_HIGHPASS_S * fs), mode="nearest")
+        tw[span] = causal_highpass(np.cumsum(y1[span] - y2[span]) / fs, int(TWIST_HIGHPASS_S * fs))
         out.append(PlateauSignals(i, rows, ~val, val, series.torque, y1, y2, series.theta_dyno,
                                   series.theta_engine, np.arange(series.dyno.size) / fs, tw,
                                   float(np.mean(series.engine[span])) / (2 * np.pi), fs,
@@ -200,7 +219,10 @@ def _base_columns(p: PlateauSignals, spec: Spec, eq: str) -> list[np.ndarray]:
 
 def _build_base(p: PlateauSignals, eq: str, na: int, nb: int) -> list[np.ndarray]:
     lags_a, lags_b = np.arange(1, na + 1), np.arange(0, nb)
-    if eq == "dyno":
+    if eq == BALANCE:
+        # u = -J1 y1' - J2 y2' - w: the accelerations from speeds around n (a derivative filter each)
+        cols = [p.lagged(p.y1, BALANCE_LAGS), p.lagged(p.y2, BALANCE_LAGS)]
+    elif eq == "dyno":
         # the torque from lag 1: at lag 0 it holds the speed controller's reaction to the
         # measured dyno speed (feedback), which a one-step predictor must not use
         cols = [p.lagged(p.y1, lags_a), p.lagged(p.u, lags_b + 1), p.lagged(p.y2, lags_b)]
@@ -226,17 +248,27 @@ def _lstsq(phi: np.ndarray, y: np.ndarray) -> np.ndarray:
     return coef / scale
 
 
-def fit_plateau(p: PlateauSignals, spec: Spec, eq: str, extra: list[np.ndarray] = (),
-                source: str = "<memory>") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Fit equation ``eq`` on plateau ``p``: residual on its rows, coefficients, regressors."""
+def design(p: PlateauSignals, spec: Spec, eq: str, extra: list[np.ndarray] = ()) -> np.ndarray:
+    """Regressors of equation ``eq`` of ``spec`` on the rows of plateau ``p`` (and ``extra`` columns)."""
     cols = _base_columns(p, spec, eq)
     for term in spec.terms:
         c = term.columns(p, eq)
         if c is not None:
             cols.append(np.asarray(c, dtype=float).reshape(p.rows.size, -1))
     cols += [np.asarray(c, dtype=float).reshape(p.rows.size, -1) for c in extra]
-    phi = np.hstack(cols)
-    y = (p.y1 if eq == "dyno" else p.y2)[p.rows]
+    return np.hstack(cols)
+
+
+def output(p: PlateauSignals, eq: str) -> np.ndarray:
+    """What equation ``eq`` explains on the rows of plateau ``p``: a speed, or the torque (balance)."""
+    return {"dyno": p.y1, "engine": p.y2, BALANCE: p.u}[eq][p.rows]
+
+
+def fit_plateau(p: PlateauSignals, spec: Spec, eq: str, extra: list[np.ndarray] = (),
+                source: str = "<memory>") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Fit equation ``eq`` on plateau ``p``: residual on its rows, coefficients, regressors."""
+    phi = design(p, spec, eq, extra)
+    y = output(p, eq)
     if int(p.est.sum()) <= 3 * phi.shape[1]:
         raise EstimationError(f"{source}: plateau {p.index + 1} has too few samples "
                               f"({int(p.est.sum())}) for {phi.shape[1]} parameters")
@@ -245,8 +277,8 @@ def fit_plateau(p: PlateauSignals, spec: Spec, eq: str, extra: list[np.ndarray] 
 
 
 def fit_spec(series: BenchSeries, spec: Spec, ps: list[PlateauSignals] | None = None,
-             only: tuple[str, ...] = EQS) -> BenchFit:
-    """Fit both (or ``only`` some) equations of ``spec`` on every plateau's estimation blocks."""
+             only: tuple[str, ...] = ALL_EQS) -> BenchFit:
+    """Fit the equations of ``spec`` (all three, or ``only`` some) on every plateau's estimation blocks."""
     ps = ps if ps is not None else plateau_signals(series, spec)
     eqs = {}
     for eq in only:
@@ -260,9 +292,8 @@ def fit_spec(series: BenchSeries, spec: Spec, ps: list[PlateauSignals] | None = 
     return BenchFit(spec, ps, eqs)
 
 
-def batch_t(e_old: np.ndarray, e_new: np.ndarray, n_batch: int = 20) -> float:
-    """Batch-means t statistic of the held-out improvement ``e_old^2 - e_new^2``."""
-    d = e_old**2 - e_new**2
+def batch_mean_t(d: np.ndarray, n_batch: int = 20) -> float:
+    """Batch-means t statistic of the mean of ``d`` (consecutive batches absorb its correlation)."""
     means = np.array([b.mean() for b in np.array_split(d, n_batch)])
     se = means.std(ddof=1) / np.sqrt(n_batch)
     return float(means.mean() / se) if se > 0 else 0.0

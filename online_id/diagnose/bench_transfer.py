@@ -1,4 +1,4 @@
-"""The engine-over-dyno speed transfer through the torque demand: sensor delay and additional mode.
+"""The engine-over-dyno speed transfer through the reference (demand or torque): sensor delay and additional mode.
 
 Notes
 -----
@@ -9,10 +9,12 @@ demand-to-speed transfers
 
     T(s) = \\frac{S_{x y_2}}{S_{x y_1}} = \\frac{y_2}{y_1}\\Big|_{\\text{driven by } x}
 
-(``x`` the recorded test-torque demand, the PRBS) is the engine side of the
-driveline seen from the dyno shaft, with the controller cancelled.  Noise on
-either speed and the controller's reaction to it are uncorrelated with the
-demand and do not bias it; the causal FIR acts on both speeds alike and
+(``x`` the reference: the recorded test-torque demand, the PRBS, or without
+one the measured dyno torque) is the engine side of the driveline seen from
+the dyno shaft, with the controller cancelled.  Noise on either speed is
+uncorrelated with the demand and does not bias it; the measured torque
+holds the controller's reaction to the dyno-speed noise, a small share
+where the PRBS dominates it.  The causal FIR acts on both speeds alike and
 cancels.  For the declared two-mass plant (``a = c_s / J_2``, ``b = d_s /
 J_2``) and a relative sensor delay ``tau``
 
@@ -83,33 +85,38 @@ class Spectra:
     n_seg: int
 
 
-def segment_spectra(p: PlateauSignals, part: str) -> Spectra:
+def segment_spectra(p: PlateauSignals, part: str, each: bool = False) -> Spectra | list[Spectra]:
     """Spectra of the 1 s segments of ``part`` (``"est"``, ``"val"`` or ``"all"``) of plateau ``p``.
 
     Segments are aligned with the 5 s blocks, so each is wholly estimation or
     held out; a Hann window, the mean removed per segment, no overlap.
+    Summed over the segments, or with ``each`` one :class:`Spectra` per segment.
     """
     x = (p.demand if p.demand is not None else p.u)[p.rows]
     y1, y2 = _without_declared(p, p.y1[p.rows]), _without_declared(p, p.y2[p.rows])
     nper = int(round(p.fs_hz))
     mask = {"est": p.est, "val": p.val, "all": np.ones(p.rows.size, bool)}[part]
     win = np.hanning(nper)
-    acc = [0.0, 0.0, 0.0, 0.0, 0.0]
-    n = 0
+    f = np.fft.rfftfreq(nper, 1.0 / p.fs_hz)
+    segs = []
     for i0 in range(0, p.rows.size - nper + 1, nper):
         if not mask[i0:i0 + nper].all():
             continue
-        seg = [np.fft.rfft(win * (v[i0:i0 + nper] - np.mean(v[i0:i0 + nper]))) for v in (x, y1, y2)]
-        X, Y1, Y2 = seg
-        for k, v in enumerate((np.conj(X) * Y1, np.conj(X) * Y2, np.abs(X) ** 2, np.abs(Y1) ** 2,
-                                  np.abs(Y2) ** 2)):
-            acc[k] = acc[k] + v
-        n += 1
-    f = np.fft.rfftfreq(nper, 1.0 / p.fs_hz)
-    if n == 0:
+        X, Y1, Y2 = (np.fft.rfft(win * (v[i0:i0 + nper] - np.mean(v[i0:i0 + nper]))) for v in (x, y1, y2))
+        segs.append(Spectra(f, np.conj(X) * Y1, np.conj(X) * Y2, np.abs(X) ** 2, np.abs(Y1) ** 2,
+                            np.abs(Y2) ** 2, 1))
+    if each:
+        return segs
+    if not segs:
         z = np.zeros(f.size)
         return Spectra(f, z + 0j, z + 0j, z, z, z, 0)
-    return Spectra(f, *acc, n)
+    return sum_spectra(segs)
+
+
+def sum_spectra(segs: list[Spectra]) -> Spectra:
+    """The spectra of several segments (or plateaus) summed."""
+    return Spectra(segs[0].f, *(sum(getattr(s, k) for s in segs) for k in ("sx1", "sx2", "sxx", "s11", "s22")),
+                   sum(s.n_seg for s in segs))
 
 
 def pooled_ratio(spectra: list[Spectra], fs_hz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -263,8 +270,8 @@ def transfer_effects(ps: list[PlateauSignals], max_s: float) -> dict:
     ``mode`` (``heldout_gain``: the share of the two-mass model's held-out
     misfit, delay fitted in both, that one more pole pair removes;
     ``freq_hz`` the added pole pair, the one farthest from the two-mass
-    pole; ``t`` that gain over its leave-one-plateau-out (jackknife)
-    standard error, 0 when the pole lies outside the fitted band).
+    pole; ``t`` the held-out misfit difference of the two models in noise
+    units (:func:`heldout_z`), 0 when the pole lies outside the fitted band).
     """
     fs = ps[0].fs_hz
     spec = {part: [segment_spectra(p, part) for p in ps] for part in ("all", "est", "val")}
@@ -278,21 +285,59 @@ def transfer_effects(ps: list[PlateauSignals], max_s: float) -> dict:
     else:
         jk, se = np.array([two.tau_s]), np.inf
     held = _heldout(spec["est"], spec["val"], fs, max_s)
-    if n > 2:  # leave-one-plateau-out replicates of the held-out gain, refined from the full fit
-        g_jk = np.array([_heldout(spec["est"][:i] + spec["est"][i + 1:], spec["val"][:i] + spec["val"][i + 1:],
-                                  fs, max_s, held["mode_x"])["mode_gain"] for i in range(n)])
-        se_m = float(np.sqrt((n - 1) / n * np.sum((g_jk - g_jk.mean()) ** 2)))
-    else:
-        g_jk, se_m = np.array([held["mode_gain"]]), np.inf
+    z_mode = heldout_z([sg for p in ps for sg in segment_spectra(p, "val", each=True)], held["two"],
+                       held["four"], fs)
     f_mode = held["freq_hz"]
     in_band = bool(np.isfinite(f_mode) and BAND_HZ[0] < f_mode < BAND_HZ[1] * fs)
     return {
         "delay": {"tau_s": two.tau_s, "t": abs(two.tau_s) / se if se > 0 else 0.0,
                   "jackknife_s": jk.tolist(), "heldout_gain": held["delay_gain"]},
         "mode": {"heldout_gain": held["mode_gain"], "freq_hz": f_mode, "in_band": in_band,
-                 "t": held["mode_gain"] / se_m if se_m > 0 and in_band else 0.0,
-                 "jackknife_gain": g_jk.tolist(), "tau_s": held["mode_tau_s"], "poles_hz": held["poles_hz"]},
+                 "t": z_mode if in_band else 0.0,
+                 "tau_s": held["mode_tau_s"], "poles_hz": held["poles_hz"]},
     }
+
+
+def heldout_z(segs: list[Spectra], two: RatioModel, four: RatioModel, fs: float) -> float:
+    """How far the mode model's held-out misfit lies below the two-mass model's, in noise units.
+
+    For a model ``M`` of the transfer (delay included) and held-out segment
+    ``j``, ``E_jk = S_{x y_2, jk} - M_k S_{x y_1, jk}`` at bin ``k``: the
+    reference's cross spectrum with the model's output error.  Its sum over
+    the segments has zero mean when the model is right, and the spread of
+    the two-mass model's ``E_jk`` over the segments estimates the noise
+    variance ``sigma_k^2`` of that sum.  ``Q(M) = sum_k |sum_j E_jk|^2 /
+    sigma_k^2`` is then about chi-square with ``2 K`` degrees of freedom for
+    a right model (``K`` bins in the band), and the statistic is
+    ``(Q(two) - Q(four)) / (2 sqrt(D))`` with ``D = sum_k |(M_4 - M_2)_k
+    sum_j S_{x y_1, jk}|^2 / sigma_k^2``.  Writing ``S_4 = S_2 - Delta``,
+    ``Q(two) - Q(four) = -D + 2 Re sum S_2^* Delta / sigma^2``: when the
+    two-mass model is right it has mean ``-D`` and standard deviation ``2
+    sqrt(D)``, when the mode model is right mean ``+D``; the statistic is a
+    Wald-type z of the mode model's held-out advantage (mean ``-sqrt(D)/2``
+    under the two-mass model).  Every held-out segment of every plateau and
+    every bin counts, not only three or four plateaus.
+    """
+    if len(segs) < 3:
+        return 0.0
+    f = segs[0].f
+    band = (f >= BAND_HZ[0]) & (f <= BAND_HZ[1] * fs)
+    fb = f[band]
+
+    def errors(m: RatioModel) -> np.ndarray:
+        model = m.response(fb) * np.exp(-2j * np.pi * fb * m.tau_s)
+        return np.array([sg.sx2[band] - model * sg.sx1[band] for sg in segs])
+
+    e2, e4 = errors(two), errors(four)
+    j = len(segs)
+    s2, s4 = e2.sum(axis=0), e4.sum(axis=0)
+    var = np.maximum(j / (j - 1) * np.sum(np.abs(e2 - s2 / j) ** 2, axis=0), 1e-300)
+    sx1 = sum(sg.sx1[band] for sg in segs)
+    d = float(np.sum(np.abs(s2 - s4) ** 2 / var))  # = sum |(M4 - M2) S_x1|^2 / sigma^2
+    if d <= 0:
+        return 0.0
+    q2, q4 = float(np.sum(np.abs(s2) ** 2 / var)), float(np.sum(np.abs(s4) ** 2 / var))
+    return (q2 - q4) / (2.0 * np.sqrt(d))
 
 
 def _farthest_pole(p2: np.ndarray, p4: np.ndarray) -> float:
@@ -316,4 +361,5 @@ def _heldout(est: list[Spectra], val: list[Spectra], fs: float, max_s: float,
     f_mode = _farthest_pole(two.poles_hz(), p4)
     return {"delay_gain": 1.0 - v_two / v_zero if v_zero > 0 else 0.0,
             "mode_gain": 1.0 - v_four / v_two if v_two > 0 else 0.0,
-            "freq_hz": f_mode, "mode_tau_s": four.tau_s, "poles_hz": p4.tolist(), "mode_x": x}
+            "freq_hz": f_mode, "mode_tau_s": four.tau_s, "poles_hz": p4.tolist(), "mode_x": x,
+            "two": two, "four": four}

@@ -104,6 +104,23 @@ def read_csv_columns(path: str | Path, columns: Iterable[str]) -> dict[str, np.n
 _CHUNK_LINES = 65536
 
 
+def read_csv_header(path: str | Path) -> list[str]:
+    """The column names of a CSV file's header line (the first line that is not blank or a ``#`` comment)."""
+    path = Path(path)
+    try:
+        with path.open("r", newline="", encoding="utf-8-sig") as handle:
+            for line in handle:
+                if line.strip() and not line.lstrip().startswith("#"):
+                    delim = _sniff_delimiter(line)
+                    cells = line.split() if delim == " " else next(csv.reader([line], delimiter=delim))
+                    return [name.strip() for name in cells]
+    except OSError as err:
+        raise InputDataError(f"{path}: cannot open: {err.strerror or err}") from err
+    except UnicodeDecodeError as err:
+        raise InputDataError(f"{path}: not a text CSV file (it holds bytes that are not UTF-8: {err.reason})") from None
+    return []
+
+
 def _count_lines(path: Path) -> int:
     """Number of line breaks in the file, plus one."""
     count = 1
