@@ -274,3 +274,13 @@ def test_evaluate_diagnose_resummarises_earlier_cases(tmp_path, capsys):
     assert (out / "confusion.png").stat().st_size > 0 and (out / "confusion_demand.png").stat().st_size > 0
     assert main(["evaluate-diagnose", "--cases", "0", "--out", str(out)]) != 0
     assert "--cases (0 only with --include)" in capsys.readouterr().err
+
+
+def test_the_causal_path_decimates_a_recorders_rate_as_the_nominal_one():
+    """999.97 Hz (a recorder 30 ppm slow) to 500 Hz is factor 2, as 1 kHz is (it was 1: no decimation)."""
+    from online_id.diagnose.bench_data import causal_path
+
+    for fs in (1000.0, 999.97, 1000.03):
+        path = causal_path(fs, 500.0)
+        assert path.q == 2 and path.numtaps == 33
+    assert causal_path(200.0, 500.0).q == 1 and causal_path(200.0, 500.0).numtaps == 1  # slower than the target

@@ -28,6 +28,7 @@ from scipy.signal import firwin, lfilter
 from online_id.analysis.plateaus import Plateau, find_plateaus
 from online_id.diagnose.effects import shaft_angle
 from online_id.errors import InputDataError
+from online_id.estimation.preprocess import decimation_factor
 
 RPM_PER_RAD_S = 30.0 / np.pi
 TARGET_FS_HZ = 500.0
@@ -64,7 +65,8 @@ class CausalPath:
 
 def causal_path(fs_hz: float, target_hz: float = TARGET_FS_HZ) -> CausalPath:
     """Decimation factor and FIR length for ``fs_hz`` (no filter when ``q = 1``)."""
-    q = max(1, int(fs_hz / target_hz + 1e-6))  # 999.9999999 Hz from a CSV time column is 1 kHz
+    # a rate measured from a recorder's clock (999.97 Hz for 1 kHz) decimates as the nominal rate does
+    q = decimation_factor(fs_hz, min(target_hz, fs_hz))
     return CausalPath(float(fs_hz), q, 1 if q == 1 else 16 * q + 1)
 
 

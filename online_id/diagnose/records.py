@@ -17,10 +17,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from online_id.diagnose.align import ClockFit, Resampled, estimate_clock
-from online_id.diagnose.bench_data import CausalPath, filter_decimate
+from online_id.diagnose.bench_data import CausalPath, causal_path, filter_decimate
 from online_id.diagnose.data import DiagnoseData
 from online_id.diagnose.shafts import ShaftSource, resolve, speed_of
-from online_id.estimation.preprocess import decimation_factor
 from online_id.errors import ConfigError, InputDataError
 
 LEAD_DECIMATED = 2
@@ -37,8 +36,7 @@ def data_path(fs_hz: float, target_hz: float | None) -> CausalPath:
     Every signal passes the same linear-phase FIR (``16 q + 1`` taps) with its group delay removed from
     all of them alike, so delays and feedback stay at the lag where they are.
     """
-    q = decimation_factor(fs_hz, min(target_hz, fs_hz)) if target_hz else 1
-    return CausalPath(float(fs_hz), q, 1 if q == 1 else 16 * q + 1)
+    return causal_path(fs_hz, target_hz) if target_hz else CausalPath(float(fs_hz), 1, 1)
 
 
 def decimate_alike(signals: dict[str, np.ndarray], path: CausalPath) -> dict[str, np.ndarray]:
