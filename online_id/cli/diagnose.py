@@ -31,7 +31,7 @@ from online_id.errors import ConfigError, InputDataError
 from online_id.io.mdf import is_mdf
 from online_id.io.outfile import check_output
 from online_id.io.table_csv import read_csv_columns, read_csv_header
-from online_id.progress import progress_for
+from online_id.progress import add_quiet_option, progress_for
 from online_id.cli import command_help
 
 BENCH_ORDERS = (8, 8, 8, 0)
@@ -50,6 +50,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("path", metavar="PATH", help="bench CSV, CAN log (.log, .asc, .blf), generic CSV, or .mat file")
     p.add_argument("--config", metavar="FILE", help="YAML config (bench columns and units)")
     p.add_argument("--json", action="store_true", help="print one JSON document")
+    add_quiet_option(p)
     p.add_argument("--report", metavar="DIR", help="write summary.md, diagnosis.json and PNG plots here")
     g = p.add_argument_group("generic input (other machines)")
     g.add_argument("--input-col", metavar="NAME", help="CSV column of the input")

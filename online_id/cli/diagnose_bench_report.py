@@ -14,10 +14,20 @@ from online_id.diagnose.bench_diagnosis import BenchDiagnosis
 def _fmt(params: dict) -> str:
     out = []
     for k, v in params.items():
-        if isinstance(v, dict):
+        if isinstance(v, dict) or k == "heldout_gain":  # dicts: in the JSON; the held-out gain has its column
             continue
-        out.append(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}")
+        if isinstance(v, float):
+            out.append(f"{k}={v:.4g}")
+        elif isinstance(v, (list, tuple)) and v and all(isinstance(x, float) for x in v):
+            out.append(f"{k}=[{', '.join(f'{x:.4g}' for x in v)}]")
+        else:
+            out.append(f"{k}={v}")
     return ", ".join(out)
+
+
+def _gain(c) -> float:
+    """The held-out gain of a candidate (a sensor delay's score is its size in ms; its gain is a parameter)."""
+    return float(c.params.get("heldout_gain", c.gain))
 
 
 def bench_text(b: BenchDiagnosis) -> str:
@@ -41,7 +51,7 @@ def bench_text(b: BenchDiagnosis) -> str:
               f"{e0['dyno']['rms_rpm']:.4g} | {e0['engine']['rms_rpm']:.4g} | {e0['balance']['rms_nm']:.4g} |"]
     for i, st in enumerate(b.steps, 1):
         c = st.candidate
-        lines.append(f"| {i} | {c.kind} | {_fmt(c.params)} | {100 * c.gain:.1f} % | {c.t_stat:.1f} | "
+        lines.append(f"| {i} | {c.kind} | {_fmt(c.params)} | {100 * _gain(c):.1f} % | {c.t_stat:.1f} | "
                      f"{st.rms_after['dyno']:.4g} | {st.rms_after['engine']:.4g} | {st.rms_after['balance']:.4g} |")
     lines += ["", "result: " + (", then ".join(c.kind for c in b.effects) if b.steps
                                 else "no significant effect"), f"stopped: {b.stop_reason}", "",
@@ -59,10 +69,12 @@ def bench_text(b: BenchDiagnosis) -> str:
             + ", ".join(f"{x:.1f}" for x in notes["shaft_torque_reversed_pct"]) + " % of the time"]
         if not notes["backlash_testable"]:
             lines.append("  the shaft torque hardly reverses on any plateau: a backlash may not be seen")
-    lines += ["", "strongest candidates of step 1 (gain, t; accepted when gain >= threshold and t >= 2.86):"]
-    for c in sorted(b.candidates[0], key=lambda c: -c.gain)[:6] if b.candidates else []:
-        lines.append(f"  {c.kind:28s} {100 * c.gain:6.2f} %  t={c.t_stat:5.1f}  threshold "
-                     f"{100 * b.thresholds[c.kind]:.2f} %  {_fmt(c.params)}")
+    lines += ["", "strongest candidates of step 1 (score, t; accepted when the score reaches the threshold and "
+              "t >= 2.86; a sensor delay's score is its size):"]
+    for c in sorted(b.candidates[0], key=lambda c: -c.gain / b.thresholds[c.kind])[:6] if b.candidates else []:
+        unit, k = ("ms", 1.0) if c.kind == "sensor_delay" else ("%", 100.0)
+        lines.append(f"  {c.kind:28s} {k * c.gain:6.2f} {unit:2s} t={c.t_stat:5.1f}  threshold "
+                     f"{k * b.thresholds[c.kind]:.2f} {unit}  {_fmt(c.params)}")
     return "\n".join(lines)
 
 
