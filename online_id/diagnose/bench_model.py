@@ -37,7 +37,6 @@ from typing import Protocol
 
 import numpy as np
 from scipy.linalg import lstsq as scipy_lstsq
-from scipy.signal import lfilter, lfiltic
 
 from online_id.diagnose.bench_data import BenchSeries
 from online_id.errors import EstimationError
@@ -297,25 +296,3 @@ def batch_mean_t(d: np.ndarray, n_batch: int = 20) -> float:
     means = np.array([b.mean() for b in np.array_split(d, n_batch)])
     se = means.std(ddof=1) / np.sqrt(n_batch)
     return float(means.mean() / se) if se > 0 else 0.0
-
-
-def simulate_validation(p: PlateauSignals, spec: Spec, eq: str, coef: np.ndarray,
-                        phi: np.ndarray) -> np.ndarray:
-    """Simulation error of equation ``eq`` over each held-out block of ``p``.
-
-    The output is simulated from the equation's inputs alone (its own lags
-    are the simulated ones), started from the measured output before each
-    block; returns the error on the held-out rows.
-    """
-    na, _ = spec.orders(eq)
-    y = (p.y1 if eq == "dyno" else p.y2)[p.rows]
-    w = phi[:, na:] @ coef[na:]
-    A = np.concatenate(([1.0], -coef[:na]))
-    out = []
-    edges = np.flatnonzero(np.diff(np.concatenate(([0], p.val.astype(int), [0]))))
-    for a, b in zip(edges[::2], edges[1::2]):
-        past = y[max(a - na, 0):a][::-1]
-        zi = lfiltic([1.0], A, np.pad(past, (0, na - past.size)))
-        ysim = lfilter([1.0], A, w[a:b], zi=zi)[0]
-        out.append(y[a:b] - ysim)
-    return np.concatenate(out) if out else np.zeros(0)

@@ -328,8 +328,10 @@ class PoleTracker:
         R = float((p95 - p5) / med_n)
         movement = min(1.0, R / self.full_range)
         # order line
-        ratio = 60.0 * f / speed
-        o = round(2.0 * float(np.median(ratio))) / 2.0
+        with np.errstate(over="ignore"):  # a restored track may hold any finite number (the state is not trusted)
+            ratio = 60.0 * f / speed
+        med_ratio = float(np.median(ratio))
+        o = round(2.0 * med_ratio) / 2.0 if math.isfinite(med_ratio) else math.inf
         order = None
         fit_o = 0.0
         if 0.5 <= o <= 12.0 and float(np.median(zeta)) < self.max_order_zeta:
