@@ -43,13 +43,13 @@ from online_id.errors import BusError
 from online_id.io.bus import CanBus
 from online_id.io.statefile import save_state
 from online_id.io.journal import Journal
-from online_id.scheduling import request_short_slice
 from online_id.io.systemd import Notifier
 from online_id.offload import ProcessWorker
 from online_id.reaction import ReactionTimes
 from online_id.records import AlertKind, AlertOut, FrameFault
 from online_id.restore import restore_pipeline
 from online_id.runtime import Runtime
+from online_id.scheduling import request_short_slice
 
 STATE_FILE = "online-id-state.json"
 RECV_TIMEOUT_S = 0.05  # the loop wakes at least this often on a silent bus (timeouts, worker results)
