@@ -170,6 +170,7 @@ class DetectionSettings:
     damping_tie_pct: float = 1.0
     settle_s: float = 20.0
     settle_detect_s: float = 10.0
+    settle_min_freq_change_pct: float = 2.0
 
 
 @dataclass(frozen=True)
@@ -453,6 +454,7 @@ def _check_service(s: Settings, file: str) -> None:
     d = s.detection
     positive("detection", d, "band_rpm", "load_band_nm", "min_count", "k", "h_warning", "h_fault")
     nonnegative("detection", d, "min_freq_change_pct", "min_damping_change_pct", "settle_s", "settle_detect_s",
+                "settle_min_freq_change_pct",
                 "pool_tolerance_pct", "damping_tie_pct")
     if d.min_count < 2:
         raise ConfigError(f"{file}: detection.min_count: expected an integer >= 2, got {d.min_count!r}")

@@ -444,6 +444,7 @@ class Pipeline:
         healthy = (est.valid and not est.frozen and self.state == ServiceState.TRACKING
                    and est.excitation_nm >= d.min_excitation_nm)
         learnable = False
+        settling = False
         # the first fits at a new operating point start cold and, where the model does not fit exactly
         # (backlash), may sit for a while in another local minimum: learning and detection wait settle_s
         # after the estimate becomes healthy at another speed than it last was
@@ -455,10 +456,14 @@ class Pipeline:
                         and abs(speed - self._healthy_rpm) <= self.settings.model.max_speed_span_rpm)
                 self._healthy_since = t_s - (d.settle_s if same else 0.0)
             self._healthy_rpm = speed
-            # detection resumes once the window holds only the new point (settle_detect_s, about the window):
-            # a deviation it sees then is confirmed by a multi-start refit before it is raised; learning waits
-            # the longer settle_s, a baseline must not hold a transient
-            healthy = t_s - self._healthy_since >= d.settle_detect_s
+            # full detection resumes once the window holds only the new point (settle_detect_s, about the
+            # window): a deviation it sees then is confirmed by a multi-start refit before it is raised.
+            # Before, only a change of the frequency beyond settle_min_freq_change_pct is detected (what a
+            # local minimum does not do; a fault just before a change of point is then not held back by the
+            # settle time); the damping waits. Learning waits the longer settle_s: a baseline must not hold a
+            # transient
+            settled = t_s - self._healthy_since >= d.settle_detect_s
+            settling = not settled
             learnable = t_s - self._healthy_since >= d.settle_s
         if self._next_learn is None or t_s < self._next_learn - 10.0:
             self._next_learn = t_s
@@ -472,6 +477,7 @@ class Pipeline:
             t_s=t_s, speed_rpm=speed, f0_hz=est.f0_hz, zeta=est.zeta, f0_std_hz=est.f0_std_hz,
             zeta_std=est.zeta_std, baseline=stats, suppressed=not healthy,
             confirm=lambda kind: self._confirm(kind, stats, t_s),
+            frequency_only_beyond=d.settle_min_freq_change_pct / 100.0 if settling else None,
         )
         if alarm is not None:
             self._raise(alarm, out)

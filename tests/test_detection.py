@@ -272,3 +272,40 @@ def test_unconfirmed_alarm_is_withheld(seed, df):
     confirmed = run(ChangeDetector(), t, f, z, base_of(*plant), stop_at_level=1)
     assert confirmed and confirmed[0].kind == "frequency"
     assert abs(confirmed[0].detected_t_s - asked[0][1]) <= 1.0
+
+
+def _feed(det, t, f, z, base, **kw):
+    out = []
+    for i in range(t.size):
+        a = det.update(t_s=float(t[i]), speed_rpm=1600.0, f0_hz=float(f[i]), zeta=float(z[i]), f0_std_hz=0.0,
+                       zeta_std=0.0, baseline=base, suppressed=False, **kw)
+        if a is not None:
+            out.append(a)
+    return out
+
+
+@pytest.mark.parametrize("plant", PLANTS[:3])
+def test_frequency_only_counts_a_large_frequency_change_and_leaves_the_damping_alone(plant):
+    """The settle time after a change of operating point: only a frequency change beyond the wider dead band is
+    alarmed; a small one (inside it) and a large damping change are not, and the damping's statistics stay."""
+    base = base_of(*plant)
+    kw = {"f0": plant[0], "zeta0": plant[1], "rel_std_f": plant[2], "rel_std_z": plant[3], "t_step": 5.0}
+    t, f, z = estimates(6, 0.02, df=-0.015, dz=0.6, **kw)  # 1.5 % in f0, +60 % in damping: 72 s
+    det = ChangeDetector()
+    assert _feed(det, t, f, z, base, frequency_only_beyond=0.02) == []
+    assert det.statistics["damping_up"] == 0.0 and det.statistics["damping_down"] == 0.0
+    t, f, z = estimates(7, 0.02, df=-0.05, **kw)  # 5 % in f0 (a 10 % stiffness loss)
+    alarms = _feed(ChangeDetector(), t, f, z, base, frequency_only_beyond=0.02)
+    assert alarms and alarms[0].kind == "frequency" and alarms[0].detected_t_s < 40.0
+    # outside the settle time the same small frequency change and the damping change are alarmed
+    t, f, z = estimates(6, 0.02, df=-0.015, dz=0.6, **kw)
+    kinds = {a.kind for a in _feed(ChangeDetector(), t, f, z, base)}
+    assert kinds == {"frequency", "damping"}
+
+
+def test_a_detector_saved_before_the_damping_count_loads():
+    det = ChangeDetector()
+    saved = json.loads(json.dumps(det.to_dict()))
+    saved["acc"] = [3, 1.0, 2.0, 0.1, 0.2, 4800.0]  # six entries: every sample counted for both
+    again = ChangeDetector.from_dict(saved)
+    assert again.to_dict()["acc"] == [3, 1.0, 2.0, 0.1, 0.2, 4800.0, 3]

@@ -299,7 +299,8 @@ class ChangeDetector:
 
     def _clear_interval(self) -> None:
         self._t_open: float | None = None
-        self._acc = [0, 0.0, 0.0, 0.0, 0.0, 0.0]  # n, sum d_f, sum d_z, sum r_f, sum r_z, sum rpm
+        # n, sum d_f, sum d_z, sum r_f, sum r_z, sum rpm, n of the damping (not counted: frequency only)
+        self._acc = [0, 0.0, 0.0, 0.0, 0.0, 0.0, 0]
 
     # -- per sample --------------------------------------------------------------------------
     def update(
@@ -314,6 +315,7 @@ class ChangeDetector:
         baseline: BandStats | None,
         suppressed: bool,
         confirm: Callable[[str], bool | None] | None = None,
+        frequency_only_beyond: float | None = None,
     ) -> Alarm | None:
         """One estimate in; a new or escalated alarm out (None otherwise).
 
@@ -321,7 +323,11 @@ class ChangeDetector:
         frequency or damping are ignored (statistics frozen).  Non-finite
         model uncertainties count as zero (the baseline spread is used).
         ``confirm(kind)`` is asked before a new alarm is raised (see the
-        module notes, *confirm*).
+        module notes, *confirm*).  ``frequency_only_beyond``: this sample
+        counts for the frequency only, with this relative dead band instead
+        of ``min_change_f`` (the settle time after a change of operating
+        point, when only a large change of the frequency is to be believed);
+        the damping's statistics are left as they are.
         """
         alarm = None
         usable = (
@@ -342,23 +348,27 @@ class ChangeDetector:
             sf = max(baseline.std_f, f0_std_hz if math.isfinite(f0_std_hz) else 0.0)
             sz = max(baseline.std_zeta, zeta_std if math.isfinite(zeta_std) else 0.0)
             acc = self._acc
+            band_f = self.min_change_f if frequency_only_beyond is None else frequency_only_beyond
             acc[0] += 1
-            acc[1] += _dead_band(f0_hz - baseline.mean_f, self.min_change_f * baseline.mean_f) / sf  # d_f
-            acc[2] += _dead_band(zeta - baseline.mean_zeta, self.min_change_zeta * baseline.mean_zeta) / sz
+            acc[1] += _dead_band(f0_hz - baseline.mean_f, band_f * baseline.mean_f) / sf  # d_f
             acc[3] += f0_hz / baseline.mean_f - 1.0  # r_f
-            acc[4] += zeta / baseline.mean_zeta - 1.0  # r_zeta
             acc[5] += speed_rpm
+            if frequency_only_beyond is None:
+                acc[2] += _dead_band(zeta - baseline.mean_zeta, self.min_change_zeta * baseline.mean_zeta) / sz
+                acc[4] += zeta / baseline.mean_zeta - 1.0  # r_zeta
+                acc[6] += 1
             self._t_last = t_s
         if self._pending:
             alarm = self._pending.pop(0)
         return alarm
 
     def _close_interval(self, t_end: float, confirm: Callable[[str], bool | None] | None) -> None:
-        n, sdf, sdz, srf, srz, srpm = self._acc
+        n, sdf, sdz, srf, srz, srpm, nz = self._acc
         if n == 0:
             return
         rpm = srpm / n
-        for kind, d_mean, r_mean in ((FREQUENCY, sdf / n, srf / n), (DAMPING, sdz / n, srz / n)):
+        channels = [(FREQUENCY, sdf / n, srf / n)] + ([(DAMPING, sdz / nz, srz / nz)] if nz else [])
+        for kind, d_mean, r_mean in channels:
             z = min(max(d_mean * self._scale, -self.z_clip), self.z_clip)
             S = self._S[kind]
             S[0] = min(max(0.0, S[0] + z - self.k), self._s_max)  # S+ = max(0, S+ + z - k)
@@ -513,8 +523,10 @@ class ChangeDetector:
             det.withheld = {k: int(data.get("withheld", {}).get(k, 0)) for k in KINDS}
             det._t_open = data.get("t_open")
             det._t_last = data.get("t_last")
-            acc = data.get("acc", [0, 0.0, 0.0, 0.0, 0.0, 0.0])
-            det._acc = [int(acc[0])] + [float(x) for x in acc[1:]]
+            acc = list(data.get("acc", [0, 0.0, 0.0, 0.0, 0.0, 0.0, 0]))
+            if len(acc) == 6:  # saved before the damping had its own count: every sample counted for both
+                acc.append(acc[0])
+            det._acc = [int(acc[0])] + [float(x) for x in acc[1:6]] + [int(acc[6])]
         except (KeyError, TypeError) as err:
             raise ConfigError(f"ChangeDetector.from_dict: saved state is incomplete or malformed ({err!r})") from err
         return det
