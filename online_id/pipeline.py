@@ -489,12 +489,12 @@ class Pipeline:
 
     def _baseline_for(self, speed: float, load: float, learning: bool = False) -> BandStats | None:
         """What an estimate is compared with: a learned cell or the pooled baseline of the learned cells;
-        before any cell is learned, the cell's own first ``freeze_count`` estimates (frozen) once it holds
-        them, else the pool of such cells (provisional: for detection their spread is doubled,
-        for the learning check, ``learning``, it is not)."""
+        before any cell is learned, the cell's own first estimates (frozen: ``provisional_count`` of them,
+        then ``freeze_count``) once it holds them, else the pool of such cells (provisional: for detection
+        their spread is doubled, for the learning check, ``learning``, it is not)."""
         stats = self.baseline.lookup(speed, load)
         if stats is None:
-            n = self.baseline.freeze_count
+            n = self.baseline.provisional_count
             stats = self.baseline.cell(speed, load, frozen=True)
             if stats is None or stats.count < n:
                 stats = self.baseline.pooled(speed, load, min_n=n)

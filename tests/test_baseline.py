@@ -239,6 +239,36 @@ def test_a_change_while_learning_cannot_creep_into_what_it_is_checked_with(seed,
     assert again.cell(1500.0, 0.0, frozen=True).as_dict() == frozen.as_dict()
 
 
+@pytest.mark.parametrize("seed,f0", [(5, 18.0), (6, 29.0)])
+def test_a_cell_of_a_few_estimates_is_a_provisional_reference_with_a_widened_spread(seed, f0):
+    """A plateau too short for the ten estimates of a frozen reference still leaves one: the first
+    provisional_count estimates, frozen, with their spread (and its floor) widened by
+    sqrt(freeze_count / n); the first ten replace it once the cell holds them."""
+    rng = np.random.default_rng(seed)
+    base = Baseline(min_count=20)
+    assert base.provisional_count == 3 and base.freeze_count == 10
+    f = f0 * (1 + 0.003 * rng.standard_normal(12))
+    for k, fk in enumerate(f[:2]):
+        base.learn(speed_rpm=1500.0, f0_hz=fk, zeta=0.05)
+    assert base.pooled(2500.0, min_n=base.provisional_count) is None
+    for fk in f[2:6]:
+        base.learn(speed_rpm=1500.0, f0_hz=fk, zeta=0.05)
+    ref = base.cell(1500.0, frozen=True)
+    raw = max(np.std(f[:3], ddof=1), base.min_rel_std_f * f[:3].mean())
+    assert ref.count == 3 and ref.mean_f == pytest.approx(f[:3].mean(), rel=1e-12)
+    assert ref.std_f == pytest.approx(raw * np.sqrt(10 / 3), rel=1e-9)
+    pool = base.pooled(2500.0, min_n=base.provisional_count)
+    assert pool is not None and pool.mean_f == pytest.approx(f[:3].mean(), rel=1e-12)
+    assert base.cell(1500.0).count == 6  # the running statistics go on
+    for fk in f[6:]:
+        base.learn(speed_rpm=1500.0, f0_hz=fk, zeta=0.05)
+    ref = base.cell(1500.0, frozen=True)
+    assert ref.count == 10 and ref.mean_f == pytest.approx(f[:10].mean(), rel=1e-12)
+    assert ref.std_f == pytest.approx(max(np.std(f[:10], ddof=1), base.min_rel_std_f * f[:10].mean()), rel=1e-9)
+    again = Baseline.from_dict(json.loads(json.dumps(base.to_dict())))
+    assert again.cell(1500.0, frozen=True).as_dict() == ref.as_dict()
+
+
 # -- the damping of a pooled baseline: a measured tolerance, and a learning check that leaves it out ------------
 
 

@@ -59,7 +59,12 @@ learning is checked against its own first ``freeze_count`` estimates, frozen
 not against its running statistics: a change that comes while it learns
 would otherwise creep into them estimate by estimate (each within the
 tolerance of those before, the fit window lags the change by up to 10 s)
-and widen the tolerance as it goes.
+and widen the tolerance as it goes. A plateau of well under a minute gives a
+cell fewer than ``freeze_count`` estimates (learning starts ``settle_s``
+into it): its first ``provisional_count`` estimates are frozen at once and
+serve as a provisional reference, their spread widened by
+:math:`\sqrt{N_\text{freeze} / N}` (a few strongly correlated estimates
+under-state it), until the first ``freeze_count`` replace them.
 """
 
 from __future__ import annotations
@@ -161,7 +166,7 @@ class _Welford:
         self.source = source  # the run it was learned from
         self.reference = reference  # learned from a reference run (relearn --from)
         self.rejected = rejected  # estimates not learned: they disagreed with the baselines
-        self.frozen = frozen  # [n, mean_f, m2_f, mean_z, m2_z] at freeze_count: what later estimates are checked with
+        self.frozen = frozen  # [n, ...] at provisional_count, then freeze_count: what later estimates are checked with
         self.unc_z = unc_z  # running mean of the estimator's own damping uncertainty
 
     def distance(self, load_nm: float) -> float:
@@ -215,6 +220,12 @@ class Baseline:
         Width of a load cell [Nm]: an estimate is learned into the cell of
         its speed band whose load is within half of it, and compared with a
         learned cell whose load is within all of it.
+    freeze_count
+        Estimates of a learning cell frozen as the reference of those still
+        to be learned (default ``min_count / 2``).
+    provisional_count
+        Estimates frozen as a provisional reference before ``freeze_count``
+        (a short plateau), with a widened spread (see the module notes).
     """
 
     def __init__(
@@ -228,6 +239,7 @@ class Baseline:
         pool_tolerance_f: float = 0.005,
         pool_tolerance_zeta: float = 0.10,
         freeze_count: int | None = None,
+        provisional_count: int = 3,
     ) -> None:
         self.band_rpm = _positive("band_rpm", band_rpm)
         self.min_count = integer("Baseline", "min_count", min_count, minimum=2)
@@ -238,6 +250,8 @@ class Baseline:
         self.pool_tolerance_zeta = number("Baseline", "pool_tolerance_zeta", pool_tolerance_zeta, strict=False)
         self.freeze_count = integer("Baseline", "freeze_count",
                                     math.ceil(self.min_count / 2) if freeze_count is None else freeze_count, minimum=2)
+        self.provisional_count = min(integer("Baseline", "provisional_count", provisional_count, minimum=2),
+                                     self.freeze_count)
         self._bands: dict[int, list[_Welford]] = {}
 
     def key(self, speed_rpm: float) -> int:
@@ -280,8 +294,9 @@ class Baseline:
         elif source and source not in cell.source.split(", ") and cell.n < self.min_count:
             cell.source = f"{cell.source}, {source}" if cell.source else source
         cell.add(float(f0_hz), float(zeta), float(load_nm), float(f0_std_hz), float(zeta_std))
-        if cell.frozen is None and cell.n >= self.freeze_count:
-            cell.freeze()
+        if cell.n == self.provisional_count or (cell.n >= self.freeze_count and
+                                                 (cell.frozen is None or cell.frozen[0] < self.freeze_count)):
+            cell.freeze()  # a provisional reference first, then the first freeze_count estimates
 
     def reject(self, *, speed_rpm: float, load_nm: float = 0.0) -> None:
         """Count an estimate that was not learned into its cell because it disagreed with the baselines."""
@@ -312,6 +327,13 @@ class Baseline:
             n, mean_f, m2_f, mean_z, m2_z = b.frozen
         std_f = math.sqrt(max(m2_f, 0.0) / (n - 1))
         std_z = math.sqrt(max(m2_z, 0.0) / (n - 1))
+        if frozen and n < self.freeze_count:
+            # a provisional reference of fewer estimates than freeze_count (a plateau of well under a
+            # minute): a few strongly correlated estimates under-state the spread, widen it by
+            # sqrt(freeze_count / n) (its floor too, below)
+            widen = math.sqrt(self.freeze_count / n)
+            std_f = max(std_f, self.min_rel_std_f * abs(mean_f)) * widen
+            std_z = max(std_z, self.min_rel_std_zeta * abs(mean_z)) * widen
         kind = "learning" if b.n < self.min_count else "reference" if b.reference else "learned"
         return BandStats(
             mean_f,
