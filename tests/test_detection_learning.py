@@ -22,11 +22,11 @@ from online_id.pipeline import run_bench_data
 from online_id.records import AlertKind
 
 
-def _plant(seed):
+def _plant(seed, points=2):
     rng = np.random.default_rng([seed, 9])
     plant = ev.random_plant(rng)
     speeds = ev.usable_speeds(plant)
-    return plant, [float(s) for s in rng.choice(speeds, size=2, replace=False)]
+    return plant, [float(s) for s in rng.choice(speeds, size=points, replace=False)]
 
 
 @pytest.mark.slow
@@ -54,13 +54,6 @@ def test_a_fault_during_learning_is_never_absorbed(seed):
             assert abs(c.mean_f / first[0].mean_f - 1.0) < 0.02, c
 
 
-def _plant3(seed):
-    rng = np.random.default_rng([seed, 9])
-    plant = ev.random_plant(rng)
-    speeds = ev.usable_speeds(plant)
-    return plant, [float(s) for s in rng.choice(speeds, size=3, replace=False)]
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [25, 26])
 def test_plateaus_too_short_to_learn_a_cell_still_keep_a_fault_out(seed):
@@ -68,7 +61,7 @@ def test_plateaus_too_short_to_learn_a_cell_still_keep_a_fault_out(seed):
     20 s into a plateau), a 15 % stiffness loss 2 s before the bench moves to a third point: the first
     estimates of the cells learned so far serve as a provisional reference, the fault is alarmed and the
     third point's cell does not learn it (it did before: no alarm at all, the new cell learned -7.8 %)."""
-    plant, (a, b, c) = _plant3(seed)
+    plant, (a, b, c) = _plant(seed, 3)
     ramp = BenchScenario().ramp_s
     t_fault = 35.0 + ramp + 38.0 - 2.0
     sc = dataclasses.replace(BenchScenario(), seed=seed, **plant,
