@@ -158,3 +158,30 @@ def test_damping_spread_and_change_of_a_run():
     assert 1.0 < s["spread_pct"] < 3.0 and 45.0 < s["change_pct"] < 55.0
     assert ev.RunResult("fault-free", 1, 10.0, 25.0, 0.05, []).zeta_summary() == {"spread_pct": None,
                                                                                    "change_pct": None}
+
+
+def test_an_alarm_of_the_earlier_run_of_family_b_is_a_false_alarm_and_is_acknowledged():
+    """Family (b) hands on the state of an earlier healthy run: an alarm that run raises counts as a false
+    alarm of the run (it was not counted at all), and it is acknowledged as an operator would, so the
+    later run does not start with it latched (which kept every later alarm of its kind from being raised)."""
+    from types import SimpleNamespace
+
+    from online_id.records import AlertKind
+
+    acks = []
+    pipe = SimpleNamespace(alerts=[], alerts_total=0, detector=SimpleNamespace(active=None),
+                           on_command=lambda cmd, t: acks.append(t))
+    res = ev.RunResult("stiffness -10 %", 1, 0.0, 20.0, 0.05, [])
+    hook = ev._earlier_alarms(res)
+    hook(pipe, 10.0, [])
+    drift = SimpleNamespace(t_s=12.0, kind=AlertKind.FREQ_DRIFT, severity=1, message="warning")
+    other = SimpleNamespace(t_s=12.0, kind=AlertKind.INPUT_FAULT, severity=1, message="input fault")
+    pipe.alerts += [drift, other]
+    pipe.alerts_total = 2
+    pipe.detector.active = drift
+    hook(pipe, 12.0, [])
+    assert res.false_alarms == 1 and res.alarms[0]["earlier"] is True
+    hook(pipe, 30.0, [])
+    assert acks == []
+    hook(pipe, 42.5, [])
+    assert acks == [42.5]

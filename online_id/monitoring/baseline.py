@@ -63,7 +63,7 @@ and widen the tolerance as it goes. A plateau of well under a minute gives a
 cell fewer than ``freeze_count`` estimates (learning starts ``settle_s``
 into it): its first ``provisional_count`` estimates are frozen at once and
 serve as a provisional reference, their spread widened by
-:math:`\sqrt{N_\text{freeze} / N}` (a few strongly correlated estimates
+:math:`\\sqrt{N_\\text{freeze} / N}` (a few strongly correlated estimates
 under-state it), until the first ``freeze_count`` replace them.
 """
 
@@ -358,8 +358,11 @@ class Baseline:
 
         The learned cell of the speed band nearest the load (within
         ``load_band_nm``); else one of a learned adjacent band (the one whose
-        centre is nearer ``speed_rpm`` when both qualify); else the pooled
-        baseline of all learned cells (:meth:`pooled`); else None.
+        centre is nearer ``speed_rpm`` when both qualify); else, once a cell
+        is learned, the pooled baseline of the learned cells and of those
+        still learning that hold a provisional reference (:meth:`pooled` with
+        ``provisional_count``: a cell at another load may already show how
+        the resonance moves with it); else None.
         """
         if not (math.isfinite(speed_rpm) and math.isfinite(load_nm)):
             return None
@@ -371,7 +374,11 @@ class Baseline:
             c = self._ready_cell(j, load_nm)
             if c is not None:
                 return self._stats(j, c)
-        return self.pooled(speed_rpm, load_nm)
+        if not any(c.n >= self.min_count for cells in self._bands.values() for c in cells):
+            return None
+        # the cells still learning join the pool with their frozen first estimates: a point at another load
+        # may already show how the resonance moves with it (backlash), which one learned cell cannot
+        return self.pooled(speed_rpm, load_nm, min_n=self.provisional_count)
 
     def pooled(self, speed_rpm: float, load_nm: float = 0.0, min_n: int | None = None) -> BandStats | None:
         """The baseline of all learned cells for a cell not learned yet (kind ``"pooled"``), or None.
