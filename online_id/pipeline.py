@@ -61,6 +61,7 @@ WINDOW = "window"  # worker lane of the window refits and multi-start checks
 PHYSICAL = "physical"  # worker lane of the physical-parameter fit
 PENDING = None  # a multi-start check is running in the worker: decide later
 VERIFY_FRESH_S = 5.0  # a multi-start check older than this is not used for a decision
+STEADY_S = 5.0  # learning needs the frequency estimate this long ago within the dead band (or 3 own stds)
 SPREAD_RATIO_REPORTED = 5.0  # a learned spread this many times the estimator's own uncertainty is reported
 
 
@@ -100,6 +101,7 @@ class Pipeline:
                                        min_change_f=d.min_freq_change_pct / 100.0,
                                        min_change_zeta=d.min_damping_change_pct / 100.0)
         self._healthy_since: float | None = None  # start of the current healthy stretch (settle_s)
+        self._recent_f0: deque[tuple[float, float]] = deque()  # (t_s, f0) of the healthy stretch, STEADY_S back
         self._healthy_rpm: float | None = None  # engine speed of the last healthy estimate
         self._references: dict[int, np.ndarray] = {}  # per baseline band: a window solution it was learned from
         self._next_learn: float | None = None
@@ -397,6 +399,7 @@ class Pipeline:
         self._next_learn = None
         self._next_alarm_repeat = -math.inf
         self._healthy_since = None  # settle again before learning or detecting
+        self._recent_f0.clear()
         self.events.append(Event(t_s, "time", message, {"time_jumps": self.counters.time_jumps}))
         out.append(self.status(t_s))
 
@@ -450,7 +453,11 @@ class Pipeline:
         # after the estimate becomes healthy at another speed than it last was
         if not healthy:
             self._healthy_since = None
+            self._recent_f0.clear()
         else:
+            self._recent_f0.append((t_s, est.f0_hz))
+            while self._recent_f0 and self._recent_f0[0][0] < t_s - STEADY_S - 1.0:
+                self._recent_f0.popleft()
             if self._healthy_since is None or t_s < self._healthy_since:
                 same = (self._healthy_rpm is not None
                         and abs(speed - self._healthy_rpm) <= self.settings.model.max_speed_span_rpm)
@@ -467,7 +474,8 @@ class Pipeline:
             learnable = t_s - self._healthy_since >= d.settle_s
         if self._next_learn is None or t_s < self._next_learn - 10.0:
             self._next_learn = t_s
-        if healthy and learnable and self.detector.active is None and t_s >= self._next_learn:
+        if (healthy and learnable and self.detector.active is None and t_s >= self._next_learn
+                and self._steady(est, t_s)):
             self._next_learn = t_s + 1.0  # about one independent-ish estimate per second
             est = self._learn(est, t_s, speed, load)
             load = est.load_nm
@@ -486,6 +494,17 @@ class Pipeline:
             # a latched alarm is repeated on CAN once a second until acknowledged (not logged again)
             self._next_alarm_repeat = t_s + 1.0
             out.append(self._alert_out(self.detector.active, t_s))
+
+    def _steady(self, est: OnlineEstimate, t_s: float) -> bool:
+        """Whether the frequency estimate stood still over the last ``STEADY_S``: it is within the dead band
+        (or three of its own standard deviations) of the estimate then. A baseline is learned from steady
+        estimates only: a change of the driveline shows first as estimates that move while the fit window
+        takes it in (for about the window's length), and a cell that learns them takes in the change."""
+        then = next((f for t, f in self._recent_f0 if t >= t_s - STEADY_S - 1e-6), None)
+        if then is None or self._recent_f0[0][0] > t_s - STEADY_S + 0.5:
+            return False  # not yet STEADY_S of healthy estimates
+        std = est.f0_std_hz if math.isfinite(est.f0_std_hz) else 0.0
+        return abs(est.f0_hz - then) <= max(self.detector.min_change_f * abs(then), 3.0 * std)
 
     def _baseline_for(self, speed: float, load: float, learning: bool = False) -> BandStats | None:
         """What an estimate is compared with: a learned cell or the pooled baseline of the learned cells;
