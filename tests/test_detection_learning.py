@@ -54,6 +54,18 @@ def test_a_fault_during_learning_is_never_absorbed(seed):
             assert abs(c.mean_f / first[0].mean_f - 1.0) < 0.02, c
 
 
+def _tour_with_fault(seed, durations, t_fault):
+    """Three random points of ``durations`` [s] in turn with a 15 % stiffness loss at ``t_fault``, fed through
+    the pipeline: (pipeline, the three speeds, the truth's f0)."""
+    plant, speeds = _plant(seed, 3)
+    sc = dataclasses.replace(BenchScenario(), seed=seed, **plant,
+                             operating_points=tuple(OperatingPoint(s, d) for s, d in zip(speeds, durations)),
+                             faults=(Fault(t_fault, stiffness_factor=0.85),))
+    rec = simulate_bench(sc)
+    settings = ev.settings_for(ev.RunSpec("x", seed, sc))
+    return run_bench_data(rec.to_data("tour"), settings, run_label="this run"), speeds, rec.truth["f0_hz"]
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [25, 26])
 def test_plateaus_too_short_to_learn_a_cell_still_keep_a_fault_out(seed):
@@ -61,17 +73,8 @@ def test_plateaus_too_short_to_learn_a_cell_still_keep_a_fault_out(seed):
     20 s into a plateau), a 15 % stiffness loss 2 s before the bench moves to a third point: the first
     estimates of the cells learned so far serve as a provisional reference, the fault is alarmed and the
     third point's cell does not learn it (it did before: no alarm at all, the new cell learned -7.8 %)."""
-    plant, (a, b, c) = _plant(seed, 3)
-    ramp = BenchScenario().ramp_s
-    t_fault = 35.0 + ramp + 38.0 - 2.0
-    sc = dataclasses.replace(BenchScenario(), seed=seed, **plant,
-                             operating_points=(OperatingPoint(a, 35.0), OperatingPoint(b, 38.0),
-                                               OperatingPoint(c, 55.0)),
-                             faults=(Fault(t_fault, stiffness_factor=0.85),))
-    rec = simulate_bench(sc)
-    settings = ev.settings_for(ev.RunSpec("x", seed, sc))
-    pipe = run_bench_data(rec.to_data("short"), settings, run_label="this run")
-    f0 = rec.truth["f0_hz"]
+    t_fault = 35.0 + BenchScenario().ramp_s + 38.0 - 2.0
+    pipe, (a, b, c), f0 = _tour_with_fault(seed, (35.0, 38.0, 55.0), t_fault)
     assert all(x.count < 10 for x in pipe.baseline.bands if not (x.band[0] <= c < x.band[1])), pipe.baseline.bands
     drift = [x for x in pipe.alerts if x.kind == AlertKind.FREQ_DRIFT]
     assert drift and drift[0].t_s > t_fault, f"plant {seed} (f0 {f0:.1f} Hz): no alarm; {list(pipe.events)[-8:]}"
@@ -89,17 +92,8 @@ def test_a_cell_does_not_learn_the_estimates_that_move_while_the_window_takes_in
     window's length the estimates move from the old resonance to the new; a cell learned only from steady
     estimates keeps them out (it learned them before: the next point's pooled baseline held the fault's
     transition and its spread, and the alarm came 57 s after the fault on plant 11704 of family (a))."""
-    plant, (a, b, c) = _plant(seed, 3)
-    ramp = BenchScenario().ramp_s
-    t_fault = 40.0 + ramp + 30.0
-    sc = dataclasses.replace(BenchScenario(), seed=seed, **plant,
-                             operating_points=(OperatingPoint(a, 40.0), OperatingPoint(b, 36.0),
-                                               OperatingPoint(c, 45.0)),
-                             faults=(Fault(t_fault, stiffness_factor=0.85),))
-    rec = simulate_bench(sc)
-    settings = ev.settings_for(ev.RunSpec("x", seed, sc))
-    pipe = run_bench_data(rec.to_data("steady"), settings, run_label="this run")
-    f0 = rec.truth["f0_hz"]
+    t_fault = 40.0 + BenchScenario().ramp_s + 30.0
+    pipe, (a, b, c), f0 = _tour_with_fault(seed, (40.0, 36.0, 45.0), t_fault)
     first = [x for x in pipe.baseline.bands if x.band[0] <= a < x.band[1]]
     assert first, pipe.baseline.bands
     for x in pipe.baseline.bands:
