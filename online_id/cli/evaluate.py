@@ -92,19 +92,25 @@ def plot(results: list[ev.RunResult], path: Path) -> None:
     plt = pyplot()
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(13, 4.8))
-    cases = [c[0] for c in ev.FAULT_CASES if any(r.case == c[0] for r in results)]
-    for i, case in enumerate(cases):
-        rs = [r for r in results if r.case == case]
+    labels = list(dict.fromkeys(c[0] for c in ev.FAULT_CASES + ev.FAMILY_CASES))
+    labels.sort(key=lambda c: (not c.startswith("stiffness"), abs(float(c.split()[1])) if c.startswith("s") else 0))
+    groups = [(fam, case) for fam in ev.FAMILIES for case in labels
+              if any(r.case == case and r.family == fam for r in results)]
+    several = len({fam for fam, _ in groups}) > 1
+    cases = [f"({fam}) {case}" if several else case for fam, case in groups]
+    for i, (fam, case) in enumerate(groups):
+        rs = [r for r in results if r.case == case and r.family == fam]
         w = [r.warning_delay_s for r in rs if r.warning_delay_s is not None]
         f = [r.fault_delay_s for r in rs if r.fault_delay_s is not None]
         ax1.scatter(np.full(len(w), i - 0.1), w, color="tab:orange", label="warning" if i == 0 else None)
         ax1.scatter(np.full(len(f), i + 0.1), f, color="tab:red", marker="s", label="fault level" if i == 0 else None)
         missed = len(rs) - len(w)
         if missed:
-            ax1.annotate(f"{missed} missed", (i, 0), ha="center", color="k")
+            ax1.annotate(f"{missed} of {len(rs)}\nmissed", (i, 0.02), xycoords=("data", "axes fraction"),
+                         ha="center", va="bottom", color="k", fontsize=8)
     ax1.axhline(20.0, color="grey", ls=":", lw=1)
     ax1.axhline(60.0, color="grey", ls="--", lw=1)
-    ax1.set_xticks(range(len(cases)), cases, rotation=20)
+    ax1.set_xticks(range(len(cases)), cases, rotation=30 if several else 20, ha="right" if several else "center")
     ax1.set_ylabel("detection delay [s]")
     ax1.set_title("delay from the fault to the alarm (dotted 20 s, dashed 60 s)")
     if cases:
@@ -120,6 +126,9 @@ def plot(results: list[ev.RunResult], path: Path) -> None:
             labelled.add(gap)
     if labelled:
         ax2.legend(loc="center right")
+    else:
+        ax2.text(0.5, 0.5, "no fault-free runs in these results", ha="center", va="center",
+                 transform=ax2.transAxes, color="grey")
     ax2.set_xlabel("valid estimates, one per second [min]")
     ax2.set_ylabel("f0 error [%]")
     ax2.set_title("fault-free runs: f0 error of the valid estimates")
