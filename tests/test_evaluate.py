@@ -185,3 +185,26 @@ def test_an_alarm_of_the_earlier_run_of_family_b_is_a_false_alarm_and_is_acknowl
     assert acks == []
     hook(pipe, 42.5, [])
     assert acks == [42.5]
+
+
+@pytest.mark.parametrize("seed,family,invalid_s", [(1701, "a", 12.0), (1702, "b", 17.0)])
+def test_time_to_a_valid_estimate_after_each_change_of_operating_point(seed, family, invalid_s):
+    """The summary's revalidation time: from a run's 1 Hz trace of valid estimates and its scenario's points
+    (rebuilt from the seed), the time from each ramp's start to the first valid estimate after the gap."""
+    spec = ev.family_spec(seed, "stiffness -10 %", family)
+    points = spec.scenario.operating_points
+    starts, t = [], 0.0
+    for p in points[:-1]:
+        t += p.duration_s
+        starts.append(t)
+        t += spec.scenario.ramp_s
+    end = t + points[-1].duration_s
+    trace = [[float(k), 0.05] for k in range(10, int(end))
+             if not any(s + 2.0 <= k < s + invalid_s for s in starts)]  # valid 2 s into each ramp, then not
+    res = ev.RunResult("stiffness -10 %", seed, end, 20.0, 0.05, [], zeta_trace=trace, family=family)
+    back = ev.revalid_after_changes(res)
+    assert len(back) == len(starts)
+    assert all(invalid_s <= b < invalid_s + 1.0 for b in back), (back, starts)
+    summary = ev.summarize([res, ev.RunResult("fault-free", 1, 60.0, 20.0, 0.05, [])])
+    assert summary["revalid_after_change_s"]["changes"] == len(starts)
+    assert summary["revalid_after_change_s"]["median"] == pytest.approx(float(np.median(back)))

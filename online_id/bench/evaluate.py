@@ -420,6 +420,36 @@ def summarize(results: list[RunResult]) -> dict[str, Any]:
             "by_plant": {kind: _detections(sub) for kind in PLANT_TYPES
                          if (sub := [r for r in rs if ("backlash" in r.effects) == (kind == "backlash")])},
         })
+    back = [t for r in results for t in revalid_after_changes(r)]
+    out["revalid_after_change_s"] = ({"changes": len(back), "median": float(np.median(back)),
+                                      "p90": float(np.quantile(back, 0.9)), "max": float(max(back))}
+                                     if back else None)
+    return out
+
+
+def revalid_after_changes(res: RunResult, gap_s: float = 1.5, within_s: float = 8.0) -> list[float]:
+    """Seconds from the start of each change of operating point to the estimate's first valid estimate
+    after it stopped being valid, in a fault run (from its 1 Hz ``zeta_trace`` of valid estimates and the
+    scenario's operating points, rebuilt from the seed; fault-free runs keep no trace: none).
+
+    The invalid stretch is the first gap of more than ``gap_s`` in the trace that begins within
+    ``within_s`` of the change (the estimate stays valid for the first moments of a ramp).
+    """
+    if res.case == "fault-free" or not res.zeta_trace:
+        return []
+    spec = fault_spec(res.seed, res.case) if res.family == "c" else family_spec(res.seed, res.case, res.family)
+    t = np.asarray([p[0] for p in res.zeta_trace], dtype=float)
+    out, t_change = [], 0.0
+    for point in spec.scenario.operating_points[:-1]:
+        t_change += point.duration_s
+        i = max(int(np.searchsorted(t, t_change)) - 1, 0)
+        for j in range(i, t.size - 1):
+            if t[j] > t_change + within_s:
+                break
+            if t[j + 1] - t[j] > gap_s:
+                out.append(float(t[j + 1] - t_change))
+                break
+        t_change += spec.scenario.ramp_s
     return out
 
 

@@ -75,6 +75,11 @@ def table(summary: dict) -> str:
         "| with backlash: detected, median [s] | without backlash: detected, median [s] |",
         "|---|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
+    back = summary.get("revalid_after_change_s")
+    if back:
+        lines[1:1] = ["", f"After a change of operating point the estimate was valid again {back['median']:.1f} s "
+                      f"after the ramp began (median of {back['changes']} changes in the fault runs; 90 % within "
+                      f"{back['p90']:.1f} s, at most {back['max']:.1f} s)."]
     for r in summary["faults"]:
         by = r.get("by_plant", {})
         plants = " | ".join(f"{p['detected']}/{p['runs']}, {fmt(p['warning_delay_s_median'], '.1f')}" if p else "-"
