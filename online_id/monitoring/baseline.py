@@ -6,7 +6,7 @@ An operating point of an engine is a speed and a torque, and the apparent
 driveline resonance can depend on both: with backlash in the coupling and a
 test torque that reverses the shaft torque, the share of time the shaft
 spends in the gap -- and with it the linearised stiffness -- depends on the
-mean load (about 0.1-0.3 % in :math:`f_0` per Nm on the simulated benches of
+mean load (about 0.1-0.5 % in :math:`f_0` per Nm on the simulated benches of
 ``online-id evaluate``, where the load drifts by several Nm as the engine's
 friction changes with temperature); progressive (rubber) couplings stiffen
 with torque. Each speed band therefore keeps *cells* by load, the mean dyno
