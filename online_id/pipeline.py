@@ -510,15 +510,16 @@ class Pipeline:
         """What an estimate is compared with: a learned cell or the pooled baseline of the learned cells;
         before any cell is learned, the cell's own first estimates (frozen: ``provisional_count`` of them,
         then ``freeze_count``) once it holds them, else the pool of such cells (provisional: for detection
-        their spread is doubled, for the learning check, ``learning``, it is not)."""
+        the pool's spread is doubled, for the learning check, ``learning``, it is not)."""
         stats = self.baseline.lookup(speed, load)
         if stats is None:
             n = self.baseline.provisional_count
             stats = self.baseline.cell(speed, load, frozen=True)
             if stats is None or stats.count < n:
                 stats = self.baseline.pooled(speed, load, min_n=n)
-            elif not learning:
-                stats = dataclasses.replace(stats, std_f=2.0 * stats.std_f, std_zeta=2.0 * stats.std_zeta)
+            # the cell's own first estimates serve as they are (their spread is widened while they are
+            # fewer than freeze_count); the pool of other cells is doubled for detection: it stands for a
+            # point it has not seen
             if stats is not None and stats.kind == "pooled" and not learning:
                 stats = dataclasses.replace(stats, std_f=2.0 * stats.std_f, std_zeta=2.0 * stats.std_zeta)
         return stats
