@@ -512,17 +512,16 @@ class Pipeline:
         then ``freeze_count``) once it holds them, else the pool of such cells (provisional: for detection
         the pool's spread is doubled, for the learning check, ``learning``, it is not)."""
         stats = self.baseline.lookup(speed, load)
-        if stats is None:
-            n = self.baseline.provisional_count
-            stats = self.baseline.cell(speed, load, frozen=True)
-            if stats is None or stats.count < n:
-                stats = self.baseline.pooled(speed, load, min_n=n)
-            # the cell's own first estimates serve as they are (their spread is widened while they are
-            # fewer than freeze_count); the pool of other cells is doubled for detection: it stands for a
-            # point it has not seen
-            if stats is not None and stats.kind == "pooled" and not learning:
-                stats = dataclasses.replace(stats, std_f=2.0 * stats.std_f, std_zeta=2.0 * stats.std_zeta)
-        return stats
+        if stats is not None:
+            return stats
+        n = self.baseline.provisional_count
+        own = self.baseline.cell(speed, load, frozen=True)
+        if own is not None and own.count >= n:
+            return own  # as it is: its spread is widened while it holds fewer than freeze_count estimates
+        pool = self.baseline.pooled(speed, load, min_n=n)
+        if pool is not None and not learning:  # for detection, doubled: it stands for a point it has not seen
+            pool = dataclasses.replace(pool, std_f=2.0 * pool.std_f, std_zeta=2.0 * pool.std_zeta)
+        return pool
 
     def _learn(self, est: OnlineEstimate, t_s: float, speed: float, load: float) -> OnlineEstimate:
         """One estimate into the baseline of its cell, unless the cell is learned or the estimate disagrees.

@@ -64,7 +64,7 @@ from online_id.bench.scenario import (
 from online_id.bench.simulate import simulate_bench
 from online_id.config import ModelSettings, Settings
 from online_id.pipeline import COMMAND_ACK, Pipeline, run_bench_data
-from online_id.records import AlertKind, EstimateOut
+from online_id.records import AlertKind, AlertOut, EstimateOut
 
 DRIFT_KINDS = (AlertKind.FREQ_DRIFT, AlertKind.DAMPING_DRIFT)
 FAULT_CASES = (  # (label, stiffness factor, damping factor, expected alarm)
@@ -298,18 +298,13 @@ def run(spec: RunSpec, settings: Settings | None = None) -> RunResult:
     truth = rec.truth
     res = RunResult(spec.case, spec.seed, float(rec.time_s[-1]), truth["f0_hz"], truth["zeta"],
                     [k for k, v in truth["effects"].items() if v is not None], t_fault_s=spec.t_fault_s)
-    seen = [0]
-    open_since: list[float | None] = [None]
+    operator = _Operator()
     n_pub = [0, 0]
     next_err = [0.0]
 
     def on_output(pipe: Pipeline, t_s: float, out: list) -> None:
-        new = pipe.alerts_total - seen[0]
-        seen[0] = pipe.alerts_total
-        for a in pipe.alerts[len(pipe.alerts) - new:] if new else ():
-            if a.kind not in DRIFT_KINDS:
-                continue
-            res.alarms.append({"t_s": a.t_s, "kind": a.kind.name, "severity": a.severity, "message": a.message})
+        for a in operator.new_drift_alarms(pipe):
+            res.alarms.append(_alarm_record(a))
             if spec.t_fault_s is None or a.t_s < spec.t_fault_s:
                 res.false_alarms += 1
             elif a.kind == spec.expect:
@@ -318,8 +313,6 @@ def run(spec: RunSpec, settings: Settings | None = None) -> RunResult:
                     res.warning_delay_s = delay
                 if a.severity >= 2 and res.fault_delay_s is None:
                     res.fault_delay_s = delay
-            if open_since[0] is None:
-                open_since[0] = a.t_s
         est = pipe.last_estimate
         if est is not None and any(isinstance(o, EstimateOut) for o in out):
             n_pub[0] += 1
@@ -330,11 +323,8 @@ def run(spec: RunSpec, settings: Settings | None = None) -> RunResult:
                     res.zeta_trace.append([round(t_s, 1), round(est.zeta, 5)])
                 if spec.t_fault_s is None or t_s < spec.t_fault_s:
                     res.f0_err_pct.append(round(100.0 * (est.f0_hz / res.f0_hz - 1.0), 4))
-        # the operator acknowledges a false alarm after a while (a fault run is left latched)
-        if (spec.t_fault_s is None and open_since[0] is not None and pipe.detector.active is not None
-                and t_s - open_since[0] >= ACK_AFTER_S):
-            pipe.on_command(COMMAND_ACK, t_s)
-            open_since[0] = None
+        if spec.t_fault_s is None:  # a false alarm is acknowledged after a while (a fault run is left latched)
+            operator.acknowledge_if_due(pipe, t_s)
 
     settings = settings or settings_for(spec)
     state = None
@@ -350,26 +340,43 @@ def run(spec: RunSpec, settings: Settings | None = None) -> RunResult:
     return res
 
 
+class _Operator:
+    """The bench operator of a run: reads the pipeline's new drift alarms, and acknowledges a latched one
+    ``ACK_AFTER_S`` after the first alarm since the last acknowledgement."""
+
+    def __init__(self) -> None:
+        self.seen = 0  # pipeline.alerts_total when last read
+        self.open_since: float | None = None
+
+    def new_drift_alarms(self, pipe: Pipeline) -> list[AlertOut]:
+        new = pipe.alerts_total - self.seen
+        self.seen = pipe.alerts_total
+        alarms = [a for a in (pipe.alerts[len(pipe.alerts) - new:] if new else ()) if a.kind in DRIFT_KINDS]
+        if alarms and self.open_since is None:
+            self.open_since = alarms[0].t_s
+        return alarms
+
+    def acknowledge_if_due(self, pipe: Pipeline, t_s: float) -> None:
+        if self.open_since is not None and pipe.detector.active is not None and t_s - self.open_since >= ACK_AFTER_S:
+            pipe.on_command(COMMAND_ACK, t_s)
+            self.open_since = None
+
+
+def _alarm_record(a: AlertOut, **extra: Any) -> dict[str, Any]:
+    return {"t_s": a.t_s, "kind": a.kind.name, "severity": a.severity, "message": a.message, **extra}
+
+
 def _earlier_alarms(res: RunResult) -> Callable[[Pipeline, float, list], None]:
     """``on_output`` of the earlier healthy run of family (b): every drift alarm it raises is a false alarm
     of the run (``"earlier": True``), acknowledged after ``ACK_AFTER_S`` as an operator would, so the state
     handed on carries no alarm latched."""
-    seen = [0]
-    open_since: list[float | None] = [None]
+    operator = _Operator()
 
     def on_output(pipe: Pipeline, t_s: float, out: list) -> None:
-        new = pipe.alerts_total - seen[0]
-        seen[0] = pipe.alerts_total
-        for a in pipe.alerts[len(pipe.alerts) - new:] if new else ():
-            if a.kind in DRIFT_KINDS:
-                res.alarms.append({"t_s": a.t_s, "kind": a.kind.name, "severity": a.severity,
-                                   "message": a.message, "earlier": True})
-                res.false_alarms += 1
-                if open_since[0] is None:
-                    open_since[0] = a.t_s
-        if open_since[0] is not None and pipe.detector.active is not None and t_s - open_since[0] >= ACK_AFTER_S:
-            pipe.on_command(COMMAND_ACK, t_s)
-            open_since[0] = None
+        for a in operator.new_drift_alarms(pipe):
+            res.alarms.append(_alarm_record(a, earlier=True))
+            res.false_alarms += 1
+        operator.acknowledge_if_due(pipe, t_s)
 
     return on_output
 

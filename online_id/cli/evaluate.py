@@ -97,8 +97,8 @@ def plot(results: list[ev.RunResult], path: Path) -> None:
     plt = pyplot()
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(13, 4.8))
-    labels = list(dict.fromkeys(c[0] for c in ev.FAULT_CASES + ev.FAMILY_CASES))
-    labels.sort(key=lambda c: (not c.startswith("stiffness"), abs(float(c.split()[1])) if c.startswith("s") else 0))
+    table = {c[0]: c for c in ev.FAULT_CASES + ev.FAMILY_CASES}  # label -> (label, stiffness factor, ...)
+    labels = sorted(table, key=lambda c: (table[c][1] == 1.0, -table[c][1]))  # losses by size, then damping
     groups = [(fam, case) for fam in ev.FAMILIES for case in labels
               if any(r.case == case and r.family == fam for r in results)]
     several = len({fam for fam, _ in groups}) > 1

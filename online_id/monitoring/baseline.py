@@ -374,7 +374,7 @@ class Baseline:
             c = self._ready_cell(j, load_nm)
             if c is not None:
                 return self._stats(j, c)
-        if not any(c.n >= self.min_count for cells in self._bands.values() for c in cells):
+        if self.learned_range_rpm is None:
             return None
         # the cells still learning join the pool with their frozen first estimates: a point at another load
         # may already show how the resonance moves with it (backlash), which one learned cell cannot
