@@ -88,6 +88,7 @@ def run_case(seed: int, shaft: int | None, magnitude: float, na: int | None = No
     clock = data.notes["clock"]
     truth = spec.disturbance
     first = d.effects[0] if d.effects else None
+    rig_test = next((t for t in d.tests_before if t.name.startswith("rotation orders")), None)
     out = {"seed": seed, "ratios": list(spec.ratios), "names": list(spec.names),
            "true_kind": "clean" if truth is None else "rotation_order_disturbance",
            "true_shaft": None if truth is None else spec.names[truth.shaft],
@@ -100,10 +101,8 @@ def run_case(seed: int, shaft: int | None, magnitude: float, na: int | None = No
            "fit_before": d.error_before.fit_pct, "fit_after": d.error_after.fit_pct,
            "offset_true_s": spec.clock_offset_s, "offset_est_s": clock["offset_s"],
            "drift_true_ppm": spec.clock_drift_ppm, "drift_est_ppm": clock["drift_ppm"],
-           "max_line_ratio": next((t.curve.get("max_ratio", 0.0) for t in d.tests_before
-                                   if t.name.startswith("rotation orders")), None),
-           "max_split_ratio": next((t.curve.get("max_split_ratio", 0.0) for t in d.tests_before
-                                    if t.name.startswith("rotation orders")), None),
+           "max_line_ratio": rig_test.curve.get("max_ratio", 0.0) if rig_test else None,
+           "max_split_ratio": rig_test.curve.get("max_split_ratio", 0.0) if rig_test else None,
            "baseline": [d.baseline.na, d.baseline.nb + d.baseline.delay, d.baseline.nc],
            "candidates": [{k: v for k, v in c.__dict__.items() if k != "params"} | {"params": c.params}
                           for c in d.candidates],
@@ -124,6 +123,14 @@ def _task(args: tuple) -> dict:
     return run_case(*args)
 
 
+def _run_all(tasks: list[tuple], jobs: int) -> list[dict]:
+    """``_task`` of every task, in order, on ``jobs`` processes (in this one when ``jobs`` is 1)."""
+    if jobs > 1:
+        with ProcessPoolExecutor(jobs) as pool:
+            return list(pool.map(_task, tasks))
+    return [_task(t) for t in tasks]
+
+
 def evaluate(cases: int, seed: int, magnitude: float, jobs: int = 1, out: Path | None = None) -> dict:
     """``cases`` clean rigs and ``cases`` rigs per disturbed shaft position (motor, second, last)."""
     tasks = []
@@ -132,12 +139,7 @@ def evaluate(cases: int, seed: int, magnitude: float, jobs: int = 1, out: Path |
         tasks.append((s, None, magnitude))
         for shaft in range(rig_spec(s, None, magnitude).n_shafts):
             tasks.append((s, shaft, magnitude))
-    if jobs > 1:
-        with ProcessPoolExecutor(jobs) as pool:
-            rows = list(pool.map(_task, tasks))
-    else:
-        rows = [_task(t) for t in tasks]
-    rows = [r for r in rows if r["true_kind"] == "clean" or r["true_shaft"] is not None]
+    rows = [r for r in _run_all(tasks, jobs) if r["true_kind"] == "clean" or r["true_shaft"] is not None]
     # shaft index 3 on a 3-shaft rig is the load again: keep each (seed, shaft) once
     seen, uniq = set(), []
     for r in rows:
@@ -160,12 +162,7 @@ def calibrate(cases: int, seed: int, jobs: int = 1, out: Path | None = None) -> 
     95th percentile of these maxima (no effect is fitted: ``max_effects=0``).  Use seeds apart from the
     evaluation's.
     """
-    tasks = [(seed + i, None, 0.0, None, None, NC, 0) for i in range(cases)]
-    if jobs > 1:
-        with ProcessPoolExecutor(jobs) as pool:
-            rows = list(pool.map(_task, tasks))
-    else:
-        rows = [_task(t) for t in tasks]
+    rows = _run_all([(seed + i, None, 0.0, None, None, NC, 0) for i in range(cases)], jobs)
     r = np.array([x["max_line_ratio"] for x in rows if x["max_line_ratio"] is not None], dtype=float)
     r2 = np.array([x["max_split_ratio"] for x in rows if x["max_split_ratio"] is not None], dtype=float)
 

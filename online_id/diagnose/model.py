@@ -137,10 +137,6 @@ class AugmentedFit:
         """
         return self.simulate_windows(data, [(start, data.y.size if stop is None else stop)])
 
-    def simulate_restarts(self, data: DiagnoseData, start: int, horizon: int | None) -> np.ndarray:
-        """Simulation restarted from the measured output every ``horizon`` samples from ``start``."""
-        return self.simulate_windows(data, windows([(start, data.y.size)], horizon))
-
     def simulate_windows(self, data: DiagnoseData, wins: list[tuple[int, int]]) -> np.ndarray:
         """Simulation over each window ``(w0, w1)``, started from the measured output before ``w0``."""
         s = self.structure
