@@ -93,7 +93,8 @@ class Pipeline:
         d = s.detection
         self.tracker = PoleTracker(dt=self.estimator.dt, pulses_per_rev=s.model.pulses_per_rev)
         self.baseline = Baseline(band_rpm=d.band_rpm, min_count=d.min_count, load_band_nm=d.load_band_nm,
-                                 pool_tolerance_f=d.pool_tolerance_pct / 100.0)
+                                 pool_tolerance_f=d.pool_tolerance_pct / 100.0,
+                                 pool_uncertainty_factor=d.pool_uncertainty_factor)
         self.run_label = ""  # the run learned cells are marked with (replay: the log's name)
         self.reference_run = False  # cells learned now are a reference (relearn --from LOG)
         self.detector = ChangeDetector(k=d.k, h_warning=d.h_warning, h_fault=d.h_fault,
@@ -507,35 +508,50 @@ class Pipeline:
         return abs(est.f0_hz - then) <= max(self.detector.min_change_f * abs(then), 3.0 * std)
 
     def _baseline_for(self, speed: float, load: float, learning: bool = False) -> BandStats | None:
-        """What an estimate is compared with: a learned cell or the pooled baseline of the learned cells;
-        before any cell is learned, the cell's own first estimates (frozen: ``provisional_count`` of them,
-        then ``freeze_count``) once it holds them, else the pool of such cells (provisional: for detection
-        the pool's spread is doubled, for the learning check, ``learning``, it is not)."""
-        stats = self.baseline.lookup(speed, load)
-        if stats is not None:
-            return stats
+        """What an estimate is compared with: its own cell, learned, or still learning (or held) with its first
+        estimates (frozen: ``provisional_count`` of them, then ``freeze_count``) once it holds them (the same
+        operating point: a learned cell at another load of the band differs by 0.1-0.5 % per Nm with backlash);
+        else a learned cell of the band at another load or of an adjacent band (:meth:`Baseline.lookup`); else
+        the pooled baseline (for detection the pool's spread is doubled, for the learning check,
+        ``learning``, it is not)."""
         n = self.baseline.provisional_count
         own = self.baseline.cell(speed, load, frozen=True)
         if own is not None and own.count >= n:
             return own  # as it is: its spread is widened while it holds fewer than freeze_count estimates
+        stats = self.baseline.lookup(speed, load)
+        if stats is not None:
+            return stats
         pool = self.baseline.pooled(speed, load, min_n=n)
         if pool is not None and not learning:  # for detection, doubled: it stands for a point it has not seen
             pool = dataclasses.replace(pool, std_f=2.0 * pool.std_f, std_zeta=2.0 * pool.std_zeta)
         return pool
+
+    def _own(self, stats: BandStats, speed: float, load: float) -> bool:
+        """Whether ``stats`` is the baseline of the cell of ``speed`` and ``load`` itself (not the pool's or
+        another band's or load's)."""
+        if stats.kind in ("learning", "held"):
+            return True  # only a cell's own first estimates serve it while it learns (or is held)
+        return (stats.kind in ("learned", "reference") and stats.band[0] <= speed < stats.band[1]
+                and not abs(stats.load_nm - load) > 0.5 * self.baseline.load_band_nm)
 
     def _learn(self, est: OnlineEstimate, t_s: float, speed: float, load: float) -> OnlineEstimate:
         """One estimate into the baseline of its cell, unless the cell is learned or the estimate disagrees.
 
         A cell still learning compares each estimate with what serves it
         (:meth:`_baseline_for`: a learned cell, the pooled baseline, or its
-        own first estimates); an estimate that deviates beyond the dead band
-        plus three spreads is not learned (a change during learning must not
-        be absorbed into the baseline): it only feeds the detector.
+        own first estimates). Where that is the cell's own baseline, an
+        estimate that deviates beyond the dead band plus three spreads is not
+        learned (a change during learning must not be absorbed into the
+        baseline): it only feeds the detector. Where it is another operating
+        point's (the pool, another band or load), the disagreement is
+        ambiguous and the estimate is learned into a *held* cell, which is no
+        baseline of another point until an estimate at an established cell
+        agrees with that cell's own baseline (:meth:`Baseline.release`, see
+        :mod:`~online_id.monitoring.baseline`).
         """
         d = self.settings.detection
         cell = self.baseline.cell(speed, load)
-        if cell is not None and cell.count >= d.min_count:
-            return est  # a learned cell stays fixed until re-learned
+        learned = cell is not None and cell.count >= d.min_count
         # a new cell is learned from the best of several starts, not from whichever of the nearly equal
         # minima of a mismatched model (backlash) the warm-started refits happen to follow
         verified = self._verify("learn", t_s) if cell is None else False
@@ -550,7 +566,16 @@ class Pipeline:
         ref = self._baseline_for(speed, load, learning=True)
         why = (self.baseline.disagrees(ref, est.f0_hz, est.zeta, self.detector.min_change_f,
                                        self.detector.min_change_zeta) if ref is not None else None)
-        if why is not None:
+        own = ref is not None and self._own(ref, speed, load)
+        if why is None and own and ref.kind != "held" and self.baseline.held_count:
+            n = self.baseline.release()
+            self.events.append(Event(t_s, "released", f"{n} held cell(s) released: at {speed:.0f} rpm, "
+                                     f"{load:.1f} Nm the estimate agrees with the cell's own {ref.kind} baseline "
+                                     f"({est.f0_hz:.3f} Hz against {ref.mean_f:.3f} Hz), so the driveline did "
+                                     f"not change since", {"cells": n}))
+        if learned:
+            return est  # a learned cell stays fixed until re-learned
+        if why is not None and own:
             self.baseline.reject(speed_rpm=speed, load_nm=load)
             self._rejected += 1
             if t_s >= self._next_reject_event:
@@ -560,9 +585,14 @@ class Pipeline:
                                          f"({est.f0_hz:.3f} Hz against {ref.mean_f:.3f} +- {ref.std_f:.3f} Hz)",
                                          {"kind": why, "baseline": ref.kind}))
             return est
+        if why is not None and not self.baseline.is_held(speed, load):
+            self.events.append(Event(t_s, "held", f"cell {speed:.0f} rpm, {load:.1f} Nm held: its {why} estimate "
+                                     f"disagrees with the {ref.kind} baseline ({est.f0_hz:.3f} Hz against "
+                                     f"{ref.mean_f:.3f} +- {ref.std_f:.3f} Hz); it serves no other point until an "
+                                     f"established cell agrees with its own", {"kind": why, "baseline": ref.kind}))
         self.baseline.learn(speed_rpm=speed, f0_hz=est.f0_hz, zeta=est.zeta, load_nm=load,
                             f0_std_hz=est.f0_std_hz, zeta_std=est.zeta_std, source=self.run_label,
-                            reference=self.reference_run)
+                            reference=self.reference_run, held=why is not None)
         solution = self.estimator.solution
         if solution is not None:
             self._references[self.baseline.key(speed)] = solution

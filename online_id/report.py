@@ -414,14 +414,15 @@ def plot_versus_speed(path: str | Path, quantity: str, estimates: EstimateSeries
             seen_low.add(tr.cls)
             if tr.cls == "driveline":
                 zoom_values.append(track_y(tr))
+    is_learned = [b.count >= min_count and b.kind != "held" for b in baselines]
     for k, b in enumerate(baselines):
         mean, std = (b.mean_f, b.std_f) if is_f else (b.mean_zeta, b.std_zeta)
-        learned = b.count >= min_count
+        learned = is_learned[k]
         ax.add_patch(Rectangle((b.band[0], mean - 2 * std), b.band[1] - b.band[0], 4 * std,
                                facecolor="tab:green" if learned else "none", alpha=0.25 if learned else 0.8,
                                edgecolor="tab:green", hatch=None if learned else "//", zorder=1,
                                label=("baseline mean +- 2 std" if learned else "baseline (learning)")
-                               if k == 0 or learned != (baselines[k - 1].count >= min_count) else None))
+                               if k == 0 or learned != is_learned[k - 1] else None))
         ax.hlines(mean, b.band[0], b.band[1], color="tab:green", lw=2, zorder=2)
         ax.text(0.5 * (b.band[0] + b.band[1]), mean + 2 * std, f"n={b.count}", ha="center", va="bottom",
                 fontsize=7, color="darkgreen", clip_on=True)

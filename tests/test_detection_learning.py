@@ -55,11 +55,11 @@ def test_a_fault_during_learning_is_never_absorbed(seed):
 
 
 def _tour_with_fault(seed, durations, t_fault):
-    """Three random points of ``durations`` [s] in turn with a 15 % stiffness loss at ``t_fault``, fed through
-    the pipeline: (pipeline, the three speeds, the truth's f0)."""
+    """Three random points of ``durations`` [s] in turn (a fourth duration: back to the first point) with a
+    15 % stiffness loss at ``t_fault``, fed through the pipeline: (pipeline, the three speeds, the truth's f0)."""
     plant, speeds = _plant(seed, 3)
     sc = dataclasses.replace(BenchScenario(), seed=seed, **plant,
-                             operating_points=tuple(OperatingPoint(s, d) for s, d in zip(speeds, durations)),
+                             operating_points=tuple(OperatingPoint(s, d) for s, d in zip(speeds + speeds, durations)),
                              faults=(Fault(t_fault, stiffness_factor=0.85),))
     rec = simulate_bench(sc)
     settings = ev.settings_for(ev.RunSpec("x", seed, sc))
@@ -91,17 +91,27 @@ def test_a_cell_does_not_learn_the_estimates_that_move_while_the_window_takes_in
     """A 15 % stiffness loss just as the second point's cell starts learning (about 30 s into it): for the
     window's length the estimates move from the old resonance to the new; a cell learned only from steady
     estimates keeps them out (it learned them before: the next point's pooled baseline held the fault's
-    transition and its spread, and the alarm came 57 s after the fault on plant 11704 of family (a))."""
-    t_fault = 40.0 + BenchScenario().ramp_s + 30.0
-    pipe, (a, b, c), f0 = _tour_with_fault(seed, (40.0, 36.0, 45.0), t_fault)
+    transition and its spread, and the alarm came 57 s after the fault on plant 11704 of family (a)).
+    The third point is new: where the pool predicts it (a linear plant) the loss is alarmed there; on a plant
+    whose resonance moves with the operating point (28: backlash) the third point's cell is held, no
+    baseline, and the loss is alarmed when the bench is back at the first point."""
+    ramp = BenchScenario().ramp_s
+    t_fault = 40.0 + ramp + 30.0
+    durations = (40.0, 36.0, 45.0, 40.0)
+    pipe, (a, b, c), f0 = _tour_with_fault(seed, durations, t_fault)
     first = [x for x in pipe.baseline.bands if x.band[0] <= a < x.band[1]]
     assert first, pipe.baseline.bands
     for x in pipe.baseline.bands:
-        if x.band[0] <= b < x.band[1]:
+        if x.band[0] <= b < x.band[1] and x.kind != "held":
             assert abs(x.mean_f / first[0].mean_f - 1.0) < 0.02 and x.std_f < 0.01 * x.mean_f, (x, first)
+    for x in pipe.baseline.bands:  # the loss is -6 to -8 % in f0: a cell that holds it is held, no baseline
+        assert x.kind == "held" or abs(x.mean_f / first[0].mean_f - 1.0) < 0.03, x
     drift = [x for x in pipe.alerts if x.kind == AlertKind.FREQ_DRIFT]
     assert drift and drift[0].t_s > t_fault, f"plant {seed} (f0 {f0:.1f} Hz): no alarm; {list(pipe.events)[-8:]}"
-    assert drift[0].t_s - t_fault <= 40.0, f"plant {seed}: alarm {drift[0].t_s - t_fault:.1f} s after the fault"
+    t_back = sum(durations[:3]) + 3 * ramp
+    assert drift[0].t_s - t_fault <= 40.0 or t_back < drift[0].t_s <= t_back + 35.0, (
+        f"plant {seed}: alarm {drift[0].t_s - t_fault:.1f} s after the fault, back at the first point "
+        f"{t_back - t_fault:.1f} s after it")
 
 
 @pytest.mark.slow

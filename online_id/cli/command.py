@@ -143,9 +143,9 @@ def relearn_from(log: str, directory: Path | None, settings) -> int:
     pipe.detector.reset()  # the reference run's own statistics are no change
     pipe.alerts.clear()
     keep(runtime, path)
-    learned = [b for b in pipe.baseline.bands if b.count >= pipe.baseline.min_count]
+    learned = [b for b in pipe.baseline.bands if b.count >= pipe.baseline.min_count and b.kind != "held"]
     print(f"online-id relearn --from {log}: {len(learned)} cells learned "
-          f"({len(pipe.baseline.bands) - len(learned)} still learning), "
+          f"({len(pipe.baseline.bands) - len(learned)} still learning or held), "
           f"state {'updated' if restored else 'written'} in {path}")
     for b in learned:
         print(f"  {b.band[0]:.0f}-{b.band[1]:.0f} rpm, {b.load_nm:.1f} Nm: f0 {b.mean_f:.3f} +- {b.std_f:.3f} Hz, "

@@ -346,7 +346,7 @@ def _stats(x: np.ndarray) -> dict | None:
 
 
 def _band_dict(b: BandStats, min_count: int, learned_t_s: dict[tuple, float] | None) -> dict:
-    out = b.as_dict() | {"learned": b.count >= min_count}
+    out = b.as_dict() | {"learned": b.count >= min_count and b.kind != "held"}
     if learned_t_s is not None:
         out["learned_t_s"] = learned_t_s.get(cell_key(b))
     return out

@@ -65,6 +65,29 @@ into it): its first ``provisional_count`` estimates are frozen at once and
 serve as a provisional reference, their spread widened by
 :math:`\\sqrt{N_\\text{freeze} / N}` (a few strongly correlated estimates
 under-state it), until the first ``freeze_count`` replace them.
+
+**Held cells.** An estimate that disagrees with what another operating
+point's baseline predicts for its own (the pool, or a cell of another
+band or load) is ambiguous: the driveline changed, or its apparent
+resonance moves with the operating point (backlash: up to 15 % between
+operating points on the evaluation's benches). Rejecting it would keep a
+bench whose resonance moves with the operating point at the baseline of its
+first point for good, raising a false alarm at every visit of another. Such
+a cell is learned but *held* (kind ``"held"``): it serves no other cell
+(not in :meth:`lookup` or :meth:`pooled`), only itself, with its own first
+estimates (:meth:`cell` with ``frozen``), until :meth:`release`: the caller
+releases the held cells when an estimate at an established cell (not held)
+agrees with that cell's own baseline -- a change of the driveline shows at
+every operating point and stays, so a later agreement anywhere proves the
+earlier estimates healthy. Held cells that are never released (a real
+change) never become a baseline of another operating point.
+The frequency spread of a pool is widened for the unknown dependence on the
+operating point by ``pool_tolerance_f`` of its mean or, where wider,
+``pool_uncertainty_factor`` times the estimator's own frequency uncertainty:
+on the simulated benches the first estimates at a new point were within
+0.3 % of the pool on every linear plant (own uncertainty 0.03-0.06 %) and
+up to 6 % on plants with backlash (own uncertainty 0.1-0.45 %; the
+deviation mostly within 20 times it).
 """
 
 from __future__ import annotations
@@ -98,8 +121,10 @@ class BandStats:
         ``"learned"`` (a cell learned in this service), ``"reference"`` (a
         cell learned from a reference run, ``online-id relearn --from``),
         ``"pooled"`` (the learned cells pooled, serving a cell not learned
-        yet) or ``"learning"`` (a cell still learning, see
-        :meth:`Baseline.cell`).
+        yet), ``"learning"`` (a cell still learning, see
+        :meth:`Baseline.cell`) or ``"held"`` (a cell that disagreed with the
+        baseline of another operating point, not a reference until
+        :meth:`Baseline.release`).
     source
         The run(s) the statistics were learned from ("" if unknown).
     uncertainty_f
@@ -116,6 +141,11 @@ class BandStats:
     between_zeta
         Of a pooled baseline: the spread of the damping between the pooled
         cells (:meth:`Baseline.pooled`), nan for a cell or a single one.
+    tolerance_f
+        The part of ``std_f`` that widens a pooled baseline beyond
+        ``pool_tolerance_f`` for the dependence on the operating point
+        measured by the estimator's own uncertainty (0 for a cell); the
+        learning check leaves it out (:meth:`Baseline.disagrees`).
     """
 
     mean_f: float
@@ -131,6 +161,7 @@ class BandStats:
     uncertainty_zeta: float = float("nan")
     tolerance_zeta: float = 0.0
     between_zeta: float = float("nan")
+    tolerance_f: float = 0.0
 
     @property
     def spread_ratio(self) -> float:
@@ -155,11 +186,11 @@ class _Welford:
     """Running statistics of one cell: frequency, damping and the mean load."""
 
     __slots__ = ("n", "mean_f", "m2_f", "mean_z", "m2_z", "load", "unc_f", "source", "reference", "rejected",
-                 "frozen", "unc_z")
+                 "frozen", "unc_z", "held")
 
     def __init__(self, n: int = 0, mean_f: float = 0.0, m2_f: float = 0.0, mean_z: float = 0.0, m2_z: float = 0.0,
                  load: float = 0.0, unc_f: float = float("nan"), source: str = "", reference: bool = False,
-                 rejected: int = 0, frozen: list | None = None, unc_z: float = math.nan):
+                 rejected: int = 0, frozen: list | None = None, unc_z: float = math.nan, held: bool = False):
         self.n, self.mean_f, self.m2_f, self.mean_z, self.m2_z = int(n), mean_f, m2_f, mean_z, m2_z
         self.load = load
         self.unc_f = unc_f  # running mean of the estimator's own f0 uncertainty
@@ -168,6 +199,7 @@ class _Welford:
         self.rejected = rejected  # estimates not learned: they disagreed with the baselines
         self.frozen = frozen  # [n, ...] at provisional_count, then freeze_count: what later estimates are checked with
         self.unc_z = unc_z  # running mean of the estimator's own damping uncertainty
+        self.held = held  # disagreed with the baseline of another operating point: serves none until released
 
     def distance(self, load_nm: float) -> float:
         """How far ``load_nm`` is from the cell's load (0 for a cell without one)."""
@@ -192,7 +224,7 @@ class _Welford:
 
     def as_list(self) -> list:
         return [self.n, self.mean_f, self.m2_f, self.mean_z, self.m2_z, self.load, self.unc_f, self.source,
-                self.reference, self.rejected, self.frozen, self.unc_z]
+                self.reference, self.rejected, self.frozen, self.unc_z, self.held]
 
 
 class Baseline:
@@ -212,6 +244,11 @@ class Baseline:
         Relative widening of the pooled baseline's frequency spread for the
         unknown dependence on speed and load (added in quadrature, see
         :meth:`pooled`).
+    pool_uncertainty_factor
+        The pooled frequency spread is widened by at least this many times
+        the estimator's own frequency uncertainty (the mean over the pooled
+        cells' estimates), where that is wider than ``pool_tolerance_f``
+        (see :meth:`pooled`).
     pool_tolerance_zeta
         Relative widening of the pooled damping spread for cells that do not
         hold the estimator's damping uncertainty (states saved before it was
@@ -237,6 +274,7 @@ class Baseline:
         min_rel_std_zeta: float = 0.03,
         load_band_nm: float = 2.0,
         pool_tolerance_f: float = 0.005,
+        pool_uncertainty_factor: float = 10.0,
         pool_tolerance_zeta: float = 0.10,
         freeze_count: int | None = None,
         provisional_count: int = 3,
@@ -247,6 +285,8 @@ class Baseline:
         self.min_rel_std_zeta = _positive("min_rel_std_zeta", min_rel_std_zeta)
         self.load_band_nm = _positive("load_band_nm", load_band_nm)
         self.pool_tolerance_f = number("Baseline", "pool_tolerance_f", pool_tolerance_f, strict=False)
+        self.pool_uncertainty_factor = number("Baseline", "pool_uncertainty_factor", pool_uncertainty_factor,
+                                              strict=False)
         self.pool_tolerance_zeta = number("Baseline", "pool_tolerance_zeta", pool_tolerance_zeta, strict=False)
         self.freeze_count = integer("Baseline", "freeze_count",
                                     math.ceil(self.min_count / 2) if freeze_count is None else freeze_count, minimum=2)
@@ -262,9 +302,11 @@ class Baseline:
         """Speed range of band ``i``: centred on ``i * band_rpm``."""
         return ((i - 0.5) * self.band_rpm, (i + 0.5) * self.band_rpm)
 
-    def _nearest(self, i: int, load_nm: float, within: float, min_n: int = 0) -> _Welford | None:
-        """The cell of band ``i`` with at least ``min_n`` estimates nearest ``load_nm`` within ``within``, or None."""
-        cells = [c for c in self._bands.get(i, ()) if c.n >= min_n and c.distance(load_nm) <= within]
+    def _nearest(self, i: int, load_nm: float, within: float, min_n: int = 0, held: bool = True) -> _Welford | None:
+        """The cell of band ``i`` with at least ``min_n`` estimates nearest ``load_nm`` within ``within``, or None
+        (``held``: held cells too)."""
+        cells = [c for c in self._bands.get(i, ()) if c.n >= min_n and c.distance(load_nm) <= within
+                 and (held or not c.held)]
         return min(cells, key=lambda c: c.distance(load_nm)) if cells else None
 
     def _learning_cell(self, i: int, load_nm: float) -> _Welford | None:
@@ -273,8 +315,10 @@ class Baseline:
 
     def learn(self, *, speed_rpm: float, f0_hz: float, zeta: float, load_nm: float = 0.0,
               f0_std_hz: float = float("nan"), zeta_std: float = float("nan"), source: str = "",
-              reference: bool = False) -> None:
+              reference: bool = False, held: bool = False) -> None:
         """Add one estimate to the cell of ``speed_rpm`` and ``load_nm`` (a new cell if none is near).
+
+        ``held``: the cell becomes held (see the module notes) until :meth:`release`.
 
         Raises
         ------
@@ -293,6 +337,7 @@ class Baseline:
             self._bands.setdefault(i, []).append(cell)
         elif source and source not in cell.source.split(", ") and cell.n < self.min_count:
             cell.source = f"{cell.source}, {source}" if cell.source else source
+        cell.held = cell.held or bool(held)
         cell.add(float(f0_hz), float(zeta), float(load_nm), float(f0_std_hz), float(zeta_std))
         if cell.n == self.provisional_count or (cell.n >= self.freeze_count and
                                                  (cell.frozen is None or cell.frozen[0] < self.freeze_count)):
@@ -318,6 +363,25 @@ class Baseline:
         c = self._learning_cell(i, load_nm)
         return self._stats(i, c, frozen) if c is not None and c.n >= 2 else None
 
+    def is_held(self, speed_rpm: float, load_nm: float = 0.0) -> bool:
+        """Whether the cell an estimate at ``speed_rpm`` and ``load_nm`` would be learned into is held."""
+        if not (math.isfinite(speed_rpm) and math.isfinite(load_nm)):
+            return False
+        c = self._learning_cell(self.key(speed_rpm), load_nm)
+        return c is not None and c.held
+
+    def release(self) -> int:
+        """Release every held cell (an established cell agreed with its baseline after them); how many."""
+        held = [c for cells in self._bands.values() for c in cells if c.held]
+        for c in held:
+            c.held = False
+        return len(held)
+
+    @property
+    def held_count(self) -> int:
+        """How many cells are held (see the module notes)."""
+        return sum(c.held for cells in self._bands.values() for c in cells)
+
     def _stats(self, i: int, b: _Welford, frozen: bool = False) -> BandStats:
         """Statistics of cell ``b`` of band ``i``; ``frozen``: of a learning cell, those of its first
         ``freeze_count`` estimates, which the estimates still to be learned are checked against (a change
@@ -334,7 +398,8 @@ class Baseline:
             widen = math.sqrt(self.freeze_count / n)
             std_f = max(std_f, self.min_rel_std_f * abs(mean_f)) * widen
             std_z = max(std_z, self.min_rel_std_zeta * abs(mean_z)) * widen
-        kind = "learning" if b.n < self.min_count else "reference" if b.reference else "learned"
+        kind = ("held" if b.held else "learning" if b.n < self.min_count else "reference" if b.reference
+                else "learned")
         return BandStats(
             mean_f,
             max(std_f, self.min_rel_std_f * abs(mean_f)),
@@ -351,7 +416,7 @@ class Baseline:
 
     def _ready_cell(self, i: int, load_nm: float) -> _Welford | None:
         """The learned cell of band ``i`` nearest ``load_nm`` within ``load_band_nm``, or None."""
-        return self._nearest(i, load_nm, self.load_band_nm, self.min_count)
+        return self._nearest(i, load_nm, self.load_band_nm, self.min_count, held=False)
 
     def lookup(self, speed_rpm: float, load_nm: float = 0.0) -> BandStats | None:
         """Statistics to compare an estimate at ``speed_rpm`` and ``load_nm`` with, or None.
@@ -394,11 +459,17 @@ class Baseline:
         :math:`\\bar f_i` against speed (and load, with four or more cells)
         gives the mean at ``speed_rpm`` and ``load_nm``, and its residuals
         the between-cell spread :math:`s_b`. The pooled spread is widened for
-        the unknown dependence:
+        the unknown dependence, by :math:`t_f = \\max(\\tau \\bar f, \\kappa \\bar u_f)`
+        (:math:`\\kappa` = ``pool_uncertainty_factor``, :math:`\\bar u_f` the
+        count-weighted mean of the estimator's own frequency uncertainty over the
+        pooled cells' estimates; see the module notes):
 
         .. math::
 
-            s_p^2 = \\overline{s_i^2} + s_b^2 + (\\tau \\bar f)^2
+            s_p^2 = \\overline{s_i^2} + s_b^2 + t_f^2
+
+        The learning check leaves out the part beyond :math:`\\tau \\bar f`
+        (``tolerance_f``, see :meth:`disagrees`).
 
         The damping alike, but measured: its between-cell spread
         :math:`s_b` is kept whether or not the cells disagree (the spread of
@@ -413,19 +484,25 @@ class Baseline:
         ``min_count``: the learned ones).
         """
         min_n = self.min_count if min_n is None else max(2, int(min_n))
-        cells = [(i, c) for i, cs in self._bands.items() for c in cs if c.n >= min_n]
+        cells = [(i, c) for i, cs in self._bands.items() for c in cs if c.n >= min_n and not c.held]
         if not cells or not (math.isfinite(speed_rpm) and math.isfinite(load_nm)):
             return None
         stats = [self._stats(i, c, frozen=True) for i, c in cells]
         w = [s.count for s in stats]
         total = sum(w)
         means_f, means_z = [s.mean_f for s in stats], [s.mean_zeta for s in stats]
-        tol_f = self.pool_tolerance_f * sum(wi * m for wi, m in zip(w, means_f)) / total
+        # the frequency's tolerance: tau of the mean, or kappa times the estimator's own frequency uncertainty
+        # where that is wider: a linear model that fits the bench less well (backlash) has a wider uncertainty,
+        # and its apparent resonance moves with the operating point (see the notes)
+        unc_f = [(wi, s.uncertainty_f) for wi, s in zip(w, stats) if math.isfinite(s.uncertainty_f)]
+        tau_f = self.pool_tolerance_f * sum(wi * m for wi, m in zip(w, means_f)) / total
+        tol_f = max(tau_f, self.pool_uncertainty_factor * sum(wi * u for wi, u in unc_f) / sum(wi for wi, _ in unc_f)
+                    if unc_f else 0.0)
         # the damping's tolerance is measured: the estimator's own damping uncertainty over the pooled cells' estimates
         unc_z = [(wi, s.uncertainty_zeta) for wi, s in zip(w, stats) if math.isfinite(s.uncertainty_zeta)]
         tol_z = (sum(wi * u for wi, u in unc_z) / sum(wi for wi, _ in unc_z) if unc_z else
                  self.pool_tolerance_zeta * sum(wi * m for wi, m in zip(w, means_z)) / total)  # a state saved before
-        mean_f, sb_f = self._pool(means_f, [s.std_f for s in stats], w, cells, speed_rpm, load_nm, tol_f)
+        mean_f, sb_f = self._pool(means_f, [s.std_f for s in stats], w, cells, speed_rpm, load_nm, tau_f)
         mean_z, sb_z = self._pool(means_z, [s.std_zeta for s in stats], w, cells, speed_rpm, load_nm, tol_z)
         if not (mean_f > 0 and mean_z > 0):
             return None
@@ -439,7 +516,8 @@ class Baseline:
         i = self.key(speed_rpm)
         return BandStats(mean_f, std_f, mean_z, std_z, total, self._edges(i), float(load_nm), "pooled",
                          sources, sum(unc) / len(unc) if unc else float("nan"),
-                         sum(u for _, u in unc_z) / len(unc_z) if unc_z else float("nan"), tol_z, between_z)
+                         sum(u for _, u in unc_z) / len(unc_z) if unc_z else float("nan"), tol_z, between_z,
+                         math.sqrt(tol_f ** 2 - tau_f ** 2))
 
     def _pool(self, means: list[float], stds: list[float], w: list[int], cells: list, speed_rpm: float,
               load_nm: float, tolerance: float) -> tuple[float, float]:
@@ -477,14 +555,18 @@ class Baseline:
         """Which of frequency and damping deviates from ``stats`` beyond the tolerance (None: neither).
 
         The tolerance of a quantity is its dead band plus ``n_sigma`` spreads:
-        :math:`|f_0 - \\bar f| > \\delta_f \\bar f + n_\\sigma s_f`. For the damping
+        :math:`|f_0 - \\bar f| > \\delta_f \\bar f + n_\\sigma s_f`, the frequency's spread
+        without the widening of a pool by the estimator's uncertainty
+        (``stats.tolerance_f``: a deviation within it is ambiguous, the caller
+        holds the cell, see the module notes). For the damping
         the spread leaves out a pooled baseline's tolerance
         (``stats.tolerance_zeta``): :math:`s_\\zeta^2 - t_\\zeta^2`, the spread
         of single estimates within and between the learned cells, so a change
         of the damping (the detector's dead band plus three of those spreads)
         is never learned into a new cell.
         """
-        if abs(f0_hz - stats.mean_f) > min_change_f * stats.mean_f + n_sigma * stats.std_f:
+        std_f = math.sqrt(max(stats.std_f ** 2 - stats.tolerance_f ** 2, 0.0))
+        if abs(f0_hz - stats.mean_f) > min_change_f * stats.mean_f + n_sigma * std_f:
             return "frequency"
         std_z = math.sqrt(max(stats.std_zeta ** 2 - stats.tolerance_zeta ** 2, 0.0))
         if abs(zeta - stats.mean_zeta) > min_change_zeta * stats.mean_zeta + n_sigma * std_z:
@@ -494,7 +576,7 @@ class Baseline:
     @property
     def learned_range_rpm(self) -> tuple[float, float] | None:
         """``(low, high)`` speed covered by learned bands, or None if none is learned."""
-        ready = [i for i, cells in self._bands.items() if any(c.n >= self.min_count for c in cells)]
+        ready = [i for i, cells in self._bands.items() if any(c.n >= self.min_count and not c.held for c in cells)]
         if not ready:
             return None
         return (self._edges(min(ready))[0], self._edges(max(ready))[1])
@@ -519,6 +601,7 @@ class Baseline:
             "load_band_nm": self.load_band_nm,
             "pool_tolerance_f": self.pool_tolerance_f,
             "pool_tolerance_zeta": self.pool_tolerance_zeta,
+            "pool_uncertainty_factor": self.pool_uncertainty_factor,
             "freeze_count": self.freeze_count,
             "bands": {str(i): [[None if isinstance(x, float) and not math.isfinite(x) else x for x in c.as_list()]
                                for c in cells]
@@ -534,6 +617,7 @@ class Baseline:
                        load_band_nm=data.get("load_band_nm", 2.0),
                        pool_tolerance_f=data.get("pool_tolerance_f", 0.005),
                        pool_tolerance_zeta=data.get("pool_tolerance_zeta", 0.10),
+                       pool_uncertainty_factor=data.get("pool_uncertainty_factor", 10.0),
                        freeze_count=data.get("freeze_count"))
             for key, v in data["bands"].items():
                 cells = v if v and isinstance(v[0], list) else [list(v) + [None]]  # one cell, no load
@@ -548,10 +632,10 @@ def _cell_from_list(c: list) -> _Welford:
     def num(x: Any) -> float:
         return math.nan if x is None else float(x)  # one nan object: a restored cell compares equal
 
-    extra = list(c[6:12]) + [None] * (6 - len(c[6:12]))
+    extra = list(c[6:13]) + [None] * (7 - len(c[6:13]))
     frozen = None if extra[4] is None else [int(extra[4][0])] + [float(x) for x in extra[4][1:5]]
     return _Welford(int(c[0]), *(float(x) for x in c[1:5]), num(c[5]), num(extra[0]), str(extra[1] or ""),
-                    bool(extra[2]), int(extra[3] or 0), frozen, num(extra[5]))
+                    bool(extra[2]), int(extra[3] or 0), frozen, num(extra[5]), bool(extra[6]))
 
 
 def _between(means: list[float], w: list[int]) -> float:
