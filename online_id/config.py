@@ -161,7 +161,6 @@ class DetectionSettings:
     load_band_nm: float = 2.0
     min_count: int = 20
     pool_tolerance_pct: float = 0.5
-    pool_uncertainty_factor: float = 10.0
     k: float = 0.5
     h_warning: float = 8.0
     h_fault: float = 16.0
@@ -456,7 +455,7 @@ def _check_service(s: Settings, file: str) -> None:
     positive("detection", d, "band_rpm", "load_band_nm", "min_count", "k", "h_warning", "h_fault")
     nonnegative("detection", d, "min_freq_change_pct", "min_damping_change_pct", "settle_s", "settle_detect_s",
                 "settle_min_freq_change_pct",
-                "pool_tolerance_pct", "pool_uncertainty_factor", "damping_tie_pct")
+                "pool_tolerance_pct", "damping_tie_pct")
     if d.min_count < 2:
         raise ConfigError(f"{file}: detection.min_count: expected an integer >= 2, got {d.min_count!r}")
     if d.h_fault < d.h_warning:

@@ -93,8 +93,7 @@ class Pipeline:
         d = s.detection
         self.tracker = PoleTracker(dt=self.estimator.dt, pulses_per_rev=s.model.pulses_per_rev)
         self.baseline = Baseline(band_rpm=d.band_rpm, min_count=d.min_count, load_band_nm=d.load_band_nm,
-                                 pool_tolerance_f=d.pool_tolerance_pct / 100.0,
-                                 pool_uncertainty_factor=d.pool_uncertainty_factor)
+                                 pool_tolerance_f=d.pool_tolerance_pct / 100.0)
         self.run_label = ""  # the run learned cells are marked with (replay: the log's name)
         self.reference_run = False  # cells learned now are a reference (relearn --from LOG)
         self.detector = ChangeDetector(k=d.k, h_warning=d.h_warning, h_fault=d.h_fault,
@@ -508,7 +507,7 @@ class Pipeline:
         return abs(est.f0_hz - then) <= max(self.detector.min_change_f * abs(then), 3.0 * std)
 
     def _baseline_for(self, speed: float, load: float, learning: bool = False) -> BandStats | None:
-        """What an estimate is compared with: its own cell, learned, or still learning (or held) with its first
+        """What an estimate is compared with: its own cell, learned, or still learning (not held) with its first
         estimates (frozen: ``provisional_count`` of them, then ``freeze_count``) once it holds them (the same
         operating point: a learned cell at another load of the band differs by 0.1-0.5 % per Nm with backlash);
         else a learned cell of the band at another load or of an adjacent band (:meth:`Baseline.lookup`); else
@@ -529,8 +528,8 @@ class Pipeline:
     def _own(self, stats: BandStats, speed: float, load: float) -> bool:
         """Whether ``stats`` is the baseline of the cell of ``speed`` and ``load`` itself (not the pool's or
         another band's or load's)."""
-        if stats.kind in ("learning", "held"):
-            return True  # only a cell's own first estimates serve it while it learns (or is held)
+        if stats.kind == "learning":
+            return True  # only a cell's own first estimates serve it while it learns
         return (stats.kind in ("learned", "reference") and stats.band[0] <= speed < stats.band[1]
                 and not abs(stats.load_nm - load) > 0.5 * self.baseline.load_band_nm)
 
@@ -567,7 +566,7 @@ class Pipeline:
         why = (self.baseline.disagrees(ref, est.f0_hz, est.zeta, self.detector.min_change_f,
                                        self.detector.min_change_zeta) if ref is not None else None)
         own = ref is not None and self._own(ref, speed, load)
-        if why is None and own and ref.kind != "held" and self.baseline.held_count:
+        if why is None and own and self.baseline.held_count:
             n = self.baseline.release()
             self.events.append(Event(t_s, "released", f"{n} held cell(s) released: at {speed:.0f} rpm, "
                                      f"{load:.1f} Nm the estimate agrees with the cell's own {ref.kind} baseline "

@@ -92,9 +92,8 @@ def test_a_cell_does_not_learn_the_estimates_that_move_while_the_window_takes_in
     window's length the estimates move from the old resonance to the new; a cell learned only from steady
     estimates keeps them out (it learned them before: the next point's pooled baseline held the fault's
     transition and its spread, and the alarm came 57 s after the fault on plant 11704 of family (a)).
-    The third point is new: where the pool predicts it (a linear plant) the loss is alarmed there; on a plant
-    whose resonance moves with the operating point (28: backlash) the third point's cell is held, no
-    baseline, and the loss is alarmed when the bench is back at the first point."""
+    The third point is new: its cell, disagreeing with the pool, is held (no baseline), and the loss is
+    alarmed there against the pool, or when the bench is back at the first point."""
     ramp = BenchScenario().ramp_s
     t_fault = 40.0 + ramp + 30.0
     durations = (40.0, 36.0, 45.0, 40.0)

@@ -73,21 +73,16 @@ resonance moves with the operating point (backlash: up to 15 % between
 operating points on the evaluation's benches). Rejecting it would keep a
 bench whose resonance moves with the operating point at the baseline of its
 first point for good, raising a false alarm at every visit of another. Such
-a cell is learned but *held* (kind ``"held"``): it serves no other cell
-(not in :meth:`lookup` or :meth:`pooled`), only itself, with its own first
-estimates (:meth:`cell` with ``frozen``), until :meth:`release`: the caller
-releases the held cells when an estimate at an established cell (not held)
-agrees with that cell's own baseline -- a change of the driveline shows at
-every operating point and stays, so a later agreement anywhere proves the
-earlier estimates healthy. Held cells that are never released (a real
-change) never become a baseline of another operating point.
-The frequency spread of a pool is widened for the unknown dependence on the
-operating point by ``pool_tolerance_f`` of its mean or, where wider,
-``pool_uncertainty_factor`` times the estimator's own frequency uncertainty:
-on the simulated benches the first estimates at a new point were within
-0.3 % of the pool on every linear plant (own uncertainty 0.03-0.06 %) and
-up to 6 % on plants with backlash (own uncertainty 0.1-0.45 %; the
-deviation mostly within 20 times it).
+a cell is learned but *held* (kind ``"held"``): it is no reference (not in
+:meth:`lookup` or :meth:`pooled`, and not its own: :meth:`cell` with
+``frozen`` gives None) until :meth:`release`: the caller releases the held
+cells when an estimate at an established cell agrees with that cell's own
+baseline -- a change of the driveline shows at every operating point and
+stays, so a later agreement anywhere proves the earlier estimates healthy.
+Held cells that are never released (a real change) never become a
+baseline. Once released, such cells show the pool how far the resonance
+moves with the operating point: the pool's fit against speed and load, or
+its between-cell spread, takes it in.
 """
 
 from __future__ import annotations
@@ -141,11 +136,6 @@ class BandStats:
     between_zeta
         Of a pooled baseline: the spread of the damping between the pooled
         cells (:meth:`Baseline.pooled`), nan for a cell or a single one.
-    tolerance_f
-        The part of ``std_f`` that widens a pooled baseline beyond
-        ``pool_tolerance_f`` for the dependence on the operating point
-        measured by the estimator's own uncertainty (0 for a cell); the
-        learning check leaves it out (:meth:`Baseline.disagrees`).
     """
 
     mean_f: float
@@ -161,7 +151,6 @@ class BandStats:
     uncertainty_zeta: float = float("nan")
     tolerance_zeta: float = 0.0
     between_zeta: float = float("nan")
-    tolerance_f: float = 0.0
 
     @property
     def spread_ratio(self) -> float:
@@ -244,11 +233,6 @@ class Baseline:
         Relative widening of the pooled baseline's frequency spread for the
         unknown dependence on speed and load (added in quadrature, see
         :meth:`pooled`).
-    pool_uncertainty_factor
-        The pooled frequency spread is widened by at least this many times
-        the estimator's own frequency uncertainty (the mean over the pooled
-        cells' estimates), where that is wider than ``pool_tolerance_f``
-        (see :meth:`pooled`).
     pool_tolerance_zeta
         Relative widening of the pooled damping spread for cells that do not
         hold the estimator's damping uncertainty (states saved before it was
@@ -274,7 +258,6 @@ class Baseline:
         min_rel_std_zeta: float = 0.03,
         load_band_nm: float = 2.0,
         pool_tolerance_f: float = 0.005,
-        pool_uncertainty_factor: float = 10.0,
         pool_tolerance_zeta: float = 0.10,
         freeze_count: int | None = None,
         provisional_count: int = 3,
@@ -285,8 +268,6 @@ class Baseline:
         self.min_rel_std_zeta = _positive("min_rel_std_zeta", min_rel_std_zeta)
         self.load_band_nm = _positive("load_band_nm", load_band_nm)
         self.pool_tolerance_f = number("Baseline", "pool_tolerance_f", pool_tolerance_f, strict=False)
-        self.pool_uncertainty_factor = number("Baseline", "pool_uncertainty_factor", pool_uncertainty_factor,
-                                              strict=False)
         self.pool_tolerance_zeta = number("Baseline", "pool_tolerance_zeta", pool_tolerance_zeta, strict=False)
         self.freeze_count = integer("Baseline", "freeze_count",
                                     math.ceil(self.min_count / 2) if freeze_count is None else freeze_count, minimum=2)
@@ -355,13 +336,14 @@ class Baseline:
 
         None if there is none yet (or fewer than two estimates in it).
         ``frozen``: for a cell still learning that holds ``freeze_count``
-        estimates, its statistics as they were then (see :meth:`_stats`).
+        estimates, its statistics as they were then (see :meth:`_stats`);
+        a held cell then none (it is no reference, not even its own).
         """
         if not (math.isfinite(speed_rpm) and math.isfinite(load_nm)):
             return None
         i = self.key(speed_rpm)
         c = self._learning_cell(i, load_nm)
-        return self._stats(i, c, frozen) if c is not None and c.n >= 2 else None
+        return self._stats(i, c, frozen) if c is not None and c.n >= 2 and not (frozen and c.held) else None
 
     def is_held(self, speed_rpm: float, load_nm: float = 0.0) -> bool:
         """Whether the cell an estimate at ``speed_rpm`` and ``load_nm`` would be learned into is held."""
@@ -459,17 +441,11 @@ class Baseline:
         :math:`\\bar f_i` against speed (and load, with four or more cells)
         gives the mean at ``speed_rpm`` and ``load_nm``, and its residuals
         the between-cell spread :math:`s_b`. The pooled spread is widened for
-        the unknown dependence, by :math:`t_f = \\max(\\tau \\bar f, \\kappa \\bar u_f)`
-        (:math:`\\kappa` = ``pool_uncertainty_factor``, :math:`\\bar u_f` the
-        count-weighted mean of the estimator's own frequency uncertainty over the
-        pooled cells' estimates; see the module notes):
+        the unknown dependence:
 
         .. math::
 
-            s_p^2 = \\overline{s_i^2} + s_b^2 + t_f^2
-
-        The learning check leaves out the part beyond :math:`\\tau \\bar f`
-        (``tolerance_f``, see :meth:`disagrees`).
+            s_p^2 = \\overline{s_i^2} + s_b^2 + (\\tau \\bar f)^2
 
         The damping alike, but measured: its between-cell spread
         :math:`s_b` is kept whether or not the cells disagree (the spread of
@@ -491,18 +467,12 @@ class Baseline:
         w = [s.count for s in stats]
         total = sum(w)
         means_f, means_z = [s.mean_f for s in stats], [s.mean_zeta for s in stats]
-        # the frequency's tolerance: tau of the mean, or kappa times the estimator's own frequency uncertainty
-        # where that is wider: a linear model that fits the bench less well (backlash) has a wider uncertainty,
-        # and its apparent resonance moves with the operating point (see the notes)
-        unc_f = [(wi, s.uncertainty_f) for wi, s in zip(w, stats) if math.isfinite(s.uncertainty_f)]
-        tau_f = self.pool_tolerance_f * sum(wi * m for wi, m in zip(w, means_f)) / total
-        tol_f = max(tau_f, self.pool_uncertainty_factor * sum(wi * u for wi, u in unc_f) / sum(wi for wi, _ in unc_f)
-                    if unc_f else 0.0)
+        tol_f = self.pool_tolerance_f * sum(wi * m for wi, m in zip(w, means_f)) / total
         # the damping's tolerance is measured: the estimator's own damping uncertainty over the pooled cells' estimates
         unc_z = [(wi, s.uncertainty_zeta) for wi, s in zip(w, stats) if math.isfinite(s.uncertainty_zeta)]
         tol_z = (sum(wi * u for wi, u in unc_z) / sum(wi for wi, _ in unc_z) if unc_z else
                  self.pool_tolerance_zeta * sum(wi * m for wi, m in zip(w, means_z)) / total)  # a state saved before
-        mean_f, sb_f = self._pool(means_f, [s.std_f for s in stats], w, cells, speed_rpm, load_nm, tau_f)
+        mean_f, sb_f = self._pool(means_f, [s.std_f for s in stats], w, cells, speed_rpm, load_nm, tol_f)
         mean_z, sb_z = self._pool(means_z, [s.std_zeta for s in stats], w, cells, speed_rpm, load_nm, tol_z)
         if not (mean_f > 0 and mean_z > 0):
             return None
@@ -516,8 +486,7 @@ class Baseline:
         i = self.key(speed_rpm)
         return BandStats(mean_f, std_f, mean_z, std_z, total, self._edges(i), float(load_nm), "pooled",
                          sources, sum(unc) / len(unc) if unc else float("nan"),
-                         sum(u for _, u in unc_z) / len(unc_z) if unc_z else float("nan"), tol_z, between_z,
-                         math.sqrt(tol_f ** 2 - tau_f ** 2))
+                         sum(u for _, u in unc_z) / len(unc_z) if unc_z else float("nan"), tol_z, between_z)
 
     def _pool(self, means: list[float], stds: list[float], w: list[int], cells: list, speed_rpm: float,
               load_nm: float, tolerance: float) -> tuple[float, float]:
@@ -555,18 +524,14 @@ class Baseline:
         """Which of frequency and damping deviates from ``stats`` beyond the tolerance (None: neither).
 
         The tolerance of a quantity is its dead band plus ``n_sigma`` spreads:
-        :math:`|f_0 - \\bar f| > \\delta_f \\bar f + n_\\sigma s_f`, the frequency's spread
-        without the widening of a pool by the estimator's uncertainty
-        (``stats.tolerance_f``: a deviation within it is ambiguous, the caller
-        holds the cell, see the module notes). For the damping
+        :math:`|f_0 - \\bar f| > \\delta_f \\bar f + n_\\sigma s_f`. For the damping
         the spread leaves out a pooled baseline's tolerance
         (``stats.tolerance_zeta``): :math:`s_\\zeta^2 - t_\\zeta^2`, the spread
         of single estimates within and between the learned cells, so a change
         of the damping (the detector's dead band plus three of those spreads)
         is never learned into a new cell.
         """
-        std_f = math.sqrt(max(stats.std_f ** 2 - stats.tolerance_f ** 2, 0.0))
-        if abs(f0_hz - stats.mean_f) > min_change_f * stats.mean_f + n_sigma * std_f:
+        if abs(f0_hz - stats.mean_f) > min_change_f * stats.mean_f + n_sigma * stats.std_f:
             return "frequency"
         std_z = math.sqrt(max(stats.std_zeta ** 2 - stats.tolerance_zeta ** 2, 0.0))
         if abs(zeta - stats.mean_zeta) > min_change_zeta * stats.mean_zeta + n_sigma * std_z:
@@ -601,7 +566,6 @@ class Baseline:
             "load_band_nm": self.load_band_nm,
             "pool_tolerance_f": self.pool_tolerance_f,
             "pool_tolerance_zeta": self.pool_tolerance_zeta,
-            "pool_uncertainty_factor": self.pool_uncertainty_factor,
             "freeze_count": self.freeze_count,
             "bands": {str(i): [[None if isinstance(x, float) and not math.isfinite(x) else x for x in c.as_list()]
                                for c in cells]
@@ -617,7 +581,6 @@ class Baseline:
                        load_band_nm=data.get("load_band_nm", 2.0),
                        pool_tolerance_f=data.get("pool_tolerance_f", 0.005),
                        pool_tolerance_zeta=data.get("pool_tolerance_zeta", 0.10),
-                       pool_uncertainty_factor=data.get("pool_uncertainty_factor", 10.0),
                        freeze_count=data.get("freeze_count"))
             for key, v in data["bands"].items():
                 cells = v if v and isinstance(v[0], list) else [list(v) + [None]]  # one cell, no load
