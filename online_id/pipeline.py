@@ -61,7 +61,7 @@ WINDOW = "window"  # worker lane of the window refits and multi-start checks
 PHYSICAL = "physical"  # worker lane of the physical-parameter fit
 PENDING = None  # a multi-start check is running in the worker: decide later
 VERIFY_FRESH_S = 5.0  # a multi-start check older than this is not used for a decision
-STEADY_S = 5.0  # learning needs the frequency estimate this long ago within the dead band (or 3 own stds)
+STEADY_S = 5.0  # learning needs the estimates this long ago within the dead bands (or 3 own stds), see _steady
 SPREAD_RATIO_REPORTED = 5.0  # a learned spread this many times the estimator's own uncertainty is reported
 
 
@@ -101,7 +101,7 @@ class Pipeline:
                                        min_change_f=d.min_freq_change_pct / 100.0,
                                        min_change_zeta=d.min_damping_change_pct / 100.0)
         self._healthy_since: float | None = None  # start of the current healthy stretch (settle_s)
-        self._recent_f0: deque[tuple[float, float]] = deque()  # (t_s, f0) of the healthy stretch, STEADY_S back
+        self._recent_f0: deque[tuple[float, float, float]] = deque()  # (t_s, f0, zeta) of the healthy stretch
         self._healthy_rpm: float | None = None  # engine speed of the last healthy estimate
         self._references: dict[int, np.ndarray] = {}  # per baseline band: a window solution it was learned from
         self._next_learn: float | None = None
@@ -455,7 +455,7 @@ class Pipeline:
             self._healthy_since = None
             self._recent_f0.clear()
         else:
-            self._recent_f0.append((t_s, est.f0_hz))
+            self._recent_f0.append((t_s, est.f0_hz, est.zeta))
             while self._recent_f0 and self._recent_f0[0][0] < t_s - STEADY_S - 1.0:
                 self._recent_f0.popleft()
             if self._healthy_since is None or t_s < self._healthy_since:
@@ -496,15 +496,20 @@ class Pipeline:
             out.append(self._alert_out(self.detector.active, t_s))
 
     def _steady(self, est: OnlineEstimate, t_s: float) -> bool:
-        """Whether the frequency estimate stood still over the last ``STEADY_S``: it is within the dead band
-        (or three of its own standard deviations) of the estimate then. A baseline is learned from steady
-        estimates only: a change of the driveline shows first as estimates that move while the fit window
-        takes it in (for about the window's length), and a cell that learns them takes in the change."""
-        then = next((f for t, f in self._recent_f0 if t >= t_s - STEADY_S - 1e-6), None)
+        """Whether the estimate stood still over the last ``STEADY_S``: its frequency within the dead band
+        (or three of its own standard deviations) of the estimate then, its damping within half the damping
+        dead band (or three of its own standard deviations). A baseline is learned from steady estimates
+        only: a change of the driveline shows first as estimates that move while the fit window takes it in
+        (for about the window's length), and a cell that learns them takes in the change (a +50 % damping
+        change came into a cell learning at the time as +32 % on plant 11703: the damping moves through its
+        20 % dead band within the 5 s)."""
+        then = next(((f, z) for t, f, z in self._recent_f0 if t >= t_s - STEADY_S - 1e-6), None)
         if then is None or self._recent_f0[0][0] > t_s - STEADY_S + 0.5:
             return False  # not yet STEADY_S of healthy estimates
-        std = est.f0_std_hz if math.isfinite(est.f0_std_hz) else 0.0
-        return abs(est.f0_hz - then) <= max(self.detector.min_change_f * abs(then), 3.0 * std)
+        std_f = est.f0_std_hz if math.isfinite(est.f0_std_hz) else 0.0
+        std_z = est.zeta_std if math.isfinite(est.zeta_std) else 0.0
+        return (abs(est.f0_hz - then[0]) <= max(self.detector.min_change_f * abs(then[0]), 3.0 * std_f)
+                and abs(est.zeta - then[1]) <= max(0.5 * self.detector.min_change_zeta * abs(then[1]), 3.0 * std_z))
 
     def _baseline_for(self, speed: float, load: float, learning: bool = False) -> BandStats | None:
         """What an estimate is compared with: its own cell, learned, or still learning (not held) with its first
@@ -574,21 +579,20 @@ class Pipeline:
                                      f"not change since", {"cells": n}))
         if learned:
             return est  # a learned cell stays fixed until re-learned
+        versus = _versus(why, est, ref) if why is not None else ""
         if why is not None and own:
             self.baseline.reject(speed_rpm=speed, load_nm=load)
             self._rejected += 1
             if t_s >= self._next_reject_event:
                 self._next_reject_event = t_s + 60.0
                 self.events.append(Event(t_s, "not_learned", f"{why} estimate not learned at {speed:.0f} rpm, "
-                                         f"{load:.1f} Nm: it disagrees with the {ref.kind} baseline "
-                                         f"({est.f0_hz:.3f} Hz against {ref.mean_f:.3f} +- {ref.std_f:.3f} Hz)",
+                                         f"{load:.1f} Nm: it disagrees with the {ref.kind} baseline ({versus})",
                                          {"kind": why, "baseline": ref.kind}))
             return est
         if why is not None and not self.baseline.is_held(speed, load):
             self.events.append(Event(t_s, "held", f"cell {speed:.0f} rpm, {load:.1f} Nm held: its {why} estimate "
-                                     f"disagrees with the {ref.kind} baseline ({est.f0_hz:.3f} Hz against "
-                                     f"{ref.mean_f:.3f} +- {ref.std_f:.3f} Hz); it serves no other point until an "
-                                     f"established cell agrees with its own", {"kind": why, "baseline": ref.kind}))
+                                     f"disagrees with the {ref.kind} baseline ({versus}); it serves no point until "
+                                     f"an established cell agrees with its own", {"kind": why, "baseline": ref.kind}))
         self.baseline.learn(speed_rpm=speed, f0_hz=est.f0_hz, zeta=est.zeta, load_nm=load,
                             f0_std_hz=est.f0_std_hz, zeta_std=est.zeta_std, source=self.run_label,
                             reference=self.reference_run, held=why is not None)
@@ -749,6 +753,13 @@ class Pipeline:
                             if isinstance(v, (list, np.ndarray)) and len(v) == n}
         rpm = state.get("healthy_rpm")
         self._healthy_rpm = float(rpm) if isinstance(rpm, (int, float)) and not new_run else None
+
+
+def _versus(why: str, est: OnlineEstimate, ref: BandStats) -> str:
+    """The disagreeing quantity of ``est`` against ``ref`` for an event: "26.412 Hz against 26.583 +- 0.053 Hz"."""
+    if why == FREQUENCY:
+        return f"{est.f0_hz:.3f} Hz against {ref.mean_f:.3f} +- {ref.std_f:.3f} Hz"
+    return f"zeta {est.zeta:.4f} against {ref.mean_zeta:.4f} +- {ref.std_zeta:.4f}"
 
 
 def run_bench_data(data, settings: Settings, progress=None, on_output=None, state: dict | None = None,
