@@ -568,8 +568,9 @@ class Pipeline:
         if not (est.valid and math.isfinite(load) and math.isfinite(est.f0_hz) and est.zeta > 0):
             return est
         ref = self._baseline_for(speed, load, learning=True)
+        # the damping with half its dead band (see Baseline.disagrees): a change on its way in must not be learned
         why = (self.baseline.disagrees(ref, est.f0_hz, est.zeta, self.detector.min_change_f,
-                                       self.detector.min_change_zeta) if ref is not None else None)
+                                       0.5 * self.detector.min_change_zeta) if ref is not None else None)
         own = ref is not None and self._own(ref, speed, load)
         if why is None and own and self.baseline.held_count:
             n = self.baseline.release()

@@ -136,6 +136,10 @@ class BandStats:
     between_zeta
         Of a pooled baseline: the spread of the damping between the pooled
         cells (:meth:`Baseline.pooled`), nan for a cell or a single one.
+    widen
+        The factor a provisional reference's spreads were widened by (1
+        otherwise); the damping's learning check leaves it out
+        (:meth:`Baseline.disagrees`).
     """
 
     mean_f: float
@@ -151,6 +155,7 @@ class BandStats:
     uncertainty_zeta: float = float("nan")
     tolerance_zeta: float = 0.0
     between_zeta: float = float("nan")
+    widen: float = 1.0
 
     @property
     def spread_ratio(self) -> float:
@@ -373,6 +378,7 @@ class Baseline:
             n, mean_f, m2_f, mean_z, m2_z = b.frozen
         std_f = math.sqrt(max(m2_f, 0.0) / (n - 1))
         std_z = math.sqrt(max(m2_z, 0.0) / (n - 1))
+        widen = 1.0
         if frozen and n < self.freeze_count:
             # a provisional reference of fewer estimates than freeze_count (a plateau of well under a
             # minute): a few strongly correlated estimates under-state the spread, widen it by
@@ -394,6 +400,7 @@ class Baseline:
             b.source,
             b.unc_f,
             b.unc_z,
+            widen=widen,
         )
 
     def _ready_cell(self, i: int, load_nm: float) -> _Welford | None:
@@ -529,11 +536,15 @@ class Baseline:
         (``stats.tolerance_zeta``): :math:`s_\\zeta^2 - t_\\zeta^2`, the spread
         of single estimates within and between the learned cells, so a change
         of the damping (the detector's dead band plus three of those spreads)
-        is never learned into a new cell.
+        is never learned into a new cell; and a provisional reference's
+        damping spread without its widening (``stats.widen``): the caller
+        checks learning against half the damping dead band, so that a change
+        the fit window is still taking in (+25 % on the way to +50 %) is not
+        learned into the cell's first estimates either.
         """
         if abs(f0_hz - stats.mean_f) > min_change_f * stats.mean_f + n_sigma * stats.std_f:
             return "frequency"
-        std_z = math.sqrt(max(stats.std_zeta ** 2 - stats.tolerance_zeta ** 2, 0.0))
+        std_z = math.sqrt(max((stats.std_zeta / stats.widen) ** 2 - stats.tolerance_zeta ** 2, 0.0))
         if abs(zeta - stats.mean_zeta) > min_change_zeta * stats.mean_zeta + n_sigma * std_z:
             return "damping"
         return None
