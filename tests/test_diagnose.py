@@ -193,3 +193,18 @@ def test_decimated_clean_plant_on_a_slow_clock_reports_nothing(tmp_path, capsys,
     path = doc["recording"]["data_path"]
     assert path["decimation"] == 5 and path["fir_taps"] == 81 and path["group_delay_removed_samples"] == 40
     assert doc["baseline"]["input_lead"] == 2 and doc["baseline"]["nb"] == 4
+
+
+@pytest.mark.parametrize("costs, tol, expect", [
+    ([10.0, 5.0, 4.9, 1.0], 0.1, 1),   # the step 5.0 -> 4.9 is under 10 %: stop at the second candidate
+    ([10.0, 5.0, 2.0, 1.0], 0.1, 3),   # every step lowers it by more: the last
+    ([10.0, 9.5], 0.1, 0),             # the first step already too small
+    ([3.0], 0.1, 0),
+])
+def test_the_order_search_stops_where_one_more_step_lowers_the_error_by_less_than_tol(costs, tol, expect):
+    from online_id.diagnose.diagnosis import _smallest_sufficient
+
+    seen = []
+    got = _smallest_sufficient(range(len(costs)), lambda k: seen.append(k) or costs[k], tol)
+    assert got == expect
+    assert seen == list(range(min(expect + 2, len(costs))))  # stops fitting at the first insufficient step

@@ -342,13 +342,8 @@ def select_na(data: DiagnoseData, split: Split, nk: int, lead: int, grid: tuple[
     leaves them to the additional-mode extension, which then wins as a catch-all (on the rig evaluation
     ARMAX(8, 8, 2) left 25-50 % of the held-out residual to one more pole pair on clean rigs).
     """
-    prev = None
-    for na in grid:
-        v = fit_structure(data, Structure(na, na + lead, 0, nk, delay=-lead), split).V_est
-        if prev is not None and v > (1.0 - tol) * prev[1]:
-            return prev[0]
-        prev = (na, v)
-    return grid[-1]
+    return _smallest_sufficient(
+        grid, lambda na: fit_structure(data, Structure(na, na + lead, 0, nk, delay=-lead), split).V_est, tol)
 
 
 def select_lead(data: DiagnoseData, split: Split, nk: int, lead: int, na: int = 8, extra: int = 2,
@@ -361,13 +356,21 @@ def select_lead(data: DiagnoseData, split: Split, nk: int, lead: int, na: int = 
     integrator's (a speed driven by a torque) decays as one over the lag.  On the rigs a lead of 2 left
     a one-sample "sensor delay" that explained a third of the held-out one-step error on clean rigs.
     """
+    return _smallest_sufficient(
+        range(lead, lead + extra + 1),
+        lambda ld: fit_structure(data, Structure(na, na + ld, 0, nk, delay=-ld), split).V_est, tol)
+
+
+def _smallest_sufficient(candidates, cost: Callable[[int], float], tol: float) -> int:
+    """The first of ``candidates`` (increasing) beyond which the next lowers ``cost`` by less than the
+    fraction ``tol`` (the last if every step lowers it by more)."""
     prev = None
-    for ld in range(lead, lead + extra + 1):
-        v = fit_structure(data, Structure(na, na + ld, 0, nk, delay=-ld), split).V_est
+    for x in candidates:
+        v = cost(x)
         if prev is not None and v > (1.0 - tol) * prev[1]:
             return prev[0]
-        prev = (ld, v)
-    return lead + extra
+        prev = (x, v)
+    return prev[0]
 
 
 def diagnose(data: DiagnoseData, *, na: int | None, nb: int | None, nc: int, nk: int = 1, input_lead: int | None = None,
