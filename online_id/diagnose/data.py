@@ -14,6 +14,7 @@ Optional auxiliary signals let the residual tests look for more effects:
 from __future__ import annotations
 
 from collections.abc import Mapping
+from functools import cached_property
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -137,7 +138,8 @@ class Split:
     changes is both estimated and validated ("compare like with like": a line
     whose amplitude and phase change with the speed cannot be judged at a
     speed it was not estimated at).  Filters and predictors run over the whole
-    record; only the criterion and the figures pick their samples.
+    record; only the criterion and the figures pick their samples.  The runs,
+    masks and indices are computed once (cached: the split is frozen).
     """
 
     n: int
@@ -158,11 +160,11 @@ class Split:
         edges = np.round(np.linspace(0, self.n, self.blocks + 1)).astype(int)
         return [(int(a), int(a + round(self.fraction * (b - a))), int(b)) for a, b in zip(edges[:-1], edges[1:])]
 
-    @property
+    @cached_property
     def est_runs(self) -> list[tuple[int, int]]:
         return self._kept([(a, m) for a, m, _ in self._runs()])
 
-    @property
+    @cached_property
     def val_runs(self) -> list[tuple[int, int]]:
         return self._kept([(m, b) for _, m, b in self._runs() if b > m])
 
@@ -176,18 +178,21 @@ class Split:
             out += [(a + int(s), a + int(e)) for s, e in zip(starts, stops)]
         return out
 
-    @property
+    @cached_property
     def est_mask(self) -> np.ndarray:
         mask = np.zeros(self.n, dtype=bool)
         for a, b in self.est_runs:
             mask[a:b] = True
+        mask.setflags(write=False)  # computed once (cached): nobody may change it
         return mask
 
-    @property
+    @cached_property
     def val_index(self) -> np.ndarray:
-        return np.concatenate([np.arange(a, b) for a, b in self.val_runs])
+        index = np.concatenate([np.arange(a, b) for a, b in self.val_runs])
+        index.setflags(write=False)  # computed once (cached): nobody may change it
+        return index
 
-    @property
+    @cached_property
     def n_est(self) -> int:
         return int(sum(b - a for a, b in self.est_runs))
 
