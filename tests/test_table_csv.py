@@ -52,3 +52,25 @@ def test_short_row_and_other_delimiters(tmp_path):
     space = write(tmp_path / "w.csv", ["t a b c"] + [r.replace(",", "  ") for r in body])
     for path in (semi, space):
         np.testing.assert_array_equal(read_csv_columns(path, ["b"])["b"], x[:, 1])
+
+
+def test_header_names_are_read_alike_for_named_and_headered_tables(tmp_path):
+    """``column_names`` (identify/diagnose with --columns) and ``read_csv_header`` read one header the same
+    way: quoted names with the delimiter inside stay whole; an empty file is an error for the first."""
+    from online_id.errors import InputDataError
+    from online_id.io.named_csv import column_names
+    from online_id.io.table_csv import read_csv_header
+
+    path = tmp_path / "t.csv"
+    path.write_text('# a comment\n\n"t, s",speed_rpm ,"torque"\n0,1,2\n', encoding="utf-8")
+    assert read_csv_header(path) == column_names(path) == ["t, s", "speed_rpm", "torque"]
+    from online_id.io.table_csv import read_csv_columns
+
+    table = read_csv_columns(path, ["t, s", "torque"])  # the data reader parses the header the same way
+    assert table["t, s"].tolist() == [0.0] and table["torque"].tolist() == [2.0]
+    assert column_names(path, ["a", "b", "c"]) == ["a", "b", "c"]
+    empty = tmp_path / "e.csv"
+    empty.write_text("# only a comment\n\n", encoding="utf-8")
+    assert read_csv_header(empty) == []
+    with pytest.raises(InputDataError, match="e.csv: the file is empty"):
+        column_names(empty)

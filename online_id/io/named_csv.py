@@ -12,31 +12,26 @@ from pathlib import Path
 import numpy as np
 
 from online_id.errors import InputDataError
-from online_id.io.table_csv import LINE_KEY, _sniff_delimiter, read_csv_columns
+from online_id.io.table_csv import LINE_KEY, _sniff_delimiter, first_line, read_csv_columns, read_csv_header
 
 
 def _first_line(path: Path) -> str:
-    try:
-        with path.open("r", encoding="utf-8-sig") as handle:
-            for line in handle:
-                if line.strip() and not line.lstrip().startswith("#"):
-                    return line
-    except OSError as err:
-        raise InputDataError(f"{path}: cannot open: {err.strerror or err}") from err
-    except UnicodeDecodeError as err:
-        raise InputDataError(f"{path}: not a text CSV file ({err.reason})") from None
-    raise InputDataError(f"{path}: the file is empty")
+    line = first_line(path)
+    if line is None:
+        raise InputDataError(f"{path}: the file is empty")
+    return line
 
 
 def column_names(path: str | Path, names: list[str] | None = None) -> list[str]:
-    """The column names: ``names`` for a headerless file, else the header line's."""
+    """The column names: ``names`` for a headerless file, else the header line's
+    (:func:`~online_id.io.table_csv.read_csv_header`)."""
     path = Path(path)
     if names is not None:
         return list(names)
-    line = _first_line(path)
-    delim = _sniff_delimiter(line)
-    parts = line.split() if delim == " " else line.rstrip("\r\n").split(delim)
-    return [p.strip().strip('"') for p in parts]
+    header = read_csv_header(path)
+    if not header:
+        raise InputDataError(f"{path}: the file is empty")
+    return header
 
 
 def read_table(path: str | Path, wanted: list[str], names: list[str] | None = None) -> dict[str, np.ndarray]:

@@ -57,11 +57,7 @@ def read_csv_columns(path: str | Path, columns: Iterable[str]) -> dict[str, np.n
             if header_line is None:
                 raise InputDataError(f"{path}: the file is empty (expected a header line with columns {', '.join(wanted)})")
             delim = _sniff_delimiter(header_line)
-            if delim == " ":
-                header = header_line.split()
-            else:
-                header = next(csv.reader([header_line], delimiter=delim))
-            header = [name.strip() for name in header]
+            header = _header_names(header_line)
             missing = [name for name in wanted if name not in header]
             if missing:
                 raise InputDataError(
@@ -104,21 +100,33 @@ def read_csv_columns(path: str | Path, columns: Iterable[str]) -> dict[str, np.n
 _CHUNK_LINES = 65536
 
 
-def read_csv_header(path: str | Path) -> list[str]:
-    """The column names of a CSV file's header line (the first line that is not blank or a ``#`` comment)."""
+def first_line(path: str | Path) -> str | None:
+    """The first line of a text file that is not blank or a ``#`` comment (None if there is none)."""
     path = Path(path)
     try:
         with path.open("r", newline="", encoding="utf-8-sig") as handle:
             for line in handle:
                 if line.strip() and not line.lstrip().startswith("#"):
-                    delim = _sniff_delimiter(line)
-                    cells = line.split() if delim == " " else next(csv.reader([line], delimiter=delim))
-                    return [name.strip() for name in cells]
+                    return line
     except OSError as err:
         raise InputDataError(f"{path}: cannot open: {err.strerror or err}") from err
     except UnicodeDecodeError as err:
         raise InputDataError(f"{path}: not a text CSV file (it holds bytes that are not UTF-8: {err.reason})") from None
-    return []
+    return None
+
+
+def read_csv_header(path: str | Path) -> list[str]:
+    """The column names of a CSV file's header line (the first line that is not blank or a ``#`` comment;
+    quoted names as the csv module reads them), or [] for a file without one."""
+    line = first_line(path)
+    return [] if line is None else _header_names(line)
+
+
+def _header_names(line: str) -> list[str]:
+    """The column names of a header line (its delimiter sniffed; quoted names as the csv module reads them)."""
+    delim = _sniff_delimiter(line)
+    cells = line.split() if delim == " " else next(csv.reader([line], delimiter=delim))
+    return [name.strip() for name in cells]
 
 
 def _count_lines(path: Path) -> int:
