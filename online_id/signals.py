@@ -92,10 +92,17 @@ def bench_data_from_columns(
 
 def read_bench_csv(path: str | Path, names: ColumnSettings | None = None, units: UnitSettings | None = None) -> BenchData:
     """Read a bench CSV file into SI units, with errors naming file, line and column."""
+    return read_bench_csv_with(path, names, units)[0]
+
+
+def read_bench_csv_with(path: str | Path, names: ColumnSettings | None = None, units: UnitSettings | None = None,
+                        extra: tuple[str, ...] = ()) -> tuple[BenchData, dict[str, np.ndarray]]:
+    """:func:`read_bench_csv` and the columns ``extra`` as they are (one pass over the file)."""
     names = names or ColumnSettings()
     units = units or UnitSettings()
-    cols = read_csv_columns(path, [names.time, names.dyno_speed, names.engine_speed, names.dyno_torque])
-    return bench_data_from_columns(cols, names, units, str(path))
+    roles = [names.time, names.dyno_speed, names.engine_speed, names.dyno_torque]
+    cols = read_csv_columns(path, roles + [c for c in extra if c not in roles])
+    return bench_data_from_columns(cols, names, units, str(path)), {c: cols[c] for c in extra}
 
 
 def read_bench_mdf(path: str | Path, names: ColumnSettings | None = None, units: UnitSettings | None = None,

@@ -284,3 +284,36 @@ def test_the_causal_path_decimates_a_recorders_rate_as_the_nominal_one():
         path = causal_path(fs, 500.0)
         assert path.q == 2 and path.numtaps == 33
     assert causal_path(200.0, 500.0).q == 1 and causal_path(200.0, 500.0).numtaps == 1  # slower than the target
+
+
+@pytest.mark.parametrize("sign", ["braking", "driving"])
+def test_the_demand_column_is_read_with_the_signals_in_one_pass(tmp_path, sign):
+    """``bench_series`` of a bench CSV with the demand column: the series prepared from the signals and the
+    demand as written (signed like the dyno torque), whether named with --demand-col or found by its
+    default name; with --no-demand, none."""
+    import dataclasses
+
+    from online_id.cli.diagnose import DEMAND_COLUMN, bench_series
+    from online_id.config import Settings
+    from online_id.cli.diagnose import DEFAULT_PULSES_PER_REV
+    from online_id.diagnose.bench_data import TARGET_FS_HZ, prepare
+    from online_id.signals import read_bench_csv
+
+    rng = np.random.default_rng(3)
+    n = 10000  # 10 s at 1 kHz: one steady operating point (a bench diagnosis needs 8 s)
+    t = np.arange(n) / 1000.0
+    demand = np.where(np.repeat(rng.random(n // 100) < 0.5, 100), -30.0, 30.0)
+    rows = np.column_stack([t, 1500 + rng.normal(0, 0.1, n), 1500 + rng.normal(0, 0.1, n), -8 + demand, demand])
+    path = tmp_path / "bench.csv"
+    np.savetxt(path, rows, delimiter=",", fmt="%.6f",
+               header=f"time_s,dyno_speed_rpm,engine_speed_rpm,dyno_torque_nm,{DEMAND_COLUMN}", comments="")
+    s = Settings()
+    s = dataclasses.replace(s, units=dataclasses.replace(s.units, torque_sign=sign))
+    d = read_bench_csv(path, s.columns, s.units)
+    k = 1.0 if sign == "braking" else -1.0
+    expect = prepare(d.time_s, d.dyno_torque_nm, d.dyno_speed_rad_s, d.engine_speed_rad_s, source=str(path),
+                     pulses_per_rev=DEFAULT_PULSES_PER_REV, target_hz=TARGET_FS_HZ, demand_nm=k * demand)
+    for named in (DEMAND_COLUMN, None):
+        series = bench_series(path, s, demand_col=named)
+        assert series.demand is not None and np.allclose(series.demand, expect.demand, atol=1e-6)
+    assert bench_series(path, s, use_demand=False).demand is None

@@ -30,7 +30,8 @@ from online_id.diagnose.records import data_path, decimate_alike, path_note
 from online_id.errors import ConfigError, InputDataError
 from online_id.io.mdf import is_mdf
 from online_id.io.outfile import check_output
-from online_id.io.table_csv import read_csv_columns, read_csv_header
+from online_id.io.table_csv import read_csv_header
+from online_id.signals import read_bench_csv_with
 from online_id.progress import add_quiet_option, progress_for
 from online_id.cli import command_help
 
@@ -182,13 +183,15 @@ def bench_series(path: Path, s: Settings, *, pulses_per_rev: float | None = None
     if demand_col is not None and not csv_file:
         raise ConfigError(f"--demand-col {demand_col}: {path} is not a bench CSV; only a CSV carries a "
                           "demand column")
-    d = read_bench(path, s, notify)
-    demand = None
+    name = None
     if use_demand and csv_file:
         name = demand_col or (DEMAND_COLUMN if DEMAND_COLUMN in read_csv_header(path) else None)
-        if name is not None:
-            cols = read_csv_columns(path, [s.columns.time, name])
-            demand = cols[name] * (1.0 if s.units.torque_sign == "braking" else -1.0)
+    demand = None
+    if name is None:
+        d = read_bench(path, s, notify)
+    else:  # the signals and the demand in one pass over the CSV
+        d, cols = read_bench_csv_with(path, s.columns, s.units, (name,))
+        demand = cols[name] * (1.0 if s.units.torque_sign == "braking" else -1.0)
     ppr = pulses_per_rev or s.model.pulses_per_rev or DEFAULT_PULSES_PER_REV
     return prepare(d.time_s, d.dyno_torque_nm, d.dyno_speed_rad_s, d.engine_speed_rad_s,
                    source=str(path), pulses_per_rev=ppr, target_hz=target_hz or TARGET_FS_HZ,
