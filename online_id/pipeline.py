@@ -29,7 +29,8 @@ import numpy as np
 
 from online_id.assembly import AssembledSample, SampleAssembler
 from online_id.config import Settings
-from online_id.monitoring.baseline import Baseline, BandStats
+from online_id.monitoring.baseline import Baseline
+from online_id.monitoring.cells import BandStats
 from online_id.monitoring.detection import DAMPING, FREQUENCY, Alarm, ChangeDetector, correlation_for_window
 from online_id.estimation.model import ArmaxOrders
 from online_id.estimation.online import OnlineDriveline, OnlineEstimate, physical_parameters

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from online_id.monitoring.baseline import BandStats
+from online_id.monitoring.cells import BandStats
 from online_id.estimation.identification import IdentificationResult
 from online_id.analysis.poles import DRIVELINE, INVARIANT, OTHER, REAL, SPEED_DEPENDENT
 from online_id.progress import Progress

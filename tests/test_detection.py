@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.signal import lfilter
 
-from online_id.monitoring.baseline import BandStats
+from online_id.monitoring.cells import BandStats
 from online_id.monitoring.detection import Alarm, ChangeDetector
 from online_id.errors import ConfigError
 

@@ -30,7 +30,8 @@ import numpy as np
 
 from online_id.cli.replay import replay
 from online_id.config import Settings, load_config
-from online_id.monitoring.baseline import Baseline, BandStats
+from online_id.monitoring.baseline import Baseline
+from online_id.monitoring.cells import BandStats
 from online_id.monitoring.detection import ChangeDetector
 from online_id.monitoring.tracks import PoleTracker
 from online_id.errors import InputDataError, OnlineIdError

@@ -89,137 +89,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass
 from typing import Any, Mapping
 
+from online_id.monitoring.cells import BandStats, Cell, cell_from_list
 from online_id.monitoring.checks import integer, number
 from online_id.errors import ConfigError, InputDataError
-
-
-@dataclass(frozen=True)
-class BandStats:
-    """Baseline statistics of one engine-speed band.
-
-    Attributes
-    ----------
-    mean_f, std_f
-        Mean and (floored) standard deviation of the frequency [Hz].
-    mean_zeta, std_zeta
-        Mean and (floored) standard deviation of the damping ratio.
-    count
-        Number of learned estimates.
-    band
-        The band's speed range ``(low_rpm, high_rpm)``.
-    load_nm
-        Mean load (dyno torque) of the learned estimates [Nm]; nan for a
-        cell saved before loads were kept (it serves any load).
-    kind
-        ``"learned"`` (a cell learned in this service), ``"reference"`` (a
-        cell learned from a reference run, ``online-id relearn --from``),
-        ``"pooled"`` (the learned cells pooled, serving a cell not learned
-        yet), ``"learning"`` (a cell still learning, see
-        :meth:`Baseline.cell`) or ``"held"`` (a cell that disagreed with the
-        baseline of another operating point, not a reference until
-        :meth:`Baseline.release`).
-    source
-        The run(s) the statistics were learned from ("" if unknown).
-    uncertainty_f
-        Mean of the estimator's own frequency uncertainty over the learned
-        estimates [Hz] (nan if unknown); a spread far above it is reported
-        (:attr:`spread_ratio`).
-    uncertainty_zeta
-        Mean of the estimator's own damping uncertainty over the learned
-        estimates (nan if unknown).
-    tolerance_zeta
-        The part of ``std_zeta`` that widens a pooled baseline for the
-        unknown dependence of the damping on the operating point (0 for a
-        cell); the learning check leaves it out (:meth:`Baseline.disagrees`).
-    between_zeta
-        Of a pooled baseline: the spread of the damping between the pooled
-        cells (:meth:`Baseline.pooled`), nan for a cell or a single one.
-    widen
-        The factor a provisional reference's spreads were widened by (1
-        otherwise); the damping's learning check leaves it out
-        (:meth:`Baseline.disagrees`).
-    """
-
-    mean_f: float
-    std_f: float
-    mean_zeta: float
-    std_zeta: float
-    count: int
-    band: tuple[float, float]
-    load_nm: float = 0.0
-    kind: str = "learned"
-    source: str = ""
-    uncertainty_f: float = float("nan")
-    uncertainty_zeta: float = float("nan")
-    tolerance_zeta: float = 0.0
-    between_zeta: float = float("nan")
-    widen: float = 1.0
-
-    @property
-    def spread_ratio(self) -> float:
-        """Frequency spread over the estimator's own uncertainty (nan if unknown)."""
-        u = self.uncertainty_f
-        return self.std_f / u if math.isfinite(u) and u > 0 else float("nan")
-
-    def as_dict(self) -> dict[str, Any]:
-        """Plain (JSON-able) form for results and reports; non-finite numbers as None."""
-        def fin(x: float) -> float | None:
-            return float(x) if math.isfinite(x) else None
-
-        return {"band_rpm": [float(self.band[0]), float(self.band[1])], "load_nm": fin(self.load_nm),
-                "f0_hz": fin(self.mean_f), "f0_std_hz": fin(self.std_f), "zeta": fin(self.mean_zeta),
-                "zeta_std": fin(self.std_zeta), "count": int(self.count), "kind": self.kind,
-                "source": self.source, "f0_uncertainty_hz": fin(self.uncertainty_f),
-                "spread_ratio": fin(self.spread_ratio), "zeta_uncertainty": fin(self.uncertainty_zeta),
-                "zeta_pool_tolerance": fin(self.tolerance_zeta), "zeta_between_cells": fin(self.between_zeta)}
-
-
-class _Welford:
-    """Running statistics of one cell: frequency, damping and the mean load."""
-
-    __slots__ = ("n", "mean_f", "m2_f", "mean_z", "m2_z", "load", "unc_f", "source", "reference", "rejected",
-                 "frozen", "unc_z", "held")
-
-    def __init__(self, n: int = 0, mean_f: float = 0.0, m2_f: float = 0.0, mean_z: float = 0.0, m2_z: float = 0.0,
-                 load: float = 0.0, unc_f: float = float("nan"), source: str = "", reference: bool = False,
-                 rejected: int = 0, frozen: list | None = None, unc_z: float = math.nan, held: bool = False):
-        self.n, self.mean_f, self.m2_f, self.mean_z, self.m2_z = int(n), mean_f, m2_f, mean_z, m2_z
-        self.load = load
-        self.unc_f = unc_f  # running mean of the estimator's own f0 uncertainty
-        self.source = source  # the run it was learned from
-        self.reference = reference  # learned from a reference run (relearn --from)
-        self.rejected = rejected  # estimates not learned: they disagreed with the baselines
-        self.frozen = frozen  # [n, ...] at provisional_count, then freeze_count: what later estimates are checked with
-        self.unc_z = unc_z  # running mean of the estimator's own damping uncertainty
-        self.held = held  # disagreed with the baseline of another operating point: serves none until released
-
-    def distance(self, load_nm: float) -> float:
-        """How far ``load_nm`` is from the cell's load (0 for a cell without one)."""
-        return abs(load_nm - self.load) if math.isfinite(self.load) else 0.0
-
-    def add(self, f: float, z: float, load: float, unc_f: float = float("nan"), unc_z: float = float("nan")) -> None:
-        self.n += 1
-        self.unc_f = _running_mean(self.unc_f, unc_f, self.n)
-        self.unc_z = _running_mean(self.unc_z, unc_z, self.n)
-        if math.isfinite(self.load):
-            self.load += (load - self.load) / self.n
-        d = f - self.mean_f
-        self.mean_f += d / self.n  # mean <- mean + delta / N
-        self.m2_f += d * (f - self.mean_f)  # M2 <- M2 + delta (x - mean)
-        d = z - self.mean_z
-        self.mean_z += d / self.n
-        self.m2_z += d * (z - self.mean_z)
-
-    def freeze(self) -> None:
-        """Keep the statistics as they are now (the reference of the estimates still to be learned)."""
-        self.frozen = [self.n, self.mean_f, self.m2_f, self.mean_z, self.m2_z]
-
-    def as_list(self) -> list:
-        return [self.n, self.mean_f, self.m2_f, self.mean_z, self.m2_z, self.load, self.unc_f, self.source,
-                self.reference, self.rejected, self.frozen, self.unc_z, self.held]
 
 
 class Baseline:
@@ -279,7 +153,7 @@ class Baseline:
                                     math.ceil(self.min_count / 2) if freeze_count is None else freeze_count, minimum=2)
         self.provisional_count = min(integer("Baseline", "provisional_count", provisional_count, minimum=2),
                                      self.freeze_count)
-        self._bands: dict[int, list[_Welford]] = {}
+        self._bands: dict[int, list[Cell]] = {}
 
     def key(self, speed_rpm: float) -> int:
         """The index of the band of ``speed_rpm`` (centred on ``key * band_rpm``)."""
@@ -289,14 +163,14 @@ class Baseline:
         """Speed range of band ``i``: centred on ``i * band_rpm``."""
         return ((i - 0.5) * self.band_rpm, (i + 0.5) * self.band_rpm)
 
-    def _nearest(self, i: int, load_nm: float, within: float, min_n: int = 0, held: bool = True) -> _Welford | None:
+    def _nearest(self, i: int, load_nm: float, within: float, min_n: int = 0, held: bool = True) -> Cell | None:
         """The cell of band ``i`` with at least ``min_n`` estimates nearest ``load_nm`` within ``within``, or None
         (``held``: held cells too)."""
         cells = [c for c in self._bands.get(i, ()) if c.n >= min_n and c.distance(load_nm) <= within
                  and (held or not c.held)]
         return min(cells, key=lambda c: c.distance(load_nm)) if cells else None
 
-    def _learning_cell(self, i: int, load_nm: float) -> _Welford | None:
+    def _learning_cell(self, i: int, load_nm: float) -> Cell | None:
         """The cell of band ``i`` an estimate at ``load_nm`` is learned into (None: a new one)."""
         return self._nearest(i, load_nm, 0.5 * self.load_band_nm)
 
@@ -320,7 +194,7 @@ class Baseline:
         i = self.key(speed_rpm)
         cell = self._learning_cell(i, load_nm)
         if cell is None:
-            cell = _Welford(load=float(load_nm), source=source, reference=reference)
+            cell = Cell(load=float(load_nm), source=source, reference=reference)
             self._bands.setdefault(i, []).append(cell)
         elif source and source not in cell.source.split(", ") and cell.n < self.min_count:
             cell.source = f"{cell.source}, {source}" if cell.source else source
@@ -370,7 +244,7 @@ class Baseline:
         """How many cells are held (see the module notes)."""
         return sum(c.held for cells in self._bands.values() for c in cells)
 
-    def _stats(self, i: int, b: _Welford, frozen: bool = False) -> BandStats:
+    def _stats(self, i: int, b: Cell, frozen: bool = False) -> BandStats:
         """Statistics of cell ``b`` of band ``i``; ``frozen``: of a learning cell, those of its first
         ``freeze_count`` estimates, which the estimates still to be learned are checked against (a change
         that comes while the cell learns must neither widen nor move what it is compared with)."""
@@ -404,7 +278,7 @@ class Baseline:
             widen=widen,
         )
 
-    def _ready_cell(self, i: int, load_nm: float) -> _Welford | None:
+    def _ready_cell(self, i: int, load_nm: float) -> Cell | None:
         """The learned cell of band ``i`` nearest ``load_nm`` within ``load_band_nm``, or None."""
         return self._nearest(i, load_nm, self.load_band_nm, self.min_count, held=False)
 
@@ -606,21 +480,10 @@ class Baseline:
                        freeze_count=data.get("freeze_count"))
             for key, v in data["bands"].items():
                 cells = v if v and isinstance(v[0], list) else [list(v) + [None]]  # one cell, no load
-                base._bands[int(key)] = [_cell_from_list(c) for c in cells]
+                base._bands[int(key)] = [cell_from_list(c) for c in cells]
         except (KeyError, TypeError, ValueError, IndexError) as err:
             raise ConfigError(f"Baseline.from_dict: saved state is incomplete or malformed ({err!r})") from err
         return base
-
-
-def _cell_from_list(c: list) -> _Welford:
-    """A cell saved by :meth:`_Welford.as_list` (older states have only the first six fields)."""
-    def num(x: Any) -> float:
-        return math.nan if x is None else float(x)  # one nan object: a restored cell compares equal
-
-    extra = list(c[6:13]) + [None] * (7 - len(c[6:13]))
-    frozen = None if extra[4] is None else [int(extra[4][0])] + [float(x) for x in extra[4][1:5]]
-    return _Welford(int(c[0]), *(float(x) for x in c[1:5]), num(c[5]), num(extra[0]), str(extra[1] or ""),
-                    bool(extra[2]), int(extra[3] or 0), frozen, num(extra[5]), bool(extra[6]))
 
 
 def _between(means: list[float], w: list[int]) -> float:
@@ -630,13 +493,6 @@ def _between(means: list[float], w: list[int]) -> float:
     total = sum(w)
     mean = sum(wi * m for wi, m in zip(w, means)) / total
     return math.sqrt(sum(wi * (m - mean) ** 2 for wi, m in zip(w, means)) / total * len(means) / (len(means) - 1))
-
-
-def _running_mean(mean: float, x: float, n: int) -> float:
-    """``mean`` of ``n - 1`` values updated with the ``n``-th, ``x`` (non-finite values skipped)."""
-    if not math.isfinite(x):
-        return mean
-    return x if not math.isfinite(mean) else mean + (x - mean) / n
 
 
 def _positive(name: str, value: float) -> float:

@@ -4,7 +4,7 @@ Notes
 -----
 Input: the driveline estimate at the publish rate (about 10 Hz), its model
 uncertainty and the learned baseline of the current speed band
-(:class:`~online_id.monitoring.baseline.BandStats`).
+(:class:`~online_id.monitoring.cells.BandStats`).
 
 **Normalised deviation** of each sample (frequency shown; damping alike):
 
@@ -135,7 +135,7 @@ from online_id.monitoring.checks import number
 from online_id.errors import ConfigError
 
 if TYPE_CHECKING:  # pragma: no cover
-    from online_id.monitoring.baseline import BandStats
+    from online_id.monitoring.cells import BandStats
 
 FREQUENCY = "frequency"
 DAMPING = "damping"
