@@ -517,22 +517,15 @@ class Pipeline:
         estimates (frozen: ``provisional_count`` of them, then ``freeze_count``) once it holds them (the same
         operating point: a learned cell at another load of the band differs by 0.1-0.5 % per Nm with backlash);
         else a learned cell of the band at another load or of an adjacent band (:meth:`Baseline.lookup`); else
-        the pooled baseline. For detection the pool, and a cell of the band at another load widened by the
-        pool's tolerances (:meth:`Baseline.widened`), have their spreads doubled; for the learning check,
-        ``learning``, they are as they are."""
+        the pooled baseline (for detection the pool's spread is doubled, for the learning check,
+        ``learning``, it is not)."""
         n = self.baseline.provisional_count
         own = self.baseline.cell(speed, load, frozen=True)
         if own is not None and own.count >= n:
             return own  # as it is: its spread is widened while it holds fewer than freeze_count estimates
         stats = self.baseline.lookup(speed, load)
         if stats is not None:
-            if learning or self._own(stats, speed, load) or not stats.band[0] <= speed < stats.band[1]:
-                return stats
-            # a learned cell of the band at another load stands for a point it has not seen, like the pool:
-            # widened by the pool's tolerances and doubled (the load drifts with the engine's friction, and with
-            # backlash the resonance moves by up to 2 % per Nm: 4.5 % over 2 Nm on plant 2006)
-            other = self.baseline.widened(stats)
-            return dataclasses.replace(other, std_f=2.0 * other.std_f, std_zeta=2.0 * other.std_zeta)
+            return stats
         pool = self.baseline.pooled(speed, load, min_n=n)
         if pool is not None and not learning:  # for detection, doubled: it stands for a point it has not seen
             pool = dataclasses.replace(pool, std_f=2.0 * pool.std_f, std_zeta=2.0 * pool.std_zeta)

@@ -87,7 +87,6 @@ its between-cell spread, takes it in.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from typing import Any, Mapping
 
@@ -395,16 +394,6 @@ class Baseline:
         spread = float(np.sqrt(np.sum(np.asarray(w) * resid ** 2) / total * len(means) / dof))
         spread = max(spread, float(np.std(means)) if len(means) <= len(cols) else spread)
         return float(coef[0]), spread
-
-    def widened(self, stats: BandStats) -> BandStats:
-        """``stats`` of a cell, serving another operating point: its spreads widened like a pool's, by
-        ``pool_tolerance_f`` of its frequency and by the estimator's own damping uncertainty
-        (``pool_tolerance_zeta`` of its damping where unknown), each added in quadrature."""
-        tol_f = self.pool_tolerance_f * stats.mean_f
-        unc_z = stats.uncertainty_zeta
-        tol_z = unc_z if math.isfinite(unc_z) else self.pool_tolerance_zeta * stats.mean_zeta
-        return dataclasses.replace(stats, std_f=math.hypot(stats.std_f, tol_f),
-                                   std_zeta=math.hypot(stats.std_zeta, tol_z), tolerance_zeta=tol_z)
 
     def status(self, speed_rpm: float, load_nm: float = 0.0) -> str:
         """``"learned"``, ``"reference"``, ``"pooled"`` or ``"unknown"``: what serves an estimate there."""
