@@ -102,7 +102,7 @@ class Pipeline:
                                        min_change_f=d.min_freq_change_pct / 100.0,
                                        min_change_zeta=d.min_damping_change_pct / 100.0)
         self._healthy_since: float | None = None  # start of the current healthy stretch (settle_s)
-        self._recent_f0: deque[tuple[float, float, float]] = deque()  # (t_s, f0, zeta) of the healthy stretch
+        self._recent: deque[tuple[float, float, float]] = deque()  # (t_s, f0, zeta) of the healthy stretch
         self._healthy_rpm: float | None = None  # engine speed of the last healthy estimate
         self._references: dict[int, np.ndarray] = {}  # per baseline band: a window solution it was learned from
         self._next_learn: float | None = None
@@ -400,7 +400,7 @@ class Pipeline:
         self._next_learn = None
         self._next_alarm_repeat = -math.inf
         self._healthy_since = None  # settle again before learning or detecting
-        self._recent_f0.clear()
+        self._recent.clear()
         self.events.append(Event(t_s, "time", message, {"time_jumps": self.counters.time_jumps}))
         out.append(self.status(t_s))
 
@@ -454,11 +454,11 @@ class Pipeline:
         # after the estimate becomes healthy at another speed than it last was
         if not healthy:
             self._healthy_since = None
-            self._recent_f0.clear()
+            self._recent.clear()
         else:
-            self._recent_f0.append((t_s, est.f0_hz, est.zeta))
-            while self._recent_f0 and self._recent_f0[0][0] < t_s - STEADY_S - 1.0:
-                self._recent_f0.popleft()
+            self._recent.append((t_s, est.f0_hz, est.zeta))
+            while self._recent and self._recent[0][0] < t_s - STEADY_S - 1.0:
+                self._recent.popleft()
             if self._healthy_since is None or t_s < self._healthy_since:
                 same = (self._healthy_rpm is not None
                         and abs(speed - self._healthy_rpm) <= self.settings.model.max_speed_span_rpm)
@@ -504,8 +504,8 @@ class Pipeline:
         (for about the window's length), and a cell that learns them takes in the change (a +50 % damping
         change came into a cell learning at the time as +32 % on plant 11703: the damping moves through its
         20 % dead band within the 5 s)."""
-        then = next(((f, z) for t, f, z in self._recent_f0 if t >= t_s - STEADY_S - 1e-6), None)
-        if then is None or self._recent_f0[0][0] > t_s - STEADY_S + 0.5:
+        then = next(((f, z) for t, f, z in self._recent if t >= t_s - STEADY_S - 1e-6), None)
+        if then is None or self._recent[0][0] > t_s - STEADY_S + 0.5:
             return False  # not yet STEADY_S of healthy estimates
         std_f = est.f0_std_hz if math.isfinite(est.f0_std_hz) else 0.0
         std_z = est.zeta_std if math.isfinite(est.zeta_std) else 0.0
@@ -573,8 +573,8 @@ class Pipeline:
         why = (self.baseline.disagrees(ref, est.f0_hz, est.zeta, self.detector.min_change_f,
                                        0.5 * self.detector.min_change_zeta) if ref is not None else None)
         own = ref is not None and self._own(ref, speed, load)
-        if why is None and own and self.baseline.held_count:
-            n = self.baseline.release()
+        n = self.baseline.release() if why is None and own else 0  # held cells: the driveline did not change
+        if n:
             self.events.append(Event(t_s, "released", f"{n} held cell(s) released: at {speed:.0f} rpm, "
                                      f"{load:.1f} Nm the estimate agrees with the cell's own {ref.kind} baseline "
                                      f"({est.f0_hz:.3f} Hz against {ref.mean_f:.3f} Hz), so the driveline did "
