@@ -119,6 +119,8 @@ class ModelSettings:
     pulses_per_rev: float | None = None
     band_hz: tuple[float, float] = (3.0, 120.0)
     window_s: float = 10.0
+    min_window_s: float = 5.0
+    settle_guard_s: float = 1.0
     refit_s: float = 1.0
     max_speed_span_rpm: float = 40.0
 
@@ -429,7 +431,8 @@ def _check_service(s: Settings, file: str) -> None:
             raise ConfigError(f"{file}: input.slow_roles: unknown role {role!r} "
                               "(roles: dyno_speed, engine_speed, dyno_torque)")
     m = s.model
-    positive("model", m, "sample_rate_hz", "p0", "learning_s", "window_s", "refit_s", "max_speed_span_rpm")
+    positive("model", m, "sample_rate_hz", "p0", "learning_s", "window_s", "min_window_s", "refit_s",
+             "max_speed_span_rpm")
     if m.sample_rate_hz > s.input.sample_rate_hz:
         raise ConfigError(f"{file}: model.sample_rate_hz: {m.sample_rate_hz:g} Hz is above the input rate "
                           f"input.sample_rate_hz = {s.input.sample_rate_hz:g} Hz")
@@ -441,7 +444,10 @@ def _check_service(s: Settings, file: str) -> None:
         raise ConfigError(f"{file}: model.na: at least 2 is needed for a resonance, got {m.na!r}")
     if not 0.9 <= m.forgetting <= 1.0:
         raise ConfigError(f"{file}: model.forgetting: expected a number in [0.9, 1], got {m.forgetting!r}")
-    nonnegative("model", m, "min_excitation_nm")
+    nonnegative("model", m, "min_excitation_nm", "settle_guard_s")
+    if m.min_window_s > m.window_s:
+        raise ConfigError(f"{file}: model.min_window_s: expected at most model.window_s ({m.window_s:g} s), "
+                          f"got {m.min_window_s!r}")
     positive("publish", s.publish, "rate_hz", "physical_interval_s")
     for name, ident in s.publish.frame_ids.items():
         if name not in OUTPUT_MESSAGE_NAMES:

@@ -142,6 +142,8 @@ class Pipeline:
             pulses_per_rev=m.pulses_per_rev,
             band_hz=m.band_hz,
             window_s=m.window_s,
+            min_window_s=m.min_window_s,
+            settle_guard_s=m.settle_guard_s,
             refit_s=m.refit_s,
             max_speed_span_rpm=m.max_speed_span_rpm,
             auto_refit=False,  # run by _consume on a sample that publishes nothing

@@ -47,6 +47,8 @@ identification:
     ("- just a list", "top level"),
     ("detection: {min_freq_change_pct: -1}", "detection.min_freq_change_pct"),
     ("detection: {settle_s: .nan}", "detection.settle_s"),
+    ("model: {min_window_s: 12}", "model.min_window_s"),
+    ("model: {settle_guard_s: -1}", "model.settle_guard_s"),
 ])
 def test_bad_values_name_key_and_file(tmp_path, text, needle):
     p = write(tmp_path, text)

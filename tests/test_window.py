@@ -9,7 +9,7 @@ from online_id.bench.scenario import BenchScenario, Fault, OperatingPoint, PrbsS
 from online_id.bench.simulate import simulate_bench
 from online_id.estimation.model import ArmaxOrders
 from online_id.estimation.online import OnlineDriveline
-from online_id.estimation.window import SlidingPem
+from online_id.estimation.window import SlidingPem, solve
 from online_id.errors import EstimationError
 
 ORDERS = ArmaxOrders(10, 10, 10, 1)
@@ -102,3 +102,81 @@ def test_gap_clears_the_window_and_state_keeps_the_solution():
     assert w2.current and w2.n_fits == state["n_fits"] + 1
     with pytest.raises(EstimationError, match="parameters"):
         w2.load_state({"theta": [1.0, 2.0]})
+
+
+def _arx(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
+    u = rng.standard_normal(n)
+    y = np.convolve(u, [0.0, 0.5, 0.3], mode="full")[:n] + 0.01 * rng.standard_normal(n)
+    return y, u
+
+
+def test_after_a_speed_step_the_fit_takes_the_steady_samples_less_the_guard_and_grows_to_the_window():
+    rng = np.random.default_rng(4)
+    w = SlidingPem(ORDERS, 0.002, window_s=4.0, refit_s=0.5, min_excitation_nm=0.1, min_window_s=1.0,
+                   settle_guard_s=0.5, auto=False)
+    y, u = _arx(rng, 8000)
+    lengths = []
+    for k in range(8000):
+        speed = 150.0 if k < 3000 else 170.0  # a step of 191 rpm at sample 3000
+        if w.push(y[k], u[k], speed):
+            job = w.prepare()
+            lengths.append((k + 1, None if job is None else len(job.y)))
+            if job is not None:
+                w.complete(job, solve(job))
+    start = [(k, n) for k, n in lengths if k <= 2000]
+    # from the start: nothing before the guard (0.5 s) and the shortest fit (1 s), then growing by the refits
+    assert start[0] == (500, None) and start[1] == (750, 500) and start[-1] == (2000, 1750)
+    before = [n for k, n in lengths if 2250 <= k <= 3000]
+    assert before and all(n == 2000 for n in before)  # the whole window (4 s) while steady
+    after = [(k - 3000, n) for k, n in lengths if k > 3000]
+    # the stretch starts at a half-second block edge; the guard is 250 samples and the shortest fit 500
+    first = next(i for i, (_dk, n) in enumerate(after) if n is not None)
+    assert all(n is None for _dk, n in after[:first]) and after[first][0] <= 750 + 250
+    assert after[first][1] >= 500 and after[first][1] == after[first][0] - 250
+    grown = [n for _dk, n in after[first:]]
+    assert grown == sorted(grown) and grown[-1] == 2000  # grows by a refit's samples up to the window
+    assert "speed not steady" in w.reason or w.current
+
+
+def test_the_dc_blockers_transient_is_taken_out_of_the_fit():
+    rng = np.random.default_rng(5)
+    decay = 1.0 - 0.002 / 1.0  # a DC blocker of 1 s at 500 Hz
+    w = SlidingPem(ORDERS, 0.002, window_s=2.0, refit_s=0.5, min_excitation_nm=0.1, min_window_s=1.0,
+                   dc_decay=decay, auto=False)
+    y, u = _arx(rng, 1000)
+    k = np.arange(1000)
+    y_off, u_off = y + 0.3 + 8.0 * decay ** k, u - 5.0 * decay ** k  # the offsets a ramp leaves behind
+    for j in range(1000):
+        w.push(y_off[j], u_off[j], 150.0)
+    job = w.prepare()
+    assert job is not None and len(job.y) == 1000
+    X = np.column_stack((np.ones(1000), decay ** k))
+
+    def offsets(x):
+        return np.linalg.lstsq(X, x, rcond=None)[0]
+
+    assert np.all(np.abs(offsets(job.y)) < 1e-9) and np.all(np.abs(offsets(job.u)) < 1e-9)
+    assert np.std(job.y - (y - np.mean(y))) < 0.05 and np.std(job.u - (u - np.mean(u))) < 0.05
+    plain = SlidingPem(ORDERS, 0.002, window_s=2.0, refit_s=0.5, min_excitation_nm=0.1, min_window_s=1.0,
+                       auto=False)
+    for j in range(1000):
+        plain.push(y_off[j], u_off[j], 150.0)
+    kept = plain.prepare()
+    assert kept is not None and offsets(kept.y)[1] > 7.0  # without the decay the transient stays in
+
+
+@pytest.mark.parametrize("J2, c_s, d_s, rpm, seed", PLANTS)
+@pytest.mark.parametrize("factor", [0.75, 1.4])
+def test_valid_again_soon_after_a_change_of_operating_point(J2, c_s, d_s, rpm, seed, factor):
+    """A ramp of 25-40 % of the speed in 3 s: the first fit at the new point takes the steady samples from
+    5 s on (less a 1 s guard and the DC blocker's transient), valid within 8 s of the ramp's end (the whole
+    10 s window before, and up to 20 s more where the transient put the first fits in another minimum), and
+    accurate from the first valid estimate on."""
+    first_s, ramp_s = 30.0, BenchScenario().ramp_s
+    sc = dataclasses.replace(BenchScenario(), J2=J2, c_s=c_s, d_s=d_s, seed=seed,
+                             operating_points=(OperatingPoint(rpm, first_s), OperatingPoint(rpm * factor, 25.0)))
+    truth, out = _run(sc, _estimator(), every_s=0.5)
+    end = first_s + ramp_s
+    again = [(t, f) for t, f, _z, v, _w in out if v and t > end]
+    assert again and again[0][0] - end <= 8.0, [(t, v, why) for t, _f, _z, v, why in out if t > end][:20]
+    assert all(abs(f / truth["f0_hz"] - 1) < 0.01 for _t, f in again)

@@ -24,6 +24,36 @@ varies by at most ``max_speed_span_rpm`` between the means of its half-second
 blocks, and the RMS of the (DC-blocked) torque is at least
 ``min_excitation_nm``. Otherwise the last fit is marked stale.
 
+**After a change of operating point.** The DC blocker before the window
+(a first-order high-pass, see :mod:`~online_id.estimation.online`) leaves a
+decaying offset in both signals after a ramp of the speed: the speed's
+offset starts at several rad/s, far above the response to the test torque,
+and decays as :math:`d^k` (:math:`d` the blocker's decay per sample). A
+window that held it was fitted poorly: on a simulated bench, 10 s of
+invalid estimates with twice the damping after a 240 rpm ramp. So the fit
+takes only the samples since the speed became steady (the newest
+half-second blocks within ``max_speed_span_rpm``), less a guard of
+``settle_guard_s``, once they are at least ``min_window_s``; and it removes
+from each of :math:`y` and :math:`u` its least-squares fit of
+:math:`a + b d^k` (:math:`k` counting the segment's samples): the mean and
+the blocker's initial-condition response, a pole the ARMAX model lacks (on
+a window long after a change both coefficients are about zero). The window
+then grows by a refit a second until it is ``window_s`` long. The estimate
+is valid again about ``settle_guard_s + min_window_s`` after the ramp ends
+(6 s with the defaults; the whole window, 10 s, and whatever the transient
+cost before), and its own uncertainty, from the shorter fit's covariance,
+says how much less it knows.
+
+A cold fit also starts from the caller's ``starts`` (the streaming
+estimator passes the last solution whose estimate was valid: the driveline
+is the same at the next operating point), and the caller may ask for a cold
+fit where a warm one would do (it does so every other refit while the
+estimate is not valid or its resonance has just moved by more than 0.5 %:
+a warm-started fit can stay for many seconds in a minimum whose resonance
+is poorly determined, or follow a step of the stiffness only slowly; the
+cold fit keeps the lowest loss of all its starts, the warm one's among
+them).
+
 Refits fall due at fixed sample counts. With ``auto`` they run inside
 :meth:`SlidingPem.push`. The pipeline instead splits a refit in three:
 :meth:`SlidingPem.prepare` checks the window and copies it into a
@@ -137,10 +167,18 @@ class SlidingPem:
 
     def __init__(self, orders: ArmaxOrders, dt: float, *, window_s: float = 10.0, refit_s: float = 1.0,
                  max_speed_span_rpm: float = 40.0, min_excitation_nm: float = 1.0,
-                 warm_iterations: int = 40, warm_tol: float = 1e-3, auto: bool = True) -> None:
+                 warm_iterations: int = 40, warm_tol: float = 1e-3, auto: bool = True,
+                 min_window_s: float | None = None, settle_guard_s: float = 0.0,
+                 dc_decay: float | None = None) -> None:
         self.orders = orders
         self.dt = float(dt)
         self.n_window = max(int(round(window_s / dt)), 4 * orders.n_params)
+        # the shortest steady segment fitted after a change of operating point (default: the whole window)
+        self.n_min = self.n_window if min_window_s is None else min(
+            self.n_window, max(int(round(min_window_s / dt)), 4 * orders.n_params))
+        self.n_guard = max(0, int(round(settle_guard_s / dt)))
+        self.dc_decay = dc_decay  # per sample, of the DC blocker before the window (None: its transient stays)
+        self._steady_since: int | None = None  # sample count at which the current steady stretch began
         self.n_refit = max(1, int(round(refit_s / dt)))
         self.n_block = max(1, int(round(0.5 / dt)))
         self.max_span_rad_s = max_speed_span_rpm * np.pi / 30.0
@@ -180,7 +218,7 @@ class SlidingPem:
         self._pos = (self._pos + 1) % self.n_window
         self._count += 1
         self._since += 1
-        if self._count < self.n_window or self._since < self.n_refit:
+        if self._count < self.n_min or self._since < self.n_refit:
             return False
         self._since = 0
         self.due = True
@@ -193,10 +231,11 @@ class SlidingPem:
         self._run(self.prepare())
 
     def clear(self) -> None:
-        """Forget the window (after a gap): the next fit needs a full window of new samples."""
+        """Forget the window (after a gap): the next fit needs ``min_window_s`` (and the guard) of new samples."""
         self._count = 0
         self._since = 0
         self._pos = 0
+        self._steady_since = None
         self._generation += 1
         self.due = False
         self.current = False
@@ -207,37 +246,81 @@ class SlidingPem:
         """The window, oldest sample first: rows y, u, engine speed [rad/s], load [Nm]."""
         return np.roll(self._buf, -self._pos, axis=1)
 
-    def prepare(self) -> RefitJob | None:
-        """The due refit as a job (None when none is due or the window is not steady and excited)."""
+    def _segment(self) -> tuple[int, float]:
+        """How many of the newest samples to fit (0: none yet), and the speed span [rad/s] of the window.
+
+        The steady stretch is the longest run of newest half-second blocks whose means lie within
+        ``max_speed_span_rpm`` of each other; where it covers the whole window it continues the stretch
+        found before. The segment is the stretch less ``settle_guard_s``, at most the window, and none
+        while that is shorter than ``min_window_s`` (see the module notes).
+        """
+        n_avail = min(self._count, self.n_window)
+        nb = n_avail // self.n_block
+        if nb == 0:
+            return 0, 0.0
+        _y, _u, n, _load = self.window()
+        means = n[self.n_window - nb * self.n_block:].reshape(nb, self.n_block).mean(axis=1)
+        lo = hi = float(means[-1])
+        k = 0
+        for m in means[::-1]:  # newest first: the steady suffix
+            lo, hi = min(lo, float(m)), max(hi, float(m))
+            if hi - lo > self.max_span_rad_s:
+                break
+            k += 1
+        if k < nb:
+            self._steady_since = self._count - k * self.n_block
+        elif self._steady_since is None or self._steady_since > self._count - n_avail:
+            self._steady_since = self._count - n_avail  # steady since the window began, or since the start
+        span = float(np.ptp(means))
+        usable = min(n_avail, self._count - self._steady_since - self.n_guard)
+        return (usable if usable >= self.n_min else 0), span
+
+    def _last(self, n_fit: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The newest ``n_fit`` samples of the window: y, u (each less its DC blocker's transient), engine
+        speed, load."""
+        y, u, n, load = (row[self.n_window - n_fit:] for row in self.window())
+        if self.dc_decay is not None:
+            # the DC blocker's initial state decays as d**k in both signals: remove a + b d**k (module notes)
+            X = np.column_stack((np.ones(n_fit), self.dc_decay ** np.arange(n_fit)))
+            coef, *_ = np.linalg.lstsq(X, np.column_stack((y, u)), rcond=None)
+            y, u = (np.column_stack((y, u)) - X @ coef).T
+        return y, u, n, load
+
+    def prepare(self, starts: tuple = (), cold: bool = False) -> RefitJob | None:
+        """The due refit as a job (None when none is due or the window is not steady and excited).
+
+        ``starts``: further starts of a cold fit (e.g. the last solution whose estimate was valid: the
+        driveline is the same at another operating point); ``cold``: a cold fit, from the current solution
+        among the others, even where a warm one would do (see the module notes).
+        """
         if not self.due:
             return None
         self.due = False
-        if self._count < self.n_window:
+        if self._count < self.n_min:
             return None
-        y, u, n, load = self.window()
-        nb = self.n_window // self.n_block
-        means = n[: nb * self.n_block].reshape(nb, self.n_block).mean(axis=1)
-        span = float(means.max() - means.min()) if nb else 0.0
+        n_fit, span = self._segment()
+        if n_fit == 0:
+            if span > self.max_span_rad_s:  # else the window is still filling after a start or a gap
+                self.current = False
+                self.reason = f"speed not steady ({span * 30 / np.pi:.0f} rpm in the window)"
+            return None
+        y, u, n, load = self._last(n_fit)
         speed_rpm = float(np.mean(n)) * 30.0 / np.pi
-        if span > self.max_span_rad_s:
-            self.current = False
-            self.reason = f"speed not steady ({span * 30 / np.pi:.0f} rpm in the window)"
-            return None
         if float(np.std(u)) < self.min_excitation_nm:
             self.current = False
             self.reason = "torque excitation too low"
             return None
         moved = (not np.isfinite(self.fit_speed_rpm)
                  or abs(speed_rpm - self.fit_speed_rpm) > 0.5 * self.max_span_rad_s * 30.0 / np.pi)
-        if self._start is None or moved or not self.current:
-            mode, starts = "cold", (() if moved else (self._start,))
+        if self._start is None or moved or not self.current or cold:
+            mode, starts = "cold", (tuple(starts) if moved else (self._start, *starts))
         else:
             mode, starts = "warm", (self._start,)
         return RefitJob(y, u, self.orders, mode, starts, float(np.mean(load)), speed_rpm, self._generation,
                         self.warm_iterations, self.warm_tol)
 
     def prepare_verify(self, starts: tuple = (), prefer_last_within: float = 0.0) -> RefitJob | None:
-        """A multi-start refit of the current window as a job (None if the window is not full or not current).
+        """A multi-start refit of the current segment as a job (None if there is none or the fit is not current).
 
         The starts: Hannan-Rissanen, the recursive estimate, the current
         solution and ``starts`` (e.g. the solution the baseline was learned
@@ -248,9 +331,12 @@ class SlidingPem:
         :class:`~online_id.monitoring.detection.ChangeDetector`, *confirm*);
         about 0.5 s, rare.
         """
-        if self._count < self.n_window or not self.current:
+        if self._count < self.n_min or not self.current:
             return None
-        y, u, n, load = self.window()
+        n_fit, _span = self._segment()
+        if n_fit == 0:
+            return None
+        y, u, n, load = self._last(n_fit)
         return RefitJob(y, u, self.orders, "verify", (self._start, *starts), float(np.mean(load)),
                         float(np.mean(n)) * 30.0 / np.pi, self._generation, prefer_last_within=prefer_last_within)
 
@@ -301,7 +387,7 @@ class SlidingPem:
 
     # -- persistence --------------------------------------------------------------------------------
     def get_state(self) -> dict:
-        """What a restart keeps: the last solution (a warm start once a new window is full)."""
+        """What a restart keeps: the last solution (a start of the first fit after the restart)."""
         return {"theta": None if self._start is None else self._start.tolist(),
                 "speed_rpm": self.fit_speed_rpm, "n_fits": self.n_fits}
 
