@@ -170,8 +170,9 @@ class DetectionSettings:
     min_freq_change_pct: float = 0.5
     min_damping_change_pct: float = 20.0
     damping_tie_pct: float = 1.0
-    settle_s: float = 20.0
-    settle_detect_s: float = 10.0
+    frequency_tie_pct: float = 1.0
+    settle_s: float = 6.0
+    settle_detect_s: float = 3.0
     settle_min_freq_change_pct: float = 2.0
 
 
@@ -461,7 +462,7 @@ def _check_service(s: Settings, file: str) -> None:
     positive("detection", d, "band_rpm", "load_band_nm", "min_count", "k", "h_warning", "h_fault")
     nonnegative("detection", d, "min_freq_change_pct", "min_damping_change_pct", "settle_s", "settle_detect_s",
                 "settle_min_freq_change_pct",
-                "pool_tolerance_pct", "damping_tie_pct")
+                "pool_tolerance_pct", "damping_tie_pct", "frequency_tie_pct")
     if d.min_count < 2:
         raise ConfigError(f"{file}: detection.min_count: expected an integer >= 2, got {d.min_count!r}")
     if d.h_fault < d.h_warning:

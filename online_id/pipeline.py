@@ -466,12 +466,13 @@ class Pipeline:
                         and abs(speed - self._healthy_rpm) <= self.settings.model.max_speed_span_rpm)
                 self._healthy_since = t_s - (d.settle_s if same else 0.0)
             self._healthy_rpm = speed
-            # full detection resumes once the window holds only the new point (settle_detect_s, about the
-            # window): a deviation it sees then is confirmed by a multi-start refit before it is raised.
+            # full detection resumes settle_detect_s after the estimate is healthy at the new point (the refit
+            # window holds only the new point from its first fit on: what the wait covers is the first cold
+            # refits); a deviation it sees then is confirmed by a multi-start refit before it is raised.
             # Before, only a change of the frequency beyond settle_min_freq_change_pct is detected (what a
             # local minimum does not do; a fault just before a change of point is then not held back by the
             # settle time); the damping waits. Learning waits the longer settle_s: a baseline must not hold a
-            # transient
+            # transient, and a change that comes with the new point meets the detector first
             settled = t_s - self._healthy_since >= d.settle_detect_s
             settling = not settled
             learnable = t_s - self._healthy_since >= d.settle_s
@@ -626,9 +627,11 @@ class Pipeline:
         key = self.baseline.key(0.5 * (stats.band[0] + stats.band[1]))
         near = sorted(self._references, key=lambda k: abs(k - key))  # a pooled baseline: the nearest learned band's
         ref = self._references[near[0]] if near else None
-        # damping: where the baseline's own minimum fits the window nearly as well as the best, the data do not
-        # tell them apart (a mismatched model, backlash, has nearly equal minima whose damping differs by 30-40 %)
-        tie = self.settings.detection.damping_tie_pct / 100.0 if kind == DAMPING else 0.0
+        # where the baseline's own minimum fits the window nearly as well as the best, the data do not tell them
+        # apart: a mismatched model (backlash) has nearly equal minima whose damping differs by 30-40 % and whose
+        # resonance differs by 1-3 %, and the estimate may sit in either for minutes at a learned operating point
+        d = self.settings.detection
+        tie = (d.damping_tie_pct if kind == DAMPING else d.frequency_tie_pct) / 100.0
         if self._verify(("confirm", kind), t_s, (ref,), tie) is PENDING:
             return None
         est = self.estimator.estimate()

@@ -61,13 +61,16 @@ def test_a_damping_change_while_a_cell_learns_is_never_absorbed(seed, factor):
     t_fault = 62.0  # 4 s into the second plateau: its cell learns after the fault, or never
     pipe, _ = _run(seed, factor, (OperatingPoint(a, 55.0), OperatingPoint(b, 55.0)), t_fault)
     damping = _alarms(pipe, t_fault, factor)
-    assert damping[0].t_s - t_fault <= 45.0  # after the new point settles (20 s) and the window fills
+    assert damping[0].t_s - t_fault <= 45.0  # after the new point settles and the window takes the change in
     first = [c for c in pipe.baseline.bands if c.band[0] <= a < c.band[1] and c.kind == "learned"]
     assert first, pipe.baseline.bands
-    # never absorbed: the second plateau's cells hold no post-fault estimate (the change is 50 %)
+    # never absorbed: no cell of the second plateau that serves as a baseline holds the change (it is 50 %);
+    # estimates that disagree with the first point's baseline may be learned only into a held cell, which
+    # serves no point and is never released here (no established cell agrees with its own baseline again)
     for c in pipe.baseline.bands:
         if c.band[0] <= b < c.band[1]:
-            assert abs(c.mean_zeta / first[0].mean_zeta - 1.0) < 0.15, c
+            assert c.kind == "held" or abs(c.mean_zeta / first[0].mean_zeta - 1.0) < 0.15, c
+    assert not [e for e in pipe.events if e.kind == "released"]
 
 
 @pytest.mark.slow

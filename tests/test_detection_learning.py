@@ -43,7 +43,7 @@ def test_a_fault_during_learning_is_never_absorbed(seed):
     pipe = run_bench_data(rec.to_data("learning"), settings, run_label="this run")
     drift = [x for x in pipe.alerts if x.kind == AlertKind.FREQ_DRIFT]
     assert drift and drift[0].t_s > t_fault, f"plant {seed} (f0 {f0:.1f} Hz): no alarm; {list(pipe.events)[-8:]}"
-    assert drift[0].t_s - t_fault <= 45.0  # after the new point settles (20 s) and the window fills
+    assert drift[0].t_s - t_fault <= 45.0  # after the new point is valid and the window takes the change in
     assert "lower" in drift[0].message and "against the" in drift[0].message
     bands = pipe.baseline.bands
     first = [c for c in bands if c.band[0] <= a < c.band[1] and c.kind == "learned"]
@@ -69,33 +69,34 @@ def _tour_with_fault(seed, durations, t_fault, **fault):
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [25, 26])
 def test_plateaus_too_short_to_learn_a_cell_still_keep_a_fault_out(seed):
-    """Two plateaus of 35-40 s (no cell holds the ten estimates of a frozen reference: learning starts
-    20 s into a plateau), a 15 % stiffness loss 2 s before the bench moves to a third point: the first
-    estimates of the cells learned so far serve as a provisional reference, the fault is alarmed and the
-    third point's cell does not learn it (it did before: no alarm at all, the new cell learned -7.8 %)."""
-    t_fault = 35.0 + BenchScenario().ramp_s + 38.0 - 2.0
-    pipe, (a, b, c), f0 = _tour_with_fault(seed, (35.0, 38.0, 55.0), t_fault)
+    """Two plateaus of 20 s (no cell holds the ten estimates of a frozen reference: the estimate is valid
+    about 7 s after the ramp and learning starts 6 s later), a 15 % stiffness loss 2 s before the bench
+    moves to a third point: the first estimates of the cells learned so far serve as a provisional
+    reference, the fault is alarmed and the third point's cell does not learn it (it did before the
+    provisional reference: no alarm at all, the new cell learned -7.8 %)."""
+    t_fault = 20.0 + BenchScenario().ramp_s + 20.0 - 2.0
+    pipe, (a, b, c), f0 = _tour_with_fault(seed, (20.0, 20.0, 55.0), t_fault)
     assert all(x.count < 10 for x in pipe.baseline.bands if not (x.band[0] <= c < x.band[1])), pipe.baseline.bands
     drift = [x for x in pipe.alerts if x.kind == AlertKind.FREQ_DRIFT]
     assert drift and drift[0].t_s > t_fault, f"plant {seed} (f0 {f0:.1f} Hz): no alarm; {list(pipe.events)[-8:]}"
     assert "lower" in drift[0].message
     before = [x.mean_f for x in pipe.baseline.bands if not (x.band[0] <= c < x.band[1])]
-    for x in pipe.baseline.bands:
+    for x in pipe.baseline.bands:  # the third point's cell: the fault only in a held cell (no baseline), if at all
         if x.band[0] <= c < x.band[1]:
-            assert min(abs(x.mean_f / m - 1.0) for m in before) < 0.03, (x, before)
+            assert x.kind == "held" or min(abs(x.mean_f / m - 1.0) for m in before) < 0.03, (x, before)
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [27, 28])
 def test_a_cell_does_not_learn_the_estimates_that_move_while_the_window_takes_in_a_fault(seed):
-    """A 15 % stiffness loss just as the second point's cell starts learning (about 30 s into it): for the
+    """A 15 % stiffness loss just as the second point's cell starts learning (about 13 s into it): for the
     window's length the estimates move from the old resonance to the new; a cell learned only from steady
     estimates keeps them out (it learned them before: the next point's pooled baseline held the fault's
     transition and its spread, and the alarm came 57 s after the fault on plant 11704 of family (a)).
     The third point is new: its cell, disagreeing with the pool, is held (no baseline), and the loss is
     alarmed there against the pool, or when the bench is back at the first point."""
     ramp = BenchScenario().ramp_s
-    t_fault = 40.0 + ramp + 30.0
+    t_fault = 40.0 + ramp + 13.0
     durations = (40.0, 36.0, 45.0, 40.0)
     pipe, (a, b, c), f0 = _tour_with_fault(seed, durations, t_fault)
     first = [x for x in pipe.baseline.bands if x.band[0] <= a < x.band[1]]
@@ -249,7 +250,7 @@ def test_a_damping_change_while_a_cell_learns_is_not_learned_into_it(seed, facto
     creep in (+32 % on plant 11703 of family (a), and the alarm came 49 s after the fault); a cell learns
     only estimates whose damping stood still too, and the change is alarmed within 30 s."""
     ramp = BenchScenario().ramp_s
-    t_fault = 40.0 + ramp + 27.0  # valid about 12 s into a point, learning 20 s later: during the transition
+    t_fault = 40.0 + ramp + 10.0  # valid about 7 s into a point, learning 6 s later: 3 s before it
     pipe, (a, b, c), f0 = _tour_with_fault(seed, (40.0, 75.0, 40.0), t_fault, damping_factor=factor)
     learned = [x for x in pipe.baseline.bands if x.kind != "held"]
     first = [x for x in learned if x.band[0] <= a < x.band[1]]

@@ -59,9 +59,9 @@ learning is checked against its own first ``freeze_count`` estimates, frozen
 not against its running statistics: a change that comes while it learns
 would otherwise creep into them estimate by estimate (each within the
 tolerance of those before, the fit window lags the change by up to 10 s)
-and widen the tolerance as it goes. A plateau of well under a minute gives a
-cell fewer than ``freeze_count`` estimates (learning starts ``settle_s``
-into it): its first ``provisional_count`` estimates are frozen at once and
+and widen the tolerance as it goes. A plateau of 20-25 s gives a cell fewer
+than ``freeze_count`` estimates (learning starts ``settle_s`` after the
+estimate is valid again, about 13 s into it): its first ``provisional_count`` estimates are frozen at once and
 serve as a provisional reference, their spread widened by
 :math:`\\sqrt{N_\\text{freeze} / N}` (a few strongly correlated estimates
 under-state it), until the first ``freeze_count`` replace them.
