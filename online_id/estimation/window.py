@@ -178,6 +178,8 @@ class SlidingPem:
             self.n_window, max(int(round(min_window_s / dt)), 4 * orders.n_params))
         self.n_guard = max(0, int(round(settle_guard_s / dt)))
         self.dc_decay = dc_decay  # per sample, of the DC blocker before the window (None: its transient stays)
+        # d**k for k = 0 .. n_window - 1: the transient's regressor of a segment of any length (see _last)
+        self._decay_k = None if dc_decay is None else float(dc_decay) ** np.arange(self.n_window)
         self._steady_since: int | None = None  # sample count at which the current steady stretch began
         self.n_refit = max(1, int(round(refit_s / dt)))
         self.n_block = max(1, int(round(0.5 / dt)))
@@ -258,7 +260,7 @@ class SlidingPem:
         nb = n_avail // self.n_block
         if nb == 0:
             return 0, 0.0
-        _y, _u, n, _load = self.window()
+        n = np.roll(self._buf[2], -self._pos)  # the engine speed, oldest first (the other rows are not needed)
         means = n[self.n_window - nb * self.n_block:].reshape(nb, self.n_block).mean(axis=1)
         lo = hi = float(means[-1])
         k = 0
@@ -278,10 +280,10 @@ class SlidingPem:
     def _last(self, n_fit: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The newest ``n_fit`` samples of the window: y, u (each less its DC blocker's transient), engine
         speed, load."""
-        y, u, n, load = (row[self.n_window - n_fit:] for row in self.window())
-        if self.dc_decay is not None:
+        y, u, n, load = np.roll(self._buf, -self._pos, axis=1)[:, self.n_window - n_fit:]
+        if self._decay_k is not None:
             # the DC blocker's initial state decays as d**k in both signals: remove a + b d**k (module notes)
-            X = np.column_stack((np.ones(n_fit), self.dc_decay ** np.arange(n_fit)))
+            X = np.column_stack((np.ones(n_fit), self._decay_k[:n_fit]))
             coef, *_ = np.linalg.lstsq(X, np.column_stack((y, u)), rcond=None)
             y, u = (np.column_stack((y, u)) - X @ coef).T
         return y, u, n, load
