@@ -61,7 +61,7 @@ from online_id.analysis.physical import (
 )
 from online_id.analysis.poles import Pole, modal_residue, order_of, pole_std, poles_of
 from online_id.estimation.rels import RecursiveArmax
-from online_id.estimation.window import FIT_ERRORS, RefitJob, SlidingPem, solve
+from online_id.estimation.window import RefitJob, SlidingPem, solve_or_error
 from online_id.errors import EstimationError
 
 
@@ -239,13 +239,8 @@ class OnlineDriveline:
     def _refit_here(self) -> None:
         """The due refit (:meth:`refit_job`), solved and adopted here and now (``auto_refit``)."""
         job = self.refit_job()
-        if job is None:
-            return
-        try:
-            fit, error = solve(job), None
-        except FIT_ERRORS as err:
-            fit, error = None, str(err)
-        self.complete(job, fit, error)
+        if job is not None:
+            self.complete(job, *solve_or_error(job))
 
     def verify_job(self, starts: tuple = (), prefer_last_within: float = 0.0) -> RefitJob | None:
         """A multi-start refit of the current segment as a job (None: there is none, or the fit is not current)."""

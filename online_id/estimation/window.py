@@ -162,6 +162,14 @@ def solve(job: RefitJob) -> ArmaxFit:
                           solver=SOLVER)
 
 
+def solve_or_error(job: RefitJob) -> tuple[ArmaxFit | None, str | None]:
+    """``(fit, None)`` of :func:`solve`, or ``(None, description)`` where the fit failed."""
+    try:
+        return solve(job), None
+    except FIT_ERRORS as err:
+        return None, str(err)
+
+
 class SlidingPem:
     """Periodic prediction-error fits over the last ``window_s`` seconds (see module notes)."""
 
@@ -280,7 +288,7 @@ class SlidingPem:
     def _last(self, n_fit: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The newest ``n_fit`` samples of the window: y, u (each less its DC blocker's transient), engine
         speed, load."""
-        y, u, n, load = np.roll(self._buf, -self._pos, axis=1)[:, self.n_window - n_fit:]
+        y, u, n, load = self.window()[:, self.n_window - n_fit:]
         if self._decay_k is not None:
             # the DC blocker's initial state decays as d**k in both signals: remove a + b d**k (module notes)
             X = np.column_stack((np.ones(n_fit), self._decay_k[:n_fit]))
@@ -372,13 +380,7 @@ class SlidingPem:
 
     def _run(self, job: RefitJob | None) -> bool:
         """Solve and complete ``job`` here and now."""
-        if job is None:
-            return False
-        try:
-            fit, error = solve(job), None
-        except FIT_ERRORS as err:
-            fit, error = None, str(err)
-        return self.complete(job, fit, error)
+        return False if job is None else self.complete(job, *solve_or_error(job))
 
     def _adopt(self, fit: ArmaxFit, load_nm: float) -> None:
         """``fit`` of the window whose mean raw torque is ``load_nm`` becomes the current solution."""
