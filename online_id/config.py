@@ -174,6 +174,8 @@ class DetectionSettings:
     settle_s: float = 6.0
     settle_detect_s: float = 3.0
     settle_min_freq_change_pct: float = 2.0
+    backlash_test_s: float = 12.0
+    backlash_gain_pct: float = 3.0
 
 
 @dataclass(frozen=True)
@@ -462,7 +464,10 @@ def _check_service(s: Settings, file: str) -> None:
     positive("detection", d, "band_rpm", "load_band_nm", "min_count", "k", "h_warning", "h_fault")
     nonnegative("detection", d, "min_freq_change_pct", "min_damping_change_pct", "settle_s", "settle_detect_s",
                 "settle_min_freq_change_pct",
-                "pool_tolerance_pct", "damping_tie_pct", "frequency_tie_pct")
+                "pool_tolerance_pct", "damping_tie_pct", "frequency_tie_pct", "backlash_gain_pct")
+    if not (d.backlash_test_s == 0 or 10.0 <= d.backlash_test_s <= 30.0):
+        raise ConfigError(f"{file}: detection.backlash_test_s: expected 0 (no backlash test) or 10 to 30 s of "
+                          f"steady samples, got {d.backlash_test_s!r}")
     if d.min_count < 2:
         raise ConfigError(f"{file}: detection.min_count: expected an integer >= 2, got {d.min_count!r}")
     if d.h_fault < d.h_warning:

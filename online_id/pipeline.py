@@ -21,6 +21,7 @@ Health states (published in the status frame):
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from collections import deque
 from dataclasses import dataclass, field
@@ -29,6 +30,7 @@ import numpy as np
 
 from online_id.assembly import AssembledSample, SampleAssembler
 from online_id.config import Settings
+from online_id.diagnose.linearity import BacklashTest, backlash_test
 from online_id.monitoring.baseline import Baseline
 from online_id.monitoring.cells import BandStats
 from online_id.monitoring.detection import DAMPING, FREQUENCY, Alarm, ChangeDetector, correlation_for_window
@@ -60,6 +62,8 @@ COMMAND_RESET = 3
 STATE_VERSION = 1
 WINDOW = "window"  # worker lane of the window refits and multi-start checks
 PHYSICAL = "physical"  # worker lane of the physical-parameter fit
+LINEARITY = "linearity"  # worker lane of the backlash test (see _test_backlash)
+BACKLASH_TEST_MAX_S = 30.0  # the backlash test takes at most this much of an operating point's steady samples
 PENDING = None  # a multi-start check is running in the worker: decide later
 VERIFY_FRESH_S = 5.0  # a multi-start check older than this is not used for a decision
 STEADY_S = 5.0  # learning needs the estimates this long ago within the dead bands (or 3 own stds), see _steady
@@ -104,6 +108,14 @@ class Pipeline:
         self._healthy_since: float | None = None  # start of the current healthy stretch (settle_s)
         self._recent: deque[tuple[float, float, float]] = deque()  # (t_s, f0, zeta) of the healthy stretch
         self._healthy_rpm: float | None = None  # engine speed of the last healthy estimate
+        # the input samples of the last BACKLASH_TEST_MAX_S (t, dyno speed, engine speed, torque): the backlash test
+        self._raw: deque[tuple[float, float, float, float]] = deque(
+            maxlen=max(1, int(BACKLASH_TEST_MAX_S * s.input.sample_rate_hz)))
+        self._visit = 0  # counts the arrivals of healthy estimates at another operating point
+        self._visit_tested = -1  # the visit whose samples the backlash test took
+        self._visit_not_compared = -1  # the visit where another point's baseline was last not compared with
+        self.backlash_tests = 0
+        self.last_backlash_test: BacklashTest | None = None
         self._references: dict[int, np.ndarray] = {}  # per baseline band: a window solution it was learned from
         self._next_learn: float | None = None
         self._next_alarm_repeat = 0.0
@@ -258,6 +270,8 @@ class Pipeline:
         """Feed one assembled sample to the estimator (also used by offline runs)."""
         if a.discontinuity and self.counters.samples > 1:
             self.estimator.restart_history()
+            self._raw.clear()
+        self._raw.append((a.t_s, a.dyno_speed, a.engine_speed, a.dyno_torque))
         self.estimator.update(a.dyno_speed, a.engine_speed, a.dyno_torque)
 
     def _consume(self, samples: list[AssembledSample], now_s: float) -> list[Publication]:
@@ -465,6 +479,7 @@ class Pipeline:
                 same = (self._healthy_rpm is not None
                         and abs(speed - self._healthy_rpm) <= self.settings.model.max_speed_span_rpm)
                 self._healthy_since = t_s - (d.settle_s if same else 0.0)
+                self._visit += 0 if same else 1
             self._healthy_rpm = speed
             # full detection resumes settle_detect_s after the estimate is healthy at the new point (the refit
             # window holds only the new point from its first fit on: what the wait covers is the first cold
@@ -483,11 +498,27 @@ class Pipeline:
             self._next_learn = t_s + 1.0  # about one independent-ish estimate per second
             est = self._learn(est, t_s, speed, load)
             load = est.load_nm
+        if (healthy and d.backlash_test_s > 0 and not self.baseline.nonlinear and self._visit_tested != self._visit
+                and not self.worker.busy(LINEARITY)):
+            self._test_backlash(t_s, speed)
         stats = self._baseline_for(speed, load)
         self._stats = stats
+        versus = stats
+        if stats is not None and self.baseline.nonlinear and not self._own(stats, speed, load):
+            # another operating point's baseline does not predict this point's resonance on a shaft with
+            # backlash (it moves 5-15 % between points): detection here waits for the cell's own first
+            # estimates, and a change of the driveline shows at the established points (it shows everywhere)
+            versus = None
+            if healthy and self._visit_not_compared != self._visit:
+                self._visit_not_compared = self._visit
+                self.events.append(Event(t_s, "not_compared", f"at {speed:.0f} rpm, {load:.1f} Nm the {stats.kind} "
+                                         f"baseline of other operating points is not compared with: the shaft "
+                                         f"shows backlash, so its resonance moves with the operating point; "
+                                         f"detection here starts with the cell's own first estimates",
+                                         {"baseline": stats.kind}))
         alarm = self.detector.update(
             t_s=t_s, speed_rpm=speed, f0_hz=est.f0_hz, zeta=est.zeta, f0_std_hz=est.f0_std_hz,
-            zeta_std=est.zeta_std, baseline=stats, suppressed=not healthy,
+            zeta_std=est.zeta_std, baseline=versus, suppressed=not healthy,
             confirm=lambda kind: self._confirm(kind, stats, t_s),
             frequency_only_beyond=d.settle_min_freq_change_pct / 100.0 if settling else None,
         )
@@ -498,6 +529,34 @@ class Pipeline:
             # a latched alarm is repeated on CAN once a second until acknowledged (not logged again)
             self._next_alarm_repeat = t_s + 1.0
             out.append(self._alert_out(self.detector.active, t_s))
+
+    def _test_backlash(self, t_s: float, speed: float) -> None:
+        """The backlash test (:mod:`online_id.diagnose.linearity`) on this operating point's steady samples, once
+        per visit, once the speed has been steady for ``detection.backlash_test_s`` (at most the last
+        ``BACKLASH_TEST_MAX_S``), in the worker; until one point shows backlash."""
+        steady = min(self.estimator.window.steady_s, BACKLASH_TEST_MAX_S)
+        if steady < self.settings.detection.backlash_test_s:
+            return
+        self._visit_tested = self._visit
+        n = min(len(self._raw), int(steady * self.settings.input.sample_rate_hz))
+        rows = np.asarray(list(itertools.islice(self._raw, len(self._raw) - n, None)), dtype=float)
+
+        def done(test: BacklashTest | None, error: str | None) -> None:
+            self.backlash_tests += 1
+            if test is None:
+                self.events.append(Event(t_s, "backlash_test", f"backlash test at {speed:.0f} rpm not done: {error}",
+                                         {"error": error}))
+                return
+            self.last_backlash_test = test
+            if test.shows_backlash(self.settings.detection.backlash_gain_pct / 100.0) and not self.baseline.nonlinear:
+                self.baseline.backlash = {**test.as_dict(), "source": self.run_label}
+                self.events.append(Event(t_s, "backlash", f"the shaft shows backlash at {test.speed_rpm:.0f} rpm: a "
+                                         f"dead zone of the twist removes {100 * test.gain:.0f} % of the one-step "
+                                         f"error (t = {test.t_stat:.1f}); other operating points' baselines are no "
+                                         f"longer compared with", test.as_dict()))
+
+        self.worker.submit(LINEARITY, backlash_test, (rows[:, 0], rows[:, 3], rows[:, 1], rows[:, 2],
+                                                      self.settings.model.pulses_per_rev), done)
 
     def _steady(self, est: OnlineEstimate, t_s: float) -> bool:
         """Whether the estimate stood still over the last ``STEADY_S``: its frequency within the dead band
@@ -707,7 +766,9 @@ class Pipeline:
             "baseline": [b.as_dict() for b in self.baseline.bands],
             "baseline_not_learned": self._rejected,  # learning estimates that disagreed with the baselines
             "baseline_notes": [{"t_s": e.t_s - t0, "kind": e.kind, "message": e.message} for e in self.events
-                               if e.kind in ("learned", "not_learned", "wide_baseline")][-20:],
+                               if e.kind in ("learned", "not_learned", "wide_baseline", "backlash")][-20:],
+            "backlash": {"shown": self.baseline.backlash, "tests": self.backlash_tests,
+                         "last_test": self.last_backlash_test.as_dict() if self.last_backlash_test else None},
             "tracks": [{"id": t.id, "f_hz": t.f_hz, "zeta": t.zeta, "class": t.cls, "confidence": t.confidence,
                         "order": t.order} for t in self.tracker.tracks],
             "status_changes": [{"t_s": e.t_s - t0, "state": e.data["state"], "why": e.message}

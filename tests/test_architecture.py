@@ -18,7 +18,7 @@ ALLOWED = {
     "diagnose": {"errors", "records", "analysis", "estimation"},
     "bench": {"errors", "records", "excitation", "config", "bench", "pipeline"},
     "pipeline": {"errors", "records", "analysis", "estimation", "monitoring", "excitation", "assembly", "config",
-                 "offload"},
+                 "offload", "diagnose"},
     "offload": {"scheduling"},
     "scheduling": set(),
 }

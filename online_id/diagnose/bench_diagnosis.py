@@ -217,6 +217,20 @@ def _refine_freq(series: BenchSeries, spec: Spec, base: BenchFit, f0: float, eq:
     return float(res.x) if res.fun < loss(fg) else fg
 
 
+def backlash_fit(series: BenchSeries, spec: Spec) -> tuple[bx.TwistTerm, BenchFit, float, float]:
+    """A dead zone of the twist added to ``spec`` with the linear twist: the term, the fit, its gain and t.
+
+    The reference is ``spec`` with the linear twist (a backlash term is judged against the torsion it
+    replaces), both inertia equations (see :func:`~online_id.diagnose.bench_effects.search_backlash`).
+    """
+    ref_spec = spec.with_term(bx.TwistTerm(nb=spec.nb))
+    ref = fit_spec(series, ref_spec, only=EQS)
+    term = bx.search_backlash(series, ref_spec)
+    new = fit_spec(series, ref_spec.with_term(term), only=EQS)
+    g, t = _gain(new, ref, EQS)
+    return term, new, g, t
+
+
 def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
                         report: Callable[[str], None] = lambda m: None) -> list[BenchCandidate]:
     """Fit every screened candidate against ``base`` (the current model)."""
@@ -262,11 +276,7 @@ def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
                                    "line_strength": strength},
                                   g_f, t_f, fixed.spec))
     report("backlash")
-    ref_spec = spec.with_term(bx.TwistTerm(nb=spec.nb))
-    ref = fit_spec(series, ref_spec, only=EQS)
-    term = bx.search_backlash(series, ref_spec)
-    new = fit_spec(series, ref_spec.with_term(term), only=EQS)
-    g, t = _gain(new, ref, EQS)
+    term, new, g, t = backlash_fit(series, spec)
     out.append(BenchCandidate("backlash", {**term.params(), "shaft_torque_reversed_pct": bx.shaft_torque_reversed(bal)},
                               g, t, new.spec))
     report("coulomb friction")

@@ -256,6 +256,14 @@ class SlidingPem:
         """The window, oldest sample first: rows y, u, engine speed [rad/s], load [Nm]."""
         return np.roll(self._buf, -self._pos, axis=1)
 
+    @property
+    def steady_s(self) -> float:
+        """Seconds the engine speed has been steady (less ``settle_guard_s``) as of the last refit, 0 if unknown;
+        it keeps growing past the window's length while the speed stays (see :meth:`_segment`)."""
+        if self._steady_since is None:
+            return 0.0
+        return max(0.0, (self._count - self._steady_since - self.n_guard) * self.dt)
+
     def _segment(self) -> tuple[int, float]:
         """How many of the newest samples to fit (0: none yet), and the speed span [rad/s] of the window.
 

@@ -153,6 +153,15 @@ class Baseline:
         self.provisional_count = min(integer("Baseline", "provisional_count", provisional_count, minimum=2),
                                      self.freeze_count)
         self._bands: dict[int, list[Cell]] = {}
+        # the backlash test that showed the driveline's resonance moves with the operating point (None: no
+        # operating point showed it): a property of the driveline, learned, kept and reset with its baselines
+        self.backlash: dict | None = None
+
+    @property
+    def nonlinear(self) -> bool:
+        """Whether an operating point showed backlash (:attr:`backlash`): no other point's baseline predicts
+        a point's own resonance then (see :mod:`online_id.diagnose.linearity`)."""
+        return self.backlash is not None
 
     def key(self, speed_rpm: float) -> int:
         """The index of the band of ``speed_rpm`` (centred on ``key * band_rpm``)."""
@@ -438,8 +447,9 @@ class Baseline:
                      for c in sorted(self._bands[i], key=lambda c: c.load) if c.n >= 2)
 
     def reset(self) -> None:
-        """Forget all bands (re-learn on command)."""
+        """Forget all bands and the backlash seen (re-learn on command: a new shaft)."""
         self._bands.clear()
+        self.backlash = None
 
     def to_dict(self) -> dict[str, Any]:
         """Plain (JSON-able) state; :meth:`from_dict` restores it."""
@@ -452,6 +462,7 @@ class Baseline:
             "pool_tolerance_f": self.pool_tolerance_f,
             "pool_tolerance_zeta": self.pool_tolerance_zeta,
             "freeze_count": self.freeze_count,
+            "backlash": self.backlash,
             "bands": {str(i): [[None if isinstance(x, float) and not math.isfinite(x) else x for x in c.as_list()]
                                for c in cells]
                       for i, cells in sorted(self._bands.items())},
@@ -467,6 +478,10 @@ class Baseline:
                        pool_tolerance_f=data.get("pool_tolerance_f", 0.005),
                        pool_tolerance_zeta=data.get("pool_tolerance_zeta", 0.10),
                        freeze_count=data.get("freeze_count"))
+            backlash = data.get("backlash")
+            if backlash is not None and not isinstance(backlash, dict):
+                raise TypeError(f"backlash is a {type(backlash).__name__}, not a mapping")
+            base.backlash = dict(backlash) if backlash is not None else None
             for key, v in data["bands"].items():
                 cells = v if v and isinstance(v[0], list) else [list(v) + [None]]  # one cell, no load
                 base._bands[int(key)] = [cell_from_list(c) for c in cells]
