@@ -63,6 +63,7 @@ STATE_VERSION = 1
 WINDOW = "window"  # worker lane of the window refits and multi-start checks
 PHYSICAL = "physical"  # worker lane of the physical-parameter fit
 LINEARITY = "linearity"  # worker lane of the backlash test (see _test_backlash)
+MIN_CELLS_NONLINEAR = 3  # learned cells a pool needs to serve a point on a shaft with backlash (see _baseline_for)
 BACKLASH_TEST_MAX_S = 30.0  # the backlash test takes at most this much of an operating point's steady samples
 PENDING = None  # a multi-start check is running in the worker: decide later
 VERIFY_FRESH_S = 5.0  # a multi-start check older than this is not used for a decision
@@ -503,22 +504,20 @@ class Pipeline:
             self._test_backlash(t_s, speed)
         stats = self._baseline_for(speed, load)
         self._stats = stats
-        versus = stats
-        if stats is not None and self.baseline.nonlinear and not self._own(stats, speed, load):
+        if (stats is None and healthy and self.baseline.nonlinear and self._visit_not_compared != self._visit
+                and self.baseline.learned_range_rpm is not None):
             # another operating point's baseline does not predict this point's resonance on a shaft with
             # backlash (it moves 5-15 % between points): detection here waits for the cell's own first
             # estimates, and a change of the driveline shows at the established points (it shows everywhere)
-            versus = None
-            if healthy and self._visit_not_compared != self._visit:
-                self._visit_not_compared = self._visit
-                self.events.append(Event(t_s, "not_compared", f"at {speed:.0f} rpm, {load:.1f} Nm the {stats.kind} "
-                                         f"baseline of other operating points is not compared with: the shaft "
-                                         f"shows backlash, so its resonance moves with the operating point; "
-                                         f"detection here starts with the cell's own first estimates",
-                                         {"baseline": stats.kind}))
+            self._visit_not_compared = self._visit
+            self.events.append(Event(t_s, "not_compared", f"at {speed:.0f} rpm, {load:.1f} Nm no other operating "
+                                     f"point's baseline is compared with: the shaft shows backlash, so its resonance "
+                                     f"moves with the operating point, and fewer than {MIN_CELLS_NONLINEAR} learned "
+                                     f"cells measure how far; detection here starts with the cell's own first "
+                                     f"estimates", {}))
         alarm = self.detector.update(
             t_s=t_s, speed_rpm=speed, f0_hz=est.f0_hz, zeta=est.zeta, f0_std_hz=est.f0_std_hz,
-            zeta_std=est.zeta_std, baseline=versus, suppressed=not healthy,
+            zeta_std=est.zeta_std, baseline=stats, suppressed=not healthy,
             confirm=lambda kind: self._confirm(kind, stats, t_s),
             frequency_only_beyond=d.settle_min_freq_change_pct / 100.0 if settling else None,
         )
@@ -550,10 +549,13 @@ class Pipeline:
             self.last_backlash_test = test
             if test.shows_backlash(self.settings.detection.backlash_gain_pct / 100.0) and not self.baseline.nonlinear:
                 self.baseline.backlash = {**test.as_dict(), "source": self.run_label}
+                # a cell held for disagreeing with another point's baseline: that baseline predicts nothing here
+                n = self.baseline.release()
                 self.events.append(Event(t_s, "backlash", f"the shaft shows backlash at {test.speed_rpm:.0f} rpm: a "
                                          f"dead zone of the twist removes {100 * test.gain:.0f} % of the one-step "
                                          f"error (t = {test.t_stat:.1f}); other operating points' baselines are no "
-                                         f"longer compared with", test.as_dict()))
+                                         f"longer compared with" + (f", {n} held cell(s) released" if n else ""),
+                                         test.as_dict() | {"released": n}))
 
         self.worker.submit(LINEARITY, backlash_test, (rows[:, 0], rows[:, 3], rows[:, 1], rows[:, 2],
                                                       self.settings.model.pulses_per_rev), done)
@@ -580,15 +582,25 @@ class Pipeline:
         operating point: a learned cell at another load of the band differs by 0.1-0.5 % per Nm with backlash);
         else a learned cell of the band at another load or of an adjacent band (:meth:`Baseline.lookup`); else
         the pooled baseline (for detection the pool's spread is doubled, for the learning check,
-        ``learning``, it is not)."""
+        ``learning``, it is not). On a shaft that showed backlash (:attr:`Baseline.nonlinear`) no other single
+        point serves, only a pool of ``MIN_CELLS_NONLINEAR`` learned cells (None otherwise)."""
         n = self.baseline.provisional_count
         own = self.baseline.cell(speed, load, frozen=True)
         if own is not None and own.count >= n:
             return own  # as it is: its spread is widened while it holds fewer than freeze_count estimates
         stats = self.baseline.lookup(speed, load)
-        if stats is not None:
+        nonlinear = self.baseline.nonlinear
+        if stats is not None and not (nonlinear and not self._own(stats, speed, load)):
             return stats
-        pool = self.baseline.pooled(speed, load, min_n=n)
+        if nonlinear:
+            # a shaft with backlash: its resonance moves with the operating point, which one or two other points
+            # cannot tell; only a pool of MIN_CELLS_NONLINEAR learned cells, its spread between them measured
+            # (or the fit's against speed and load), serves a point not learned yet
+            pool = self.baseline.pooled(speed, load, measured=True)
+            if pool is None or pool.cells < MIN_CELLS_NONLINEAR:
+                return None
+        else:
+            pool = self.baseline.pooled(speed, load, min_n=n)
         if pool is not None and not learning:  # for detection, doubled: it stands for a point it has not seen
             pool = dataclasses.replace(pool, std_f=2.0 * pool.std_f, std_zeta=2.0 * pool.std_zeta)
         return pool
@@ -614,7 +626,10 @@ class Pipeline:
         ambiguous and the estimate is learned into a *held* cell, which is no
         baseline of another point until an estimate at an established cell
         agrees with that cell's own baseline (:meth:`Baseline.release`, see
-        :mod:`~online_id.monitoring.baseline`).
+        :mod:`~online_id.monitoring.baseline`). On a shaft that showed
+        backlash no single other point's baseline serves (:meth:`_baseline_for`):
+        without a pool of several learned cells the cell learns its own, not
+        held (a change of the driveline shows at the established points).
         """
         d = self.settings.detection
         cell = self.baseline.cell(speed, load)

@@ -76,10 +76,15 @@ def test_a_damping_change_while_a_cell_learns_is_never_absorbed(seed, factor):
     assert first, pipe.baseline.bands
     # never absorbed: no cell of the second plateau that serves as a baseline holds the change (it is 50 %);
     # estimates that disagree with the first point's baseline may be learned only into a held cell, which
-    # serves no point and is never released here (no established cell agrees with its own baseline again)
+    # serves no point and is never released here (no established cell agrees with its own baseline again).
+    # On a shaft with backlash the first point's baseline does not predict the second's: the second cell,
+    # all of it after the change, learns what it sees (its own reference), and the first point's cell,
+    # visited again after the change, must not take it in
     for c in pipe.baseline.bands:
-        if c.band[0] <= b < c.band[1]:
+        if c.band[0] <= b < c.band[1] and plant["effects"].backlash is None:
             assert c.kind == "held" or abs(c.mean_zeta / first[0].mean_zeta - 1.0) < 0.15, c
+        if c.band[0] <= a < c.band[1]:
+            assert abs(c.mean_zeta / first[0].mean_zeta - 1.0) < 0.15, c
     assert not [e for e in pipe.events if e.kind == "released"]
 
 

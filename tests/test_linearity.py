@@ -20,7 +20,8 @@ from online_id.config import settings_from_dict
 from online_id.errors import ConfigError
 from online_id.diagnose.linearity import backlash_test
 from online_id.monitoring.baseline import Baseline
-from online_id.pipeline import run_bench_data
+from online_id.config import Settings
+from online_id.pipeline import Pipeline, run_bench_data
 from online_id.records import AlertKind
 
 RPM = np.pi / 30.0
@@ -142,3 +143,31 @@ def test_backlash_test_s_out_of_range_is_refused(value):
     with pytest.raises(ConfigError, match="config.yaml: detection.backlash_test_s: expected 0 .* got"):
         settings_from_dict({"detection": {"backlash_test_s": value}}, "config.yaml")
     assert settings_from_dict({"detection": {"backlash_test_s": 0}}).detection.backlash_test_s == 0
+
+
+def _learned(base, speed, f0, load=-10.0, n=20, seed=0):
+    rng = np.random.default_rng(seed)
+    for _ in range(n):
+        base.learn(speed_rpm=speed, f0_hz=f0 * (1 + 0.001 * rng.standard_normal()), zeta=0.05, load_nm=load)
+
+
+@pytest.mark.parametrize("f0s", [(22.0, 22.1, 21.9), (26.3, 26.5, 28.05)])
+def test_on_a_shaft_with_backlash_only_a_pool_of_three_learned_cells_serves_a_new_point(f0s):
+    pipe = Pipeline(Settings())
+    speeds = (1500.0, 2000.0, 2750.0)
+    new = 2250.0
+    for k, (s, f) in enumerate(zip(speeds, f0s)):
+        _learned(pipe.baseline, s, f, seed=k)
+        linear = pipe._baseline_for(new, -10.0)
+        assert linear is not None and linear.kind in ("pooled", "learned")  # a linear shaft: one cell serves
+        pipe.baseline.backlash = {"gain": 0.2}
+        served = pipe._baseline_for(new, -10.0)
+        if k < 2:
+            assert served is None  # one or two other points do not tell how far the resonance moves
+        else:
+            assert served.kind == "pooled" and served.cells == 3
+            # the spread between the cells is measured even where they agree (a linear shaft's pool leaves it out)
+            between = np.std(f0s, ddof=1)
+            assert served.std_f >= min(between, 2 * 0.005 * np.mean(f0s))
+        assert pipe._baseline_for(speeds[0], -10.0).kind == "learned"  # its own cell serves every point
+        pipe.baseline.backlash = None

@@ -317,7 +317,8 @@ class Baseline:
         # may already show how the resonance moves with it (backlash), which one learned cell cannot
         return self.pooled(speed_rpm, load_nm, min_n=self.provisional_count)
 
-    def pooled(self, speed_rpm: float, load_nm: float = 0.0, min_n: int | None = None) -> BandStats | None:
+    def pooled(self, speed_rpm: float, load_nm: float = 0.0, min_n: int | None = None,
+               measured: bool = False) -> BandStats | None:
         """The baseline of all learned cells for a cell not learned yet (kind ``"pooled"``), or None.
 
         Notes
@@ -347,7 +348,11 @@ class Baseline:
         :math:`s_{p,\\zeta}^2 = \\overline{s_{i,\\zeta}^2} + s_{b,\\zeta}^2 + t_\\zeta^2`.
         The learning check leaves :math:`t_\\zeta` out (:meth:`disagrees`).
         ``min_n``: pool the cells with at least this many estimates (default
-        ``min_count``: the learned ones).
+        ``min_count``: the learned ones). ``measured``: the frequency's
+        between-cell spread is kept whether or not the cells agree, as the
+        damping's (a driveline whose resonance moves with the operating
+        point, :attr:`nonlinear`: agreement of a few cells does not tell
+        that the next point agrees).
         """
         min_n = self.min_count if min_n is None else max(2, int(min_n))
         cells = [(i, c) for i, cs in self._bands.items() for c in cs if c.n >= min_n and not c.held]
@@ -367,6 +372,8 @@ class Baseline:
         if not (mean_f > 0 and mean_z > 0):
             return None
         between_z = _between(means_z, w) if sb_z == 0.0 else sb_z  # measured whether or not the cells agree
+        if measured and sb_f == 0.0 and len(means_f) > 1:
+            sb_f = _between(means_f, w)
         within_f = math.sqrt(sum(wi * s.std_f ** 2 for wi, s in zip(w, stats)) / total)
         within_z = math.sqrt(sum(wi * s.std_zeta ** 2 for wi, s in zip(w, stats)) / total)
         std_f = math.sqrt(within_f ** 2 + sb_f ** 2 + tol_f ** 2)
@@ -376,7 +383,8 @@ class Baseline:
         i = self.key(speed_rpm)
         return BandStats(mean_f, std_f, mean_z, std_z, total, self._edges(i), float(load_nm), "pooled",
                          sources, sum(unc) / len(unc) if unc else float("nan"),
-                         sum(u for _, u in unc_z) / len(unc_z) if unc_z else float("nan"), tol_z, between_z)
+                         sum(u for _, u in unc_z) / len(unc_z) if unc_z else float("nan"), tol_z, between_z,
+                         cells=len(cells))
 
     def _pool(self, means: list[float], stds: list[float], w: list[int], cells: list, speed_rpm: float,
               load_nm: float, tolerance: float) -> tuple[float, float]:

@@ -55,6 +55,8 @@ class BandStats:
         The factor a provisional reference's spreads were widened by (1
         otherwise); the damping's learning check leaves it out
         (:meth:`~online_id.monitoring.baseline.Baseline.disagrees`).
+    cells
+        Of a pooled baseline: how many cells it pools (1 for a cell).
     """
 
     mean_f: float
@@ -71,6 +73,7 @@ class BandStats:
     tolerance_zeta: float = 0.0
     between_zeta: float = float("nan")
     widen: float = 1.0
+    cells: int = 1
 
     @property
     def spread_ratio(self) -> float:
