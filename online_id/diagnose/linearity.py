@@ -21,12 +21,13 @@ of the twist, ``clip(twist - c, +-gap/2)``, is searched and added
 the share of the held-out one-step error variance it removes, its *t* the
 batch-means t statistic of that improvement. Measured on 14 s of one
 plateau (the first four plateaus of 26 random fault-free benches, seeds
-1000-1025): 0.0-1.4 % on the 19 linear benches (with torque ripple, sensor
-delays, disturbances and structural resonances), 3-34 % on the 7 with
-backlash, mostly above 10 %; a plateau whose shaft torque seldom reverses
+1000-1025): -1.6 to 1.4 % on the 19 linear benches (with torque ripple,
+sensor delays, disturbances and structural resonances), 3.4-31.5 % on the 7
+with backlash, median 16 %; a plateau whose shaft torque seldom reverses
 can read low. A plateau shows backlash when ``gain >= min_gain`` (3 %,
 twice the largest linear reading) and ``t >= T_CRIT`` (2.86, the
-diagnosis's). About 0.1-0.3 s of CPU for 10-30 s of data.
+diagnosis's). About 0.16 s of CPU for 14 s of data (median; 0.55 s at
+most), ``scripts/backlash-survey``.
 """
 
 from __future__ import annotations
