@@ -272,7 +272,8 @@ class Pipeline:
         if a.discontinuity and self.counters.samples > 1:
             self.estimator.restart_history()
             self._raw.clear()
-        self._raw.append((a.t_s, a.dyno_speed, a.engine_speed, a.dyno_torque))
+        if self.settings.detection.backlash_test_s > 0 and self.baseline.backlash is None:
+            self._raw.append((a.t_s, a.dyno_speed, a.engine_speed, a.dyno_torque))  # the test's samples, while it may run
         self.estimator.update(a.dyno_speed, a.engine_speed, a.dyno_torque)
 
     def _consume(self, samples: list[AssembledSample], now_s: float) -> list[Publication]:
@@ -480,7 +481,8 @@ class Pipeline:
                 same = (self._healthy_rpm is not None
                         and abs(speed - self._healthy_rpm) <= self.settings.model.max_speed_span_rpm)
                 self._healthy_since = t_s - (d.settle_s if same else 0.0)
-                self._visit += 0 if same else 1
+                if not same:
+                    self._visit += 1
             self._healthy_rpm = speed
             # full detection resumes settle_detect_s after the estimate is healthy at the new point (the refit
             # window holds only the new point from its first fit on: what the wait covers is the first cold
@@ -533,11 +535,14 @@ class Pipeline:
         """The backlash test (:mod:`online_id.diagnose.linearity`) on this operating point's steady samples, once
         per visit, once the speed has been steady for ``detection.backlash_test_s`` (at most the last
         ``BACKLASH_TEST_MAX_S``), in the worker; until one point shows backlash."""
+        least = self.settings.detection.backlash_test_s
         steady = min(self.estimator.window.steady_s, BACKLASH_TEST_MAX_S)
-        if steady < self.settings.detection.backlash_test_s:
+        rate = self.settings.input.sample_rate_hz
+        # the samples are kept only while a test may run (from a relearn on, the buffer fills anew)
+        if steady < least or len(self._raw) < least * rate:
             return
         self._visit_tested = self._visit
-        n = min(len(self._raw), int(steady * self.settings.input.sample_rate_hz))
+        n = min(len(self._raw), int(steady * rate))
         rows = np.asarray(list(itertools.islice(self._raw, len(self._raw) - n, None)), dtype=float)
 
         def done(test: BacklashTest | None, error: str | None) -> None:
@@ -549,6 +554,7 @@ class Pipeline:
             self.last_backlash_test = test
             if test.shows_backlash(self.settings.detection.backlash_gain_pct / 100.0) and not self.baseline.nonlinear:
                 self.baseline.backlash = {**test.as_dict(), "source": self.run_label}
+                self._raw.clear()  # no test runs any more
                 # a cell held for disagreeing with another point's baseline: that baseline predicts nothing here
                 n = self.baseline.release()
                 self.events.append(Event(t_s, "backlash", f"the shaft shows backlash at {test.speed_rpm:.0f} rpm: a "
@@ -590,7 +596,7 @@ class Pipeline:
             return own  # as it is: its spread is widened while it holds fewer than freeze_count estimates
         stats = self.baseline.lookup(speed, load)
         nonlinear = self.baseline.nonlinear
-        if stats is not None and not (nonlinear and not self._own(stats, speed, load)):
+        if stats is not None and (not nonlinear or self._own(stats, speed, load)):
             return stats
         if nonlinear:
             # a shaft with backlash: its resonance moves with the operating point, which one or two other points
