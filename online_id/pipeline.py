@@ -63,7 +63,6 @@ STATE_VERSION = 1
 WINDOW = "window"  # worker lane of the window refits and multi-start checks
 PHYSICAL = "physical"  # worker lane of the physical-parameter fit
 LINEARITY = "linearity"  # worker lane of the backlash test (see _test_backlash)
-MIN_CELLS_NONLINEAR = 3  # learned cells a pool needs to serve a point on a shaft with backlash (see _baseline_for)
 BACKLASH_TEST_MAX_S = 30.0  # the backlash test takes at most this much of an operating point's steady samples
 PENDING = None  # a multi-start check is running in the worker: decide later
 VERIFY_FRESH_S = 5.0  # a multi-start check older than this is not used for a decision
@@ -508,15 +507,15 @@ class Pipeline:
         self._stats = stats
         if (stats is None and healthy and self.baseline.nonlinear and self._visit_not_compared != self._visit
                 and self.baseline.learned_range_rpm is not None):
-            # another operating point's baseline does not predict this point's resonance on a shaft with
-            # backlash (it moves 5-15 % between points): detection here waits for the cell's own first
-            # estimates, and a change of the driveline shows at the established points (it shows everywhere)
+            # on a shaft with backlash the resonance moves with the operating point (rising with the load's
+            # magnitude): where no learned cell bounds it (a load below them all, farther than they span, or
+            # no cell yet), detection here waits for the cell's own first estimates, and a change of the
+            # driveline shows at the established points (it shows everywhere)
             self._visit_not_compared = self._visit
-            self.events.append(Event(t_s, "not_compared", f"at {speed:.0f} rpm, {load:.1f} Nm no other operating "
-                                     f"point's baseline is compared with: the shaft shows backlash, so its resonance "
-                                     f"moves with the operating point, and fewer than {MIN_CELLS_NONLINEAR} learned "
-                                     f"cells measure how far; detection here starts with the cell's own first "
-                                     f"estimates", {}))
+            self.events.append(Event(t_s, "not_compared", f"at {speed:.0f} rpm, {load:.1f} Nm no baseline is "
+                                     f"compared with: the shaft shows backlash, so its resonance moves with the "
+                                     f"load, and no learned cell bounds it here; detection here starts with the "
+                                     f"cell's own first estimates", {}))
         alarm = self.detector.update(
             t_s=t_s, speed_rpm=speed, f0_hz=est.f0_hz, zeta=est.zeta, f0_std_hz=est.f0_std_hz,
             zeta_std=est.zeta_std, baseline=stats, suppressed=not healthy,
@@ -589,7 +588,8 @@ class Pipeline:
         else a learned cell of the band at another load or of an adjacent band (:meth:`Baseline.lookup`); else
         the pooled baseline (for detection the pool's spread is doubled, for the learning check,
         ``learning``, it is not). On a shaft that showed backlash (:attr:`Baseline.nonlinear`) no other single
-        point serves, only a pool of ``MIN_CELLS_NONLINEAR`` learned cells (None otherwise)."""
+        point serves: the learned cells of smaller and larger loads bound the resonance
+        (:meth:`Baseline.bracketed`, its spread doubled for detection as the pool's; None where none does)."""
         n = self.baseline.provisional_count
         own = self.baseline.cell(speed, load, frozen=True)
         if own is not None and own.count >= n:
@@ -599,12 +599,9 @@ class Pipeline:
         if stats is not None and (not nonlinear or self._own(stats, speed, load)):
             return stats
         if nonlinear:
-            # a shaft with backlash: its resonance moves with the operating point, which one or two other points
-            # cannot tell; only a pool of MIN_CELLS_NONLINEAR learned cells, its spread between them measured
-            # (or the fit's against speed and load), serves a point not learned yet
-            pool = self.baseline.pooled(speed, load, measured=True)
-            if pool is None or pool.cells < MIN_CELLS_NONLINEAR:
-                return None
+            # a shaft with backlash: its resonance moves with the operating point, but rises with the magnitude of
+            # the load; the learned cells of smaller and larger loads bound it (None where nothing does)
+            pool = self.baseline.bracketed(speed, load)
         else:
             pool = self.baseline.pooled(speed, load, min_n=n)
         if pool is not None and not learning:  # for detection, doubled: it stands for a point it has not seen
@@ -715,11 +712,10 @@ class Pipeline:
         if self._verify(("confirm", kind), t_s, (ref,), tie) is PENDING:
             return None
         est = self.estimator.estimate()
-        if kind == FREQUENCY:
-            value, mean, width = est.f0_hz, stats.mean_f, self.detector.min_change_f
+        if kind == FREQUENCY:  # beyond the bounds of a bracketed baseline
+            change, width = stats.excess_f(est.f0_hz) / stats.mean_f, self.detector.min_change_f
         else:
-            value, mean, width = est.zeta, stats.mean_zeta, self.detector.min_change_zeta
-        change = value / mean - 1.0
+            change, width = est.zeta / stats.mean_zeta - 1.0, self.detector.min_change_zeta
         if not math.isfinite(change) or abs(change) > width:
             return True
         self.events.append(Event(t_s, "withheld", f"{kind} alarm withheld: a refit of the window from other starts "
@@ -736,6 +732,8 @@ class Pipeline:
         data = alarm.as_dict()
         if stats is not None:
             what = (f"the pooled baseline ({stats.mean_f:.2f} Hz)" if stats.kind == "pooled" else
+                    f"the bounds of the learned cells of other loads ({_bounds(stats)})" if stats.kind == "bracketed"
+                    else
                     f"the {stats.kind} baseline of {0.5 * (stats.band[0] + stats.band[1]):.0f} rpm"
                     + (f", {stats.load_nm:.0f} Nm" if math.isfinite(stats.load_nm) else "")
                     + f" ({stats.mean_f:.2f} Hz)")
@@ -846,9 +844,20 @@ class Pipeline:
 
 def _versus(why: str, est: OnlineEstimate, ref: BandStats) -> str:
     """The disagreeing quantity of ``est`` against ``ref`` for an event: "26.412 Hz against 26.583 +- 0.053 Hz"."""
+    if why == FREQUENCY and ref.kind == "bracketed":
+        return f"{est.f0_hz:.3f} Hz against {_bounds(ref)}, +- {ref.std_f:.3f} Hz"
     if why == FREQUENCY:
         return f"{est.f0_hz:.3f} Hz against {ref.mean_f:.3f} +- {ref.std_f:.3f} Hz"
     return f"zeta {est.zeta:.4f} against {ref.mean_zeta:.4f} +- {ref.std_zeta:.4f}"
+
+
+def _bounds(stats: BandStats) -> str:
+    """A bracketed baseline's bounds for people: ``f0 >= 20.10 Hz``, ``f0 <= ...`` or ``20.10-20.50 Hz``."""
+    lo = stats.mean_f - stats.below_f
+    hi = stats.mean_f + stats.above_f
+    if math.isfinite(lo) and math.isfinite(hi):
+        return f"{lo:.2f}-{hi:.2f} Hz"
+    return f"f0 >= {lo:.2f} Hz" if math.isfinite(lo) else f"f0 <= {hi:.2f} Hz"
 
 
 def run_bench_data(data, settings: Settings, progress=None, on_output=None, state: dict | None = None,

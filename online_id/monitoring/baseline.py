@@ -87,6 +87,7 @@ its between-cell spread, takes it in.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any, Mapping
 
@@ -386,6 +387,71 @@ class Baseline:
                          sum(u for _, u in unc_z) / len(unc_z) if unc_z else float("nan"), tol_z, between_z,
                          cells=len(cells))
 
+    def bracketed(self, speed_rpm: float, load_nm: float) -> BandStats | None:
+        """Bounds on the resonance of a point not learned yet on a shaft with backlash (kind ``"bracketed"``).
+
+        Notes
+        -----
+        With backlash the apparent resonance moves with the operating point,
+        but not freely: it rises with the magnitude of the mean load, which
+        keeps the twist out of the gap for more of the time (the linearised
+        stiffness of a dead zone rises with its bias). Measured on the
+        settled estimates of 12-14 plateaus of each of 14 random benches
+        with backlash (``online-id evaluate``'s plants): 0.4-4.9 % between
+        points, 0.01-0.8 % per Nm, and no pair of points out of that order
+        by more than 0.43 % (a straight line in the load leaves 0.02-0.15 %).
+        So the learned cells bound a new point's resonance, whatever its
+        speed: from below by the cell of the largest load magnitude
+        :math:`|L_i| \\le |L|`, from above by the one of the smallest
+        :math:`|L_i| \\ge |L|`. Below the learned loads, where no cell bounds
+        it from below, the straight line through the two cells of the
+        smallest loads, its slope doubled, does (the resonance is convex in
+        the load on these benches: the line lies below it), out to as far
+        below as the learned loads span. The frequency's spread is that of
+        the bounding cells, with ``pool_tolerance_f`` in quadrature (the
+        order's slack); the damping is the pooled baseline's
+        (:meth:`pooled`, ``measured``). Cells with ``provisional_count``
+        estimates count (with their frozen references). None where nothing
+        bounds it from either side.
+        """
+        if not (math.isfinite(speed_rpm) and math.isfinite(load_nm)):
+            return None
+        n = self.provisional_count
+        cells = [(i, c) for i, cs in self._bands.items() for c in cs
+                 if c.n >= n and not c.held and math.isfinite(c.load)]
+        if not cells:
+            return None
+        pool = self.pooled(speed_rpm, load_nm, min_n=n, measured=True)
+        if pool is None:
+            return None
+        x = abs(load_nm)
+        stats = sorted(((abs(c.load), self._stats(i, c, frozen=True)) for i, c in cells), key=lambda s: s[0])
+        below = [s for s in stats if s[0] <= x]
+        above = [s for s in stats if s[0] >= x]
+        lo = max(below, key=lambda s: s[1].mean_f) if below else None
+        hi = min(above, key=lambda s: s[1].mean_f) if above else None
+        lo_f = lo[1].mean_f if lo is not None else -math.inf
+        bound = [s for s in (lo, hi) if s is not None]
+        if lo is None:
+            # below the learned loads: the line through the two cells of the smallest (distinct) loads, slope
+            # doubled, out to as far below as the learned loads span
+            (x1, s1), span = stats[0], stats[-1][0] - stats[0][0]
+            x2, s2 = next((s for s in stats[1:] if s[0] > x1 + 0.5 * self.load_band_nm), (x1, s1))
+            if x2 > x1 and x1 - x <= span:
+                lo_f = s1.mean_f - 2.0 * max((s2.mean_f - s1.mean_f) / (x2 - x1), 0.0) * (x1 - x)
+                bound.append((x2, s2))
+        hi_f = hi[1].mean_f if hi is not None else math.inf
+        if not (math.isfinite(lo_f) or math.isfinite(hi_f)):
+            return None
+        lo_f = min(lo_f, hi_f)
+        within = math.sqrt(sum(s.std_f ** 2 for _, s in bound) / len(bound))
+        mean = lo_f if math.isfinite(lo_f) else hi_f
+        std_f = math.sqrt(within ** 2 + (self.pool_tolerance_f * mean) ** 2)
+        return dataclasses.replace(
+            pool, mean_f=mean, std_f=std_f, kind="bracketed", load_nm=float(load_nm),
+            above_f=(hi_f - mean) if math.isfinite(hi_f) else math.inf,
+            below_f=0.0 if math.isfinite(lo_f) else math.inf)
+
     def _pool(self, means: list[float], stds: list[float], w: list[int], cells: list, speed_rpm: float,
               load_nm: float, tolerance: float) -> tuple[float, float]:
         """Pooled mean at the operating point and the between-cell spread (0 where the cells agree within
@@ -433,7 +499,7 @@ class Baseline:
         the fit window is still taking in (+25 % on the way to +50 %) is not
         learned into the cell's first estimates either.
         """
-        if abs(f0_hz - stats.mean_f) > min_change_f * stats.mean_f + n_sigma * stats.std_f:
+        if abs(stats.excess_f(f0_hz)) > min_change_f * stats.mean_f + n_sigma * stats.std_f:
             return "frequency"
         std_z = math.sqrt(max((stats.std_zeta / stats.widen) ** 2 - stats.tolerance_zeta ** 2, 0.0))
         if abs(zeta - stats.mean_zeta) > min_change_zeta * stats.mean_zeta + n_sigma * std_z:

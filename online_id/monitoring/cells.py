@@ -57,6 +57,10 @@ class BandStats:
         (:meth:`~online_id.monitoring.baseline.Baseline.disagrees`).
     cells
         Of a pooled baseline: how many cells it pools (1 for a cell).
+    above_f, below_f
+        Of a ``"bracketed"`` baseline (:meth:`~online_id.monitoring.baseline.Baseline.bracketed`): how far
+        above and below ``mean_f`` the frequency may lie before it deviates [Hz] (``inf``: no bound on that
+        side); 0 for every other kind. :meth:`excess_f` is the deviation.
     """
 
     mean_f: float
@@ -74,6 +78,13 @@ class BandStats:
     between_zeta: float = float("nan")
     widen: float = 1.0
     cells: int = 1
+    above_f: float = 0.0
+    below_f: float = 0.0
+
+    def excess_f(self, f0_hz: float) -> float:
+        """How far ``f0_hz`` lies outside ``[mean_f - below_f, mean_f + above_f]`` (signed, 0 inside) [Hz]."""
+        x = f0_hz - self.mean_f
+        return max(x - self.above_f, 0.0) if x > 0 else min(x + self.below_f, 0.0)
 
     @property
     def spread_ratio(self) -> float:
@@ -91,7 +102,8 @@ class BandStats:
                 "zeta_std": fin(self.std_zeta), "count": int(self.count), "kind": self.kind,
                 "source": self.source, "f0_uncertainty_hz": fin(self.uncertainty_f),
                 "spread_ratio": fin(self.spread_ratio), "zeta_uncertainty": fin(self.uncertainty_zeta),
-                "zeta_pool_tolerance": fin(self.tolerance_zeta), "zeta_between_cells": fin(self.between_zeta)}
+                "zeta_pool_tolerance": fin(self.tolerance_zeta), "zeta_between_cells": fin(self.between_zeta),
+                "f0_above_hz": fin(self.above_f), "f0_below_hz": fin(self.below_f)}
 
 
 class Cell:

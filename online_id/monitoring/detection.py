@@ -356,8 +356,9 @@ class ChangeDetector:
             acc = self._acc
             band_f = self.min_change_f if frequency_only_beyond is None else frequency_only_beyond
             acc[0] += 1
-            acc[1] += _dead_band(f0_hz - baseline.mean_f, band_f * baseline.mean_f) / sf  # d_f
-            acc[3] += f0_hz / baseline.mean_f - 1.0  # r_f
+            excess = baseline.excess_f(f0_hz)  # f0 - mean, or beyond a bracket's bounds
+            acc[1] += _dead_band(excess, band_f * baseline.mean_f) / sf  # d_f
+            acc[3] += excess / baseline.mean_f  # r_f
             acc[5] += speed_rpm
             if frequency_only_beyond is None:
                 acc[2] += _dead_band(zeta - baseline.mean_zeta, self.min_change_zeta * baseline.mean_zeta) / sz
