@@ -95,6 +95,8 @@ from online_id.monitoring.cells import BandStats, Cell, cell_from_list
 from online_id.monitoring.checks import integer, number
 from online_id.errors import ConfigError, InputDataError
 
+MIN_CELLS_DAMPING = 3  # cells whose damping spread between points a bracketed baseline's damping needs
+
 
 class Baseline:
     """Per speed band and load statistics of the driveline frequency and damping (see module notes).
@@ -409,8 +411,11 @@ class Baseline:
         the load on these benches: the line lies below it), out to as far
         below as the learned loads span. The frequency's spread is that of
         the bounding cells, with ``pool_tolerance_f`` in quadrature (the
-        order's slack); the damping is the pooled baseline's
-        (:meth:`pooled`, ``measured``). Cells with ``provisional_count``
+        order's slack). The damping keeps no such order (between the same
+        benches' points it moved by 3-57 %, up or down with the load): it is
+        the pooled baseline's (:meth:`pooled`, ``measured``) where at least
+        ``MIN_CELLS_DAMPING`` cells measure its spread between points, and
+        not compared otherwise (an infinite spread). Cells with ``provisional_count``
         estimates count (with their frozen references). None where nothing
         bounds it from either side.
         """
@@ -447,6 +452,8 @@ class Baseline:
         within = math.sqrt(sum(s.std_f ** 2 for _, s in bound) / len(bound))
         mean = lo_f if math.isfinite(lo_f) else hi_f
         std_f = math.sqrt(within ** 2 + (self.pool_tolerance_f * mean) ** 2)
+        if pool.cells < MIN_CELLS_DAMPING:
+            pool = dataclasses.replace(pool, std_zeta=math.inf)  # one or two points do not tell how far it moves
         return dataclasses.replace(
             pool, mean_f=mean, std_f=std_f, kind="bracketed", load_nm=float(load_nm),
             above_f=(hi_f - mean) if math.isfinite(hi_f) else math.inf,
