@@ -589,7 +589,7 @@ class Pipeline:
         the pooled baseline (for detection the pool's spread is doubled, for the learning check,
         ``learning``, it is not). On a shaft that showed backlash (:attr:`Baseline.nonlinear`) no other single
         point serves: the learned cells of smaller and larger loads bound the resonance
-        (:meth:`Baseline.bracketed`, its spread doubled for detection as the pool's; None where none does)."""
+        (:meth:`Baseline.bracketed`, its bounds widened by the order's slack; None where none does)."""
         n = self.baseline.provisional_count
         own = self.baseline.cell(speed, load, frozen=True)
         if own is not None and own.count >= n:
@@ -604,7 +604,8 @@ class Pipeline:
             pool = self.baseline.bracketed(speed, load)
         else:
             pool = self.baseline.pooled(speed, load, min_n=n)
-        if pool is not None and not learning:  # for detection, doubled: it stands for a point it has not seen
+        if pool is not None and not learning and pool.kind == "pooled":
+            # for detection, doubled: it stands for a point it has not seen (a bracket's bounds hold the slack)
             pool = dataclasses.replace(pool, std_f=2.0 * pool.std_f, std_zeta=2.0 * pool.std_zeta)
         return pool
 

@@ -198,3 +198,29 @@ def test_on_a_shaft_with_backlash_the_learned_cells_of_other_loads_bound_a_new_p
     empty = Pipeline(Settings())
     empty.baseline.backlash = {"gain": 0.2}
     assert empty._baseline_for(2000.0, -10.0) is None
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_detector_judges_a_bracketed_baseline_by_its_bounds(seed):
+    # estimates anywhere inside the bounds (random, noisy) raise nothing in ten minutes; 3 % below the lower
+    # bound (a 6 % stiffness loss at a point right at it) raises a frequency alarm within 20 s
+    from online_id.monitoring.cells import BandStats
+    from online_id.monitoring.detection import ChangeDetector
+
+    rng = np.random.default_rng([seed, 16])
+    lo, hi = rng.uniform(18.0, 34.0), 0.0
+    hi = lo * rng.uniform(1.0, 1.05)
+    stats = BandStats(lo, 0.002 * lo, 0.05, 0.005, 20, (2000.0, 2250.0), -10.0, "bracketed",
+                      above_f=hi * 1.01 - lo, below_f=0.01 * lo)
+    det = ChangeDetector()
+    inside = rng.uniform(lo, hi)
+    for k in range(6000):
+        f = inside + 0.002 * lo * rng.standard_normal()
+        assert det.update(t_s=0.1 * k, speed_rpm=2100.0, f0_hz=f, zeta=0.05, f0_std_hz=0.0, zeta_std=0.0,
+                          baseline=stats, suppressed=False) is None
+    det = ChangeDetector()
+    alarms = [det.update(t_s=0.1 * k, speed_rpm=2100.0, f0_hz=0.97 * lo + 0.002 * lo * rng.standard_normal(),
+                         zeta=0.05, f0_std_hz=0.0, zeta_std=0.0, baseline=stats, suppressed=False)
+              for k in range(200)]
+    first = next(k for k, a in enumerate(alarms) if a is not None)
+    assert 0.1 * first < 20.0 and alarms[first].kind == "frequency" and alarms[first].change_pct < 0

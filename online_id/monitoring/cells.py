@@ -31,7 +31,9 @@ class BandStats:
         ``"learned"`` (a cell learned in this service), ``"reference"`` (a
         cell learned from a reference run, ``online-id relearn --from``),
         ``"pooled"`` (the learned cells pooled, serving a cell not learned
-        yet), ``"learning"`` (a cell still learning, see
+        yet), ``"bracketed"`` (on a shaft with backlash: the bounds the learned
+        cells of smaller and larger loads set, serving a cell not learned yet,
+        :meth:`~online_id.monitoring.baseline.Baseline.bracketed`), ``"learning"`` (a cell still learning, see
         :meth:`~online_id.monitoring.baseline.Baseline.cell`) or ``"held"`` (a cell that disagreed with the
         baseline of another operating point, not a reference until
         :meth:`~online_id.monitoring.baseline.Baseline.release`).
