@@ -631,9 +631,11 @@ class Pipeline:
         baseline of another point until an estimate at an established cell
         agrees with that cell's own baseline (:meth:`Baseline.release`, see
         :mod:`~online_id.monitoring.baseline`). On a shaft that showed
-        backlash no single other point's baseline serves (:meth:`_baseline_for`):
-        without a pool of several learned cells the cell learns its own, not
-        held (a change of the driveline shows at the established points).
+        backlash the bounds the learned cells of other loads set serve
+        (:meth:`_baseline_for`, :meth:`Baseline.bracketed`): an estimate
+        outside them is learned into a held cell; where nothing bounds the
+        point the cell learns its own, not held (a change of the driveline
+        shows at the established points).
         """
         d = self.settings.detection
         cell = self.baseline.cell(speed, load)

@@ -399,10 +399,11 @@ class Baseline:
         but not freely: it rises with the magnitude of the mean load, which
         keeps the twist out of the gap for more of the time (the linearised
         stiffness of a dead zone rises with its bias). Measured on the
-        settled estimates of 12-14 plateaus of each of 14 random benches
-        with backlash (``online-id evaluate``'s plants): 0.4-4.9 % between
-        points, 0.01-0.8 % per Nm, and no pair of points out of that order
-        by more than 0.43 % (a straight line in the load leaves 0.02-0.15 %).
+        settled estimates of 5-14 plateaus of each of 22 random benches
+        with backlash (``online-id evaluate``'s plants, ``scripts/resonance-order``):
+        0.4-6.8 % between points, 0.01-2.1 % per Nm, and no pair of points
+        out of that order by more than 0.43 % on 19 of them (0.61, 0.78 and
+        1.6 % on the others; a straight line in the load leaves 0.02-0.58 %).
         So the learned cells bound a new point's resonance, whatever its
         speed: from below by the cell of the largest load magnitude
         :math:`|L_i| \\le |L|`, from above by the one of the smallest
@@ -412,10 +413,9 @@ class Baseline:
         the load on these benches: the line lies below it), out to as far
         below as the learned loads span. The bounds are widened by
         ``BRACKET_SLACK`` (1 %: the order's slack, a bias, goes into the
-        bounds, not the spread; 0.43 % at most on 14 of those benches, up to
-        1.6 % between two points 0.1 Nm apart on the steepest of 22,
-        2 % per Nm), and the frequency's spread is that of the bounding
-        cells (the detector's dead band comes on top). The damping keeps no such order (between the same
+        bounds, not the spread; 1.6 % on the steepest bench, 2 % per Nm,
+        between two points 0.1 Nm apart), and the frequency's spread is that
+        of the bounding cells (the detector's dead band comes on top). The damping keeps no such order (between the same
         benches' points it moved by 3-57 %, up or down with the load): it is
         the pooled baseline's (:meth:`pooled`, ``measured``) where at least
         ``MIN_CELLS_DAMPING`` cells measure its spread between points, and
