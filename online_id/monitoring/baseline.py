@@ -403,7 +403,7 @@ class Baseline:
         with backlash (``online-id evaluate``'s plants, ``scripts/resonance-order``):
         0.4-6.8 % between points, 0.01-2.1 % per Nm, and no pair of points
         out of that order by more than 0.43 % on 19 of them (0.61, 0.78 and
-        1.6 % on the others; a straight line in the load leaves 0.02-0.58 %).
+        1.6 % on the others; a straight line in the load leaves 0.02-0.60 %).
         So the learned cells bound a new point's resonance, whatever its
         speed: from below by the cell of the largest load magnitude
         :math:`|L_i| \\le |L|`, from above by the one of the smallest
