@@ -272,7 +272,8 @@ class Pipeline:
             self.estimator.restart_history()
             self._raw.clear()
         if self.settings.detection.backlash_test_s > 0 and self.baseline.backlash is None:
-            self._raw.append((a.t_s, a.dyno_speed, a.engine_speed, a.dyno_torque))  # the test's samples, while it may run
+            # the backlash test's samples, kept only while a test may run
+            self._raw.append((a.t_s, a.dyno_speed, a.engine_speed, a.dyno_torque))
         self.estimator.update(a.dyno_speed, a.engine_speed, a.dyno_torque)
 
     def _consume(self, samples: list[AssembledSample], now_s: float) -> list[Publication]:
@@ -856,8 +857,7 @@ def _versus(why: str, est: OnlineEstimate, ref: BandStats) -> str:
 
 def _bounds(stats: BandStats) -> str:
     """A bracketed baseline's bounds for people: ``f0 >= 20.10 Hz``, ``f0 <= ...`` or ``20.10-20.50 Hz``."""
-    lo = stats.mean_f - stats.below_f
-    hi = stats.mean_f + stats.above_f
+    lo, hi = stats.bounds_f
     if math.isfinite(lo) and math.isfinite(hi):
         return f"{lo:.2f}-{hi:.2f} Hz"
     return f"f0 >= {lo:.2f} Hz" if math.isfinite(lo) else f"f0 <= {hi:.2f} Hz"

@@ -68,7 +68,8 @@ def test_the_backlash_test_tells_shafts_with_backlash_from_linear_ones(backlash,
             assert 14.0 < test.duration_s <= 16.0 and abs(test.speed_rpm - p.speed_rpm) < 50.0
             shown.append(test.shows_backlash())
             if not backlash:
-                assert test.gain < 0.02, (seed, test)  # linear benches: -1.6 to 1.4 % measured (scripts/backlash-survey)
+                # linear benches: -1.6 to 1.4 % measured (scripts/backlash-survey)
+                assert test.gain < 0.02, (seed, test)
         assert any(shown) == backlash, (seed, plant["effects"], shown)
 
 
@@ -208,7 +209,7 @@ def test_the_detector_judges_a_bracketed_baseline_by_its_bounds(seed):
     from online_id.monitoring.detection import ChangeDetector
 
     rng = np.random.default_rng([seed, 16])
-    lo, hi = rng.uniform(18.0, 34.0), 0.0
+    lo = rng.uniform(18.0, 34.0)
     hi = lo * rng.uniform(1.0, 1.05)
     stats = BandStats(lo, 0.002 * lo, 0.05, 0.005, 20, (2000.0, 2250.0), -10.0, "bracketed",
                       above_f=hi * 1.01 - lo, below_f=0.01 * lo)

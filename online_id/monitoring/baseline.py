@@ -415,13 +415,14 @@ class Baseline:
         ``BRACKET_SLACK`` (1 %: the order's slack, a bias, goes into the
         bounds, not the spread; 1.6 % on the steepest bench, 2 % per Nm,
         between two points 0.1 Nm apart), and the frequency's spread is that
-        of the bounding cells (the detector's dead band comes on top). The damping keeps no such order (between the same
-        benches' points it moved by 3-57 %, up or down with the load): it is
-        the pooled baseline's (:meth:`pooled`, ``measured``) where at least
+        of the bounding cells (the detector's dead band comes on top). The
+        damping keeps no such order (between the same benches' points it
+        moved by 3-57 %, up or down with the load): it is the pooled
+        baseline's (:meth:`pooled`, ``measured``) where at least
         ``MIN_CELLS_DAMPING`` cells measure its spread between points, and
-        not compared otherwise (an infinite spread). Cells with ``provisional_count``
-        estimates count (with their frozen references). None where nothing
-        bounds it from either side.
+        not compared otherwise (an infinite spread). Cells with
+        ``provisional_count`` estimates count (with their frozen
+        references). None where nothing bounds it from either side.
         """
         if not (math.isfinite(speed_rpm) and math.isfinite(load_nm)):
             return None

@@ -83,8 +83,14 @@ class BandStats:
     above_f: float = 0.0
     below_f: float = 0.0
 
+    @property
+    def bounds_f(self) -> tuple[float, float]:
+        """``(mean_f - below_f, mean_f + above_f)`` [Hz]: where the frequency may lie (``mean_f`` twice but for a
+        bracketed baseline)."""
+        return self.mean_f - self.below_f, self.mean_f + self.above_f
+
     def excess_f(self, f0_hz: float) -> float:
-        """How far ``f0_hz`` lies outside ``[mean_f - below_f, mean_f + above_f]`` (signed, 0 inside) [Hz]."""
+        """How far ``f0_hz`` lies outside :attr:`bounds_f` (signed, 0 inside; nan for nan) [Hz]."""
         x = f0_hz - self.mean_f
         return max(x - self.above_f, 0.0) if x > 0 else min(x + self.below_f, 0.0)
 
