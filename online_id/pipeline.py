@@ -39,6 +39,7 @@ from online_id.estimation.online import OnlineDriveline, OnlineEstimate, physica
 from online_id.estimation.window import RefitJob, solve
 from online_id.analysis.physical import DrivelineParameters
 from online_id.monitoring.tracks import PoleTracker
+from online_id.monitoring.visit import VisitReference
 from online_id.errors import EstimationError
 from online_id.excitation import Excitation
 from online_id.offload import InlineWorker
@@ -114,6 +115,8 @@ class Pipeline:
         self._visit = 0  # counts the arrivals of healthy estimates at another operating point
         self._visit_tested = -1  # the visit whose samples the backlash test took
         self._visit_not_compared = -1  # the visit where another point's baseline was last not compared with
+        self._visit_ref: VisitReference | None = None  # a visit's first estimates, where no learned cell bounds it
+        self._next_visit_sample = 0.0
         self.backlash_tests = 0
         self.last_backlash_test: BacklashTest | None = None
         self._references: dict[int, np.ndarray] = {}  # per baseline band: a window solution it was learned from
@@ -261,6 +264,7 @@ class Pipeline:
         elif command == COMMAND_RELEARN:
             self.baseline.reset()
             self._references.clear()
+            self._visit_ref = None
             self.detector.reset()
             self.events.append(Event(t_s, "command", "baselines forgotten: learning anew"))
             out.append(AlertOut(t_s, AlertKind.NONE, 0, 0.0, self.estimator.speed_rpm, "baselines re-learned"))
@@ -505,18 +509,21 @@ class Pipeline:
                 and not self.worker.busy(LINEARITY)):
             self._test_backlash(t_s, speed)
         stats = self._baseline_for(speed, load)
-        self._stats = stats
         if (stats is None and healthy and self.baseline.nonlinear and self._visit_not_compared != self._visit
                 and self.baseline.learned_range_rpm is not None):
             # on a shaft with backlash the resonance moves with the operating point (rising with the load's
             # magnitude): where no learned cell bounds it (a load below them all, farther than they span, or
-            # no cell yet), detection here waits for the cell's own first estimates, and a change of the
-            # driveline shows at the established points (it shows everywhere)
+            # no cell yet), the visit's own first settled estimates serve (the frequency only), then the cell's,
+            # and a change that comes with the visit shows at the established points (it shows everywhere)
             self._visit_not_compared = self._visit
-            self.events.append(Event(t_s, "not_compared", f"at {speed:.0f} rpm, {load:.1f} Nm no baseline is "
+            self.events.append(Event(t_s, "not_compared", f"at {speed:.0f} rpm, {load:.1f} Nm no learned cell is "
                                      f"compared with: the shaft shows backlash, so its resonance moves with the "
-                                     f"load, and no learned cell bounds it here; detection here starts with the "
-                                     f"cell's own first estimates", {}))
+                                     f"load, and no learned cell bounds it here; the frequency is compared with "
+                                     f"the first estimates of this visit", {}))
+        if self._visit_serves(stats):
+            self._visit_sample(est, t_s, speed, load, healthy and not settling, stats)
+            stats = self._with_visit(stats, load)
+        self._stats = stats
         alarm = self.detector.update(
             t_s=t_s, speed_rpm=speed, f0_hz=est.f0_hz, zeta=est.zeta, f0_std_hz=est.f0_std_hz,
             zeta_std=est.zeta_std, baseline=stats, suppressed=not healthy,
@@ -610,6 +617,50 @@ class Pipeline:
             pool = dataclasses.replace(pool, std_f=2.0 * pool.std_f, std_zeta=2.0 * pool.std_zeta)
         return pool
 
+    def _visit_serves(self, stats: BandStats | None) -> bool:
+        """Whether the first estimates of the visit serve where ``stats`` (what :meth:`_baseline_for` gives)
+        does: on a shaft with backlash, where no learned cell bounds the point, or bounds it on one side only."""
+        return self.baseline.nonlinear and (stats is None or (stats.kind == "bracketed"
+                                                              and not math.isfinite(stats.above_f + stats.below_f)))
+
+    def _visit_sample(self, est: OnlineEstimate, t_s: float, speed: float, load: float, settled: bool,
+                      bounds: BandStats | None) -> None:
+        """Offer a settled estimate (about one a second) to the first estimates of this visit
+        (:mod:`~online_id.monitoring.visit`); one that the detector would count as outside the one-sided ``bounds``
+        (beyond the dead band) does not join, so that there the bound goes on serving."""
+        d = self.settings.detection
+        ref = self._visit_ref
+        if ref is not None and not ref.matches(self._visit, load, d.load_band_nm):
+            ref = self._visit_ref = None  # another visit, or the load moved: another operating point
+        if not settled:
+            return
+        if bounds is not None and abs(bounds.excess_f(est.f0_hz)) > self.detector.min_change_f * bounds.mean_f:
+            return  # beyond the dead band of the bound the learned cells set: a change must not become the reference
+        if ref is None:
+            i = self.baseline.key(speed)
+            band = ((i - 0.5) * d.band_rpm, (i + 0.5) * d.band_rpm)
+            ref = self._visit_ref = VisitReference(self._visit, load, band, min_count=self.baseline.provisional_count,
+                                                   size=self.baseline.freeze_count,
+                                                   min_rel_std_f=self.baseline.min_rel_std_f)
+            self._next_visit_sample = t_s
+        if t_s >= self._next_visit_sample:
+            self._next_visit_sample = t_s + 1.0  # about one independent-ish estimate per second
+            ref.add(t_s, est.f0_hz, est.zeta, load, self.detector.min_change_f, self.estimator.solution)
+
+    def _with_visit(self, stats: BandStats | None, load: float) -> BandStats | None:
+        """``stats``, or the first estimates of this visit where they serve (:meth:`_visit_serves`) and hold
+        ``provisional_count`` estimates: their frequency, and the damping of ``stats`` (a one-sided bracket's,
+        or none)."""
+        ref = self._visit_ref
+        if not self._visit_serves(stats) or ref is None or not ref.matches(self._visit, load,
+                                                                           self.settings.detection.load_band_nm):
+            return stats
+        visit = ref.stats()
+        if visit is None or stats is None:
+            return visit or stats
+        return dataclasses.replace(visit, mean_zeta=stats.mean_zeta, std_zeta=stats.std_zeta,
+                                   tolerance_zeta=stats.tolerance_zeta, between_zeta=stats.between_zeta)
+
     def _own(self, stats: BandStats, speed: float, load: float) -> bool:
         """Whether ``stats`` is the baseline of the cell of ``speed`` and ``load`` itself (not the pool's or
         another band's or load's)."""
@@ -635,8 +686,9 @@ class Pipeline:
         backlash the bounds the learned cells of other loads set serve
         (:meth:`_baseline_for`, :meth:`Baseline.bracketed`): an estimate
         outside them is learned into a held cell; where nothing bounds the
-        point the cell learns its own, not held (a change of the driveline
-        shows at the established points).
+        point from below, the first estimates of the visit serve
+        (:mod:`~online_id.monitoring.visit`, the frequency only): an estimate
+        that disagrees with them is learned into a held cell too.
         """
         d = self.settings.detection
         cell = self.baseline.cell(speed, load)
@@ -652,7 +704,8 @@ class Pipeline:
             load = est.load_nm
         if not (est.valid and math.isfinite(load) and math.isfinite(est.f0_hz) and est.zeta > 0):
             return est
-        ref = self._baseline_for(speed, load, learning=True)
+        # where nothing else bounds the point, an estimate that disagrees with the visit's first ones is held
+        ref = self._with_visit(self._baseline_for(speed, load, learning=True), load)
         # the damping with half its dead band (see Baseline.disagrees): a change on its way in must not be learned
         why = (self.baseline.disagrees(ref, est.f0_hz, est.zeta, self.detector.min_change_f,
                                        0.5 * self.detector.min_change_zeta) if ref is not None else None)
@@ -708,6 +761,8 @@ class Pipeline:
         key = self.baseline.key(0.5 * (stats.band[0] + stats.band[1]))
         near = sorted(self._references, key=lambda k: abs(k - key))  # a pooled baseline: the nearest learned band's
         ref = self._references[near[0]] if near else None
+        if stats.kind == "visit" and self._visit_ref is not None:
+            ref = self._visit_ref.solution  # the minimum the visit's first estimates sat in
         # where the baseline's own minimum fits the window nearly as well as the best, the data do not tell them
         # apart: a mismatched model (backlash) has nearly equal minima whose damping differs by 30-40 % and whose
         # resonance differs by 1-3 %, and the estimate may sit in either for minutes at a learned operating point
@@ -735,16 +790,9 @@ class Pipeline:
         stats = self._stats
         data = alarm.as_dict()
         if stats is not None:
-            what = (f"the pooled baseline ({stats.mean_f:.2f} Hz)" if stats.kind == "pooled" else
-                    f"the bounds of the learned cells of other loads ({_bounds(stats)})" if stats.kind == "bracketed"
-                    else
-                    f"the {stats.kind} baseline of {0.5 * (stats.band[0] + stats.band[1]):.0f} rpm"
-                    + (f", {stats.load_nm:.0f} Nm" if math.isfinite(stats.load_nm) else "")
-                    + f" ({stats.mean_f:.2f} Hz)")
             load = self._estimate.load_nm if self._estimate is not None else float("nan")
             cell = f"cell {alarm.speed_rpm:.0f} rpm" + (f", {load:.0f} Nm" if math.isfinite(load) else "")
-            alarm = dataclasses.replace(alarm, message=f"{alarm.message} ({cell}, against {what}"
-                                        + (f", learned from {stats.source}" if stats.source else "") + ")")
+            alarm = dataclasses.replace(alarm, message=f"{alarm.message} ({cell}, against {_against(stats)})")
             data |= {"message": alarm.message, "baseline_kind": stats.kind, "baseline_source": stats.source}
         self._record(self._alert_out(alarm, alarm.detected_t_s), out, data)
 
@@ -853,6 +901,20 @@ def _versus(why: str, est: OnlineEstimate, ref: BandStats) -> str:
     if why == FREQUENCY:
         return f"{est.f0_hz:.3f} Hz against {ref.mean_f:.3f} +- {ref.std_f:.3f} Hz"
     return f"zeta {est.zeta:.4f} against {ref.mean_zeta:.4f} +- {ref.std_zeta:.4f}"
+
+
+def _against(stats: BandStats) -> str:
+    """What an alarm was raised against, for people: "the learned baseline of 1500 rpm, 20 Nm (24.10 Hz), learned
+    from run 3", "the pooled baseline (...)", "the bounds of the learned cells of other loads (...)", "the first
+    estimates of this visit since t = 67.0 s (22.28 Hz)"."""
+    if stats.kind == "visit":
+        return (f"the first estimates of {stats.source} ({stats.mean_f:.2f} Hz)"
+                + (", the damping against the learned cells of other loads" if math.isfinite(stats.std_zeta) else ""))
+    what = (f"the pooled baseline ({stats.mean_f:.2f} Hz)" if stats.kind == "pooled" else
+            f"the bounds of the learned cells of other loads ({_bounds(stats)})" if stats.kind == "bracketed" else
+            f"the {stats.kind} baseline of {0.5 * (stats.band[0] + stats.band[1]):.0f} rpm"
+            + (f", {stats.load_nm:.0f} Nm" if math.isfinite(stats.load_nm) else "") + f" ({stats.mean_f:.2f} Hz)")
+    return what + (f", learned from {stats.source}" if stats.source else "")
 
 
 def _bounds(stats: BandStats) -> str:

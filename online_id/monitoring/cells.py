@@ -36,7 +36,9 @@ class BandStats:
         :meth:`~online_id.monitoring.baseline.Baseline.bracketed`), ``"learning"`` (a cell still learning, see
         :meth:`~online_id.monitoring.baseline.Baseline.cell`) or ``"held"`` (a cell that disagreed with the
         baseline of another operating point, not a reference until
-        :meth:`~online_id.monitoring.baseline.Baseline.release`).
+        :meth:`~online_id.monitoring.baseline.Baseline.release`) or ``"visit"`` (on a shaft with backlash, where no
+        learned cell bounds a point from below: the first estimates of the visit, the frequency only,
+        :mod:`~online_id.monitoring.visit`).
     source
         The run(s) the statistics were learned from ("" if unknown).
     uncertainty_f

@@ -1,0 +1,104 @@
+"""The first estimates of a visit (online_id.monitoring.visit): what a point no learned cell bounds is compared with.
+
+* nothing serves before ``min_count`` estimates; then the mean of the estimates, their spread floored and widened
+  for a few correlated estimates, the damping not compared;
+* a step during the visit is never absorbed: estimates beyond the dead band plus three spreads do not join, and the
+  detector alarms the step against the reference (random truths, steps and seeds);
+* an estimate of another visit or another load does not belong to it.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+from online_id.monitoring.detection import ChangeDetector
+from online_id.monitoring.visit import VisitReference
+
+
+def _ref(f0, n, rng, rel_noise=0.002, load=-10.0, **kw):
+    ref = VisitReference(3, load, (1875.0, 2125.0), **kw)
+    for k in range(n):
+        ref.add(float(k), f0 * (1.0 + rel_noise * rng.standard_normal()), 0.05, load, 0.005, solution=k)
+    return ref
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_the_reference_serves_from_min_count_with_a_widened_floored_spread(seed):
+    rng = np.random.default_rng(seed)
+    f0 = float(rng.uniform(15.0, 40.0))
+    ref = VisitReference(1, -8.0, (1875.0, 2125.0), min_count=3, size=10, min_rel_std_f=0.002)
+    for k in range(2):
+        ref.add(float(k), f0, 0.05, -8.0, 0.005)
+        assert ref.stats() is None
+    ref.add(2.0, f0 * 1.0001, 0.05, -8.0, 0.005, solution="theta")
+    s = ref.stats()
+    assert s is not None and s.kind == "visit" and s.count == 3 and ref.solution == "theta"
+    assert s.mean_f == pytest.approx(f0, rel=1e-4)
+    # nearly equal estimates: the floor, widened by sqrt(10 / 3)
+    assert s.std_f == pytest.approx(0.002 * s.mean_f * math.sqrt(10 / 3), rel=1e-3)
+    assert math.isinf(s.std_zeta) and "since t = 0.0 s" in s.source
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_a_step_during_the_visit_is_not_absorbed_and_is_alarmed(seed):
+    rng = np.random.default_rng([seed, 15])
+    f0 = float(rng.uniform(15.0, 40.0))
+    step = float(rng.uniform(0.025, 0.08))  # a 5-15 % loss of stiffness
+    ref = _ref(f0, 5, rng)
+    before = ref.stats()
+    det = ChangeDetector()
+    alarm = None
+    for k in range(40):
+        t = 5.0 + k
+        f = f0 * (1.0 - step) * (1.0 + 0.002 * rng.standard_normal())
+        assert not ref.add(t, f, 0.05, -10.0, 0.005)
+        for j in range(10):  # the publish rate
+            alarm = alarm or det.update(t_s=t + 0.1 * j, speed_rpm=2000.0, f0_hz=f, zeta=0.05, f0_std_hz=0.02,
+                                        zeta_std=0.002, baseline=ref.stats(), suppressed=False)
+    after = ref.stats()
+    assert after.count == before.count and after.mean_f == before.mean_f and ref.refused == 40
+    assert alarm is not None and alarm.kind == "frequency" and alarm.change_pct < -0.5 * 100 * step, alarm
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_healthy_estimates_join_until_size_and_raise_nothing(seed):
+    rng = np.random.default_rng([seed, 16])
+    f0 = float(rng.uniform(15.0, 40.0))
+    ref = VisitReference(0, -10.0, (0.0, 250.0), min_count=3, size=10)
+    det = ChangeDetector()
+    for k in range(120):
+        f = f0 * (1.0 + 0.002 * rng.standard_normal())
+        ref.add(float(k), f, 0.05, -10.0, 0.005)
+        for j in range(10):
+            assert det.update(t_s=k + 0.1 * j, speed_rpm=2000.0, f0_hz=f, zeta=0.05 * (1 + 0.5 * (k > 60)),
+                              f0_std_hz=0.02, zeta_std=0.002, baseline=ref.stats(), suppressed=False) is None
+    assert ref.stats().count == 10  # the damping (+50 % from 60 s) is not compared
+
+
+def test_another_visit_or_load_does_not_belong_to_it():
+    ref = VisitReference(4, -10.0, (1875.0, 2125.0))
+    assert ref.matches(4, -10.9, 2.0) and not ref.matches(4, -11.1, 2.0) and not ref.matches(5, -10.0, 2.0)
+    assert not ref.add(0.0, float("nan"), 0.05, -10.0, 0.005) and ref.stats() is None
+    with pytest.raises(ValueError, match="min_count"):
+        VisitReference(0, 0.0, (0.0, 1.0), min_count=5, size=4)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_change_taken_in_bit_by_bit_does_not_creep_into_it(seed):
+    # a fit window takes a 10 % stiffness loss in over about 10 s: estimates move 0.5 % a second, each close to
+    # those before it; the reference stays at the first estimates and the drift is alarmed
+    rng = np.random.default_rng([seed, 17])
+    f0 = float(rng.uniform(15.0, 40.0))
+    ref = _ref(f0, 3, rng)
+    first = ref.stats().mean_f
+    det = ChangeDetector()
+    alarm = None
+    for k in range(30):
+        f = f0 * (1.0 - 0.05 * min(k, 10) / 10.0) * (1.0 + 0.002 * rng.standard_normal())
+        ref.add(3.0 + k, f, 0.05, -10.0, 0.005)
+        for j in range(10):
+            alarm = alarm or det.update(t_s=3.0 + k + 0.1 * j, speed_rpm=2000.0, f0_hz=f, zeta=0.05, f0_std_hz=0.02,
+                                        zeta_std=0.002, baseline=ref.stats(), suppressed=False)
+    assert ref.stats().mean_f == first and ref.stats().count == 3
+    assert alarm is not None and alarm.change_pct < -3.0, alarm
