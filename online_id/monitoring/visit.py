@@ -1,21 +1,23 @@
 """The first estimates of a visit: what a point that no learned cell bounds is compared with.
 
 On a shaft with backlash the apparent resonance moves with the load (it rises with the load's magnitude), so a point
-whose load lies below every learned cell has no bound from below (:meth:`~online_id.monitoring.baseline.Baseline.
-bracketed`). A change of the driveline while the bench dwells there would go unseen until the bench came back to a
-learned point, and the point's cell would learn the changed resonance. The visit's own first settled estimates serve
-instead: a change during the visit shows as a step against them (a change that comes with the visit still shows at
-the learned points).
+whose load lies below every learned cell has no bound from below
+(:meth:`~online_id.monitoring.baseline.Baseline.bracketed`). A change of the driveline while the bench dwells there
+would go unseen until the bench came back to a learned point, and the point's cell would learn the changed resonance.
+The visit's own first settled estimates serve instead: a change during the visit shows as a step against them (a
+change that comes with the visit still shows at the learned points).
 
 The reference never absorbs a change. Its first ``min_count`` estimates are frozen at once and serve, their spread
 floored at ``min_rel_std_f`` of the mean and widened by :math:`\\sqrt{N_\\text{size} / N}` (a few strongly correlated
 estimates under-state it), as a cell's provisional reference; a later estimate joins only when it agrees with them
 (the detector's dead band plus three spreads, as :meth:`~online_id.monitoring.baseline.Baseline.disagrees`), and once
 ``size`` have joined, they serve. Against the running statistics of all it holds, a change that the 10 s fit window
-takes in bit by bit would creep in, each estimate within the tolerance of those before it. It compares the frequency only: the damping of a
-mismatched model moves by 30-40 % between nearly equal minima of the fit, which a visit's few estimates cannot tell
-from a change. The caller keeps the window solution of the last estimate that joined (:attr:`solution`), so that a
-deviation is confirmed against the minimum the reference sat in (see ``Pipeline._confirm``).
+takes in bit by bit would creep in, each estimate within the tolerance of those before it.
+
+It compares the frequency only: the damping of a mismatched model moves by 30-40 % between nearly equal minima of the
+fit, which a visit's few estimates cannot tell from a change. The caller keeps the window solution of the last
+estimate that joined (:attr:`solution`), so that a deviation is confirmed against the minimum the reference sat in
+(see ``Pipeline._confirm``).
 """
 
 from __future__ import annotations
