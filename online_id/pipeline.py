@@ -637,9 +637,8 @@ class Pipeline:
         if bounds is not None and abs(bounds.excess_f(est.f0_hz)) > self.detector.min_change_f * bounds.mean_f:
             return  # beyond the dead band of the bound the learned cells set: a change must not become the reference
         if ref is None:
-            i = self.baseline.key(speed)
-            band = ((i - 0.5) * d.band_rpm, (i + 0.5) * d.band_rpm)
-            ref = self._visit_ref = VisitReference(self._visit, load, band, min_count=self.baseline.provisional_count,
+            ref = self._visit_ref = VisitReference(self._visit, load, self.baseline.band_of(speed),
+                                                   min_count=self.baseline.provisional_count,
                                                    size=self.baseline.freeze_count,
                                                    min_rel_std_f=self.baseline.min_rel_std_f)
             self._next_visit_sample = t_s

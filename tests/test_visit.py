@@ -102,3 +102,10 @@ def test_a_change_taken_in_bit_by_bit_does_not_creep_into_it(seed):
                                         zeta_std=0.002, baseline=ref.stats(), suppressed=False)
     assert ref.stats().mean_f == first and ref.stats().count == 3
     assert alarm is not None and alarm.change_pct < -3.0, alarm
+
+
+def test_the_band_of_a_speed_is_the_baselines():
+    from online_id.monitoring.baseline import Baseline
+
+    base = Baseline(band_rpm=250.0)
+    assert base.band_of(2004.0) == (1875.0, 2125.0) and base.band_of(2125.0) == (2125.0, 2375.0)

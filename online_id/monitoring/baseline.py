@@ -175,6 +175,10 @@ class Baseline:
         """Speed range of band ``i``: centred on ``i * band_rpm``."""
         return ((i - 0.5) * self.band_rpm, (i + 0.5) * self.band_rpm)
 
+    def band_of(self, speed_rpm: float) -> tuple[float, float]:
+        """Speed range ``(low_rpm, high_rpm)`` of the band of ``speed_rpm``."""
+        return self._edges(self.key(speed_rpm))
+
     def _nearest(self, i: int, load_nm: float, within: float, min_n: int = 0, held: bool = True) -> Cell | None:
         """The cell of band ``i`` with at least ``min_n`` estimates nearest ``load_nm`` within ``within``, or None
         (``held``: held cells too)."""
