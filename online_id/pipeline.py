@@ -634,7 +634,7 @@ class Pipeline:
             ref = self._visit_ref = None  # another visit, or the load moved: another operating point
         if not settled:
             return
-        if bounds is not None and abs(bounds.excess_f(est.f0_hz)) > self.detector.min_change_f * bounds.mean_f:
+        if bounds is not None and bounds.outside_f(est.f0_hz, self.detector.min_change_f, 0.0):
             return  # beyond the dead band of the bound the learned cells set: a change must not become the reference
         if ref is None:
             ref = self._visit_ref = VisitReference(self._visit, load, self.baseline.band_of(speed),
@@ -757,11 +757,12 @@ class Pipeline:
         (see :class:`~online_id.monitoring.detection.ChangeDetector`, *confirm*).
         None while the refit runs in the worker (the detector asks again).
         """
-        key = self.baseline.key(0.5 * (stats.band[0] + stats.band[1]))
-        near = sorted(self._references, key=lambda k: abs(k - key))  # a pooled baseline: the nearest learned band's
-        ref = self._references[near[0]] if near else None
         if stats.kind == "visit" and self._visit_ref is not None:
             ref = self._visit_ref.solution  # the minimum the visit's first estimates sat in
+        else:
+            key = self.baseline.key(0.5 * (stats.band[0] + stats.band[1]))
+            near = sorted(self._references, key=lambda k: abs(k - key))  # a pool: the nearest learned band's
+            ref = self._references[near[0]] if near else None
         # where the baseline's own minimum fits the window nearly as well as the best, the data do not tell them
         # apart: a mismatched model (backlash) has nearly equal minima whose damping differs by 30-40 % and whose
         # resonance differs by 1-3 %, and the estimate may sit in either for minutes at a learned operating point

@@ -516,7 +516,7 @@ class Baseline:
         the fit window is still taking in (+25 % on the way to +50 %) is not
         learned into the cell's first estimates either.
         """
-        if abs(stats.excess_f(f0_hz)) > min_change_f * stats.mean_f + n_sigma * stats.std_f:
+        if stats.outside_f(f0_hz, min_change_f, n_sigma):
             return "frequency"
         std_z = math.sqrt(max((stats.std_zeta / stats.widen) ** 2 - stats.tolerance_zeta ** 2, 0.0))
         if abs(zeta - stats.mean_zeta) > min_change_zeta * stats.mean_zeta + n_sigma * std_z:

@@ -96,6 +96,11 @@ class BandStats:
         x = f0_hz - self.mean_f
         return max(x - self.above_f, 0.0) if x > 0 else min(x + self.below_f, 0.0)
 
+    def outside_f(self, f0_hz: float, min_change_f: float, n_sigma: float) -> bool:
+        """Whether ``f0_hz`` lies beyond :attr:`bounds_f` by more than the dead band ``min_change_f`` (relative to
+        ``mean_f``) plus ``n_sigma`` spreads (False for nan)."""
+        return abs(self.excess_f(f0_hz)) > min_change_f * self.mean_f + n_sigma * self.std_f
+
     @property
     def spread_ratio(self) -> float:
         """Frequency spread over the estimator's own uncertainty (nan if unknown)."""

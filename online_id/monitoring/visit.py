@@ -78,7 +78,7 @@ class VisitReference:
         if len(self.f) >= self.size or not all(math.isfinite(x) for x in (f0_hz, zeta, load_nm)):
             return False
         stats = self.stats()
-        if stats is not None and abs(f0_hz - stats.mean_f) > min_change_f * stats.mean_f + 3.0 * stats.std_f:
+        if stats is not None and stats.outside_f(f0_hz, min_change_f, 3.0):
             self.refused += 1
             return False
         if self.t_first is None:
