@@ -33,9 +33,11 @@ from online_id.config import Settings
 from online_id.diagnose.linearity import BacklashTest, backlash_test
 from online_id.monitoring.baseline import Baseline
 from online_id.monitoring.cells import BandStats
-from online_id.monitoring.detection import DAMPING, FREQUENCY, Alarm, ChangeDetector, correlation_for_window
+from online_id.monitoring.detection import (DAMPING, FREQUENCY, Alarm, ChangeDetector, correlation_for_window,
+                                            when_text)
 from online_id.estimation.model import ArmaxOrders
 from online_id.estimation.online import OnlineDriveline, OnlineEstimate, physical_parameters
+from online_id.estimation.reference import ReferenceWindow, judge, refit_each
 from online_id.estimation.window import RefitJob, solve
 from online_id.analysis.physical import DrivelineParameters
 from online_id.monitoring.tracks import PoleTracker
@@ -67,6 +69,7 @@ LINEARITY = "linearity"  # worker lane of the backlash test (see _test_backlash)
 BACKLASH_TEST_MAX_S = 30.0  # the backlash test takes at most this much of an operating point's steady samples
 PENDING = None  # a multi-start check is running in the worker: decide later
 VERIFY_FRESH_S = 5.0  # a multi-start check older than this is not used for a decision
+RECHECK_WAIT_S = 10.0  # a recheck of the reference window not back after this long: the alarm is raised
 STEADY_S = 5.0  # learning needs the estimates this long ago within the dead bands (or 3 own stds), see _steady
 SPREAD_RATIO_REPORTED = 5.0  # a learned spread this many times the estimator's own uncertainty is reported
 
@@ -120,6 +123,8 @@ class Pipeline:
         self.backlash_tests = 0
         self.last_backlash_test: BacklashTest | None = None
         self._references: dict[int, np.ndarray] = {}  # per baseline band: a window solution it was learned from
+        self._windows: dict[int, ReferenceWindow] = {}  # per baseline band: the window it was last learned with
+        self._rechecks: dict[str, dict] = {}  # per alarm kind: a recheck of a reference window under way
         self._next_learn: float | None = None
         self._next_alarm_repeat = 0.0
         self._stats: BandStats | None = None  # the baseline the latest estimate was compared with
@@ -264,6 +269,8 @@ class Pipeline:
         elif command == COMMAND_RELEARN:
             self.baseline.reset()
             self._references.clear()
+            self._windows.clear()
+            self._rechecks.clear()
             self._visit_ref = None
             self.detector.reset()
             self.events.append(Event(t_s, "command", "baselines forgotten: learning anew"))
@@ -737,6 +744,9 @@ class Pipeline:
         solution = self.estimator.solution
         if solution is not None:
             self._references[self.baseline.key(speed)] = solution
+            job = self.estimator.verify_job() if why is None else None
+            if job is not None:  # the data the cell was learned from: see _recheck
+                self._windows[self.baseline.key(speed)] = ReferenceWindow(job.y, job.u, solution, speed, load, t_s)
         done = self.baseline.cell(speed, load)
         if done is not None and done.count == d.min_count:
             ratio = done.spread_ratio
@@ -751,11 +761,21 @@ class Pipeline:
         return est
 
     def _confirm(self, kind: str, stats: BandStats, t_s: float) -> bool | None:
-        """Before a new drift alarm: does a refit of the window from several starts still deviate?
+        """Before a new drift alarm: does the change stand a second look at the window, and a recheck of the
+        data the baseline was learned from? True: raise it; False: withhold it; None: a check runs in the worker
+        (the detector asks again at its next interval)."""
+        if kind not in self._rechecks:
+            verdict = self._second_look(kind, stats, t_s)
+            if verdict is not True:
+                return verdict
+        return self._recheck(kind, stats, t_s)
+
+    def _second_look(self, kind: str, stats: BandStats, t_s: float) -> bool | None:
+        """Does a refit of the window from several starts still deviate?
 
         The starts include the solution the band's baseline was learned from
         (see :class:`~online_id.monitoring.detection.ChangeDetector`, *confirm*).
-        None while the refit runs in the worker (the detector asks again).
+        None while the refit runs in the worker.
         """
         if stats.kind == "visit" and self._visit_ref is not None:
             ref = self._visit_ref.solution  # the minimum the visit's first estimates sat in
@@ -780,6 +800,69 @@ class Pipeline:
         self.events.append(Event(t_s, "withheld", f"{kind} alarm withheld: a refit of the window from other starts "
                                  f"is {100 * change:+.1f} % from the baseline, inside the "
                                  f"{100 * width:.1f} % dead band", {"kind": kind, "change_pct": 100 * change}))
+        return False
+
+    def _reference_window(self, stats: BandStats) -> ReferenceWindow | None:
+        """The window the cell of ``stats`` was last learned with, where ``stats`` is a cell's own baseline
+        (learned, learning or from a reference run) and the window is of that cell's band and load."""
+        if stats.kind not in ("learned", "learning", "reference"):
+            return None
+        window = self._windows.get(self.baseline.key(0.5 * (stats.band[0] + stats.band[1])))
+        if window is None or not stats.band[0] <= window.speed_rpm < stats.band[1]:
+            return None
+        if math.isfinite(stats.load_nm) and abs(window.load_nm - stats.load_nm) > 0.5 * self.baseline.load_band_nm:
+            return None
+        return window
+
+    def _recheck(self, kind: str, stats: BandStats, t_s: float) -> bool | None:
+        """The data the cell's baseline was learned from, refitted from the current window solution: is the
+        change still there within one minimum of the criterion? (:mod:`~online_id.estimation.reference`)
+
+        Withheld where the reference data in the current minimum give the
+        current estimate again (inside the dead band): the estimate moved to
+        another minimum, the driveline did not change. Raised where no window serves,
+        a fit fails or the worker does not answer within ``RECHECK_WAIT_S``.
+        """
+        check = self._rechecks.get(kind)
+        if check is None:
+            window, solution, est = self._reference_window(stats), self.estimator.solution, self.estimator.estimate()
+            if window is None or solution is None or est is None:
+                return True
+            check = self._rechecks[kind] = {"t_s": t_s, "window": window, "f0_hz": est.f0_hz, "zeta": est.zeta,
+                                            "solution": solution, "result": None, "submitted": False}
+        if t_s - check["t_s"] > RECHECK_WAIT_S:
+            del self._rechecks[kind]
+            return True
+        if not check["submitted"]:
+            if self.worker.busy(WINDOW):
+                return PENDING
+            check["submitted"] = True
+            window = check["window"]
+
+            def finished(fits, error: str | None) -> None:
+                check["result"] = (fits, error)
+
+            self.worker.submit(WINDOW, refit_each, (window.y, window.u, self.estimator.orders,
+                                                    (window.solution, check["solution"])), finished)
+        if check["result"] is None:
+            return PENDING
+        del self._rechecks[kind]
+        fits, error = check["result"]
+        damping = kind == DAMPING
+        width = self.detector.min_change_zeta if damping else self.detector.min_change_f
+        r = judge(fits, self.estimator.dt, check["f0_hz"], check["zeta"], damping, width) if error is None else None
+        if r is None or not r.withhold:
+            return True
+        window = check["window"]
+        what = f"{r.zeta:.4f}" if damping else f"{r.f0_hz:.3f} Hz"
+        self.events.append(Event(
+            t_s, "withheld", f"{kind} alarm withheld: the data cell {window.speed_rpm:.0f} rpm, "
+            f"{window.load_nm:.1f} Nm was learned from ({when_text(window.t_s)}), refitted from the current "
+            f"window solution, give {what}, {100 * r.change:+.1f} % from the current estimate, inside the "
+            f"{100 * width:.1f} % dead band (loss {100 * r.loss_ratio:+.1f} % against their own solution): "
+            f"the estimate moved to another minimum of the criterion, not the driveline",
+            {"kind": kind, "change_pct": 100 * r.change, "loss_ratio_pct": 100 * r.loss_ratio,
+             "reference_t_s": window.t_s}))
         return False
 
     def _alert_out(self, alarm: Alarm, t_s: float) -> AlertOut:
@@ -861,6 +944,7 @@ class Pipeline:
                 "baseline": self.baseline.to_dict(), "detector": self.detector.to_dict(),
                 "tracker": self.tracker.to_dict(), "healthy_rpm": self._healthy_rpm,
                 "references": {str(k): v.tolist() for k, v in self._references.items()},
+                "windows": {str(k): w.to_dict() for k, w in self._windows.items()},
                 "alerts": [a.__dict__ | {"kind": int(a.kind)} for a in self.alerts[-50:]]}
 
     def load_state(self, state: dict, new_run: bool = False) -> None:
@@ -890,6 +974,11 @@ class Pipeline:
         n = self.estimator.orders.n_params
         self._references = {int(k): np.asarray(v, dtype=float) for k, v in state.get("references", {}).items()
                             if isinstance(v, (list, np.ndarray)) and len(v) == n}
+        windows = state.get("windows", {})
+        self._windows = {int(k): w for k, v in (windows.items() if isinstance(windows, dict) else ())
+                         if str(k).lstrip("-").isdigit() and isinstance(v, dict)
+                         and (w := ReferenceWindow.from_dict(v, n)) is not None}
+        self._rechecks = {}
         rpm = state.get("healthy_rpm")
         self._healthy_rpm = float(rpm) if isinstance(rpm, (int, float)) and not new_run else None
 

@@ -8,7 +8,9 @@ it is used:
    :class:`~online_id.pipeline.Pipeline` saves (so the schema follows the
    code), each of the same kind (mapping, list, or a finite number or null),
    the version of the code, and the pipeline's own items (learned-from
-   solutions, alerts) well formed.
+   solutions and windows, alerts) well formed. The learned-from windows
+   (``windows``) may be missing: a state saved before they were kept is
+   restored without them.
 2. **Trial.** The state is loaded into a scratch pipeline, which is then
    run on half a second of synthetic samples, published, summarised and
    saved again.  Anything that fails rejects the file.
@@ -33,12 +35,15 @@ from pathlib import Path
 import numpy as np
 
 from online_id.config import Settings
+from online_id.estimation.reference import ReferenceWindow
 from online_id.errors import InputDataError
 from online_id.io.statefile import StateReset, _plain, keep_rejected, load_state
 from online_id.pipeline import STATE_VERSION, Pipeline
 from online_id.records import ROLES, AlertKind, AlertOut, SignalSample
 
 TRIAL_S = 0.5
+OPTIONAL = ("windows",)
+"""Top-level keys a state saved by an earlier release may lack (restored as the fresh pipeline's)."""
 """Seconds of synthetic samples the scratch pipeline runs on."""
 
 
@@ -65,6 +70,7 @@ def check_state(state: dict, settings: Settings) -> None:
     if state.get("version") != STATE_VERSION:
         raise StateRejected(f"version: expected {STATE_VERSION}, but got {state.get('version')!r:.40}")
     fresh = Pipeline(settings).get_state()
+    state = {**{k: fresh[k] for k in OPTIONAL if k not in state}, **state}
     unknown = sorted(set(state) - set(fresh))
     missing = sorted(set(fresh) - set(state))
     if unknown or missing:
@@ -82,6 +88,11 @@ def check_state(state: dict, settings: Settings) -> None:
         if not band.lstrip("-").isdigit() or _kind(theta) != "list" or len(theta) != n \
                 or not all(_number(x) for x in theta):
             raise StateRejected(f"references.{band[:20]}: expected {n} finite numbers under an integer key")
+    for band, window in state["windows"].items():
+        if not band.lstrip("-").isdigit() or _kind(window) != "mapping" \
+                or ReferenceWindow.from_dict(window, n) is None:
+            raise StateRejected(f"windows.{band[:20]}: expected a learned-from window (samples y and u, {n} "
+                                f"finite solution numbers, speed_rpm, load_nm, t_s) under an integer key")
     names = {f.name for f in fields(AlertOut)}
     for i, a in enumerate(state["alerts"]):
         ok = (isinstance(a, dict) and set(a) == names and isinstance(a["message"], str)

@@ -77,6 +77,8 @@ def _broken(state, key, value):
 @pytest.mark.parametrize("key,value", [
     ("baseline", []), ("detector", "x"), ("tracker", 42), ("estimator", []), ("alerts", {}),
     ("references", {"5": [1.0, 2.0]}),  # was: dropped silently, the rest restored
+    ("windows", {"5": {"y": "AAAA", "u": "AAAA", "solution": [1.0], "speed_rpm": 1.0, "load_nm": 0.0, "t_s": 0}}),
+    ("windows", {"x": {}}), ("windows", []),
     ("healthy_rpm", "fast"),
     ("estimator.rels.P", {"__array__": [[1, 2], [3, 4]], "dtype": "float64"}),  # wrong shape
     ("estimator.rels.theta", {"__array__": [1, 2, 3], "dtype": "object"}),  # was: accepted by the loader
@@ -94,6 +96,13 @@ def test_good_state_is_restored_whole(tmp_path, good_state):
     svc, log = _service(tmp_path, state=good_state)
     assert "restored estimator state" in log and not _rejected(tmp_path)
     assert np.array_equal(svc.runtime.pipeline.estimator.rels.theta, good_state["estimator"]["rels"]["theta"])
+
+
+def test_a_state_of_the_release_before_learned_from_windows_is_restored(tmp_path, good_state):
+    older = {k: v for k, v in good_state.items() if k != "windows"}
+    svc, log = _service(tmp_path, state=older)
+    assert "restored estimator state" in log and not _rejected(tmp_path)
+    assert not _fresh(svc) and svc.runtime.pipeline.get_state()["windows"] == {}
 
 
 def test_null_is_a_reported_reset(tmp_path):

@@ -189,7 +189,7 @@ class Alarm:
 EPOCH_AFTER_S = 1e8  # stream times above this are Unix time (SocketCAN, candump logs), below it seconds from a start
 
 
-def _when(t_s: float) -> str:
+def when_text(t_s: float) -> str:
     """A stream time for people: UTC clock time for Unix timestamps, else ``t = ... s``."""
     if t_s > EPOCH_AFTER_S:
         return time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime(t_s))
@@ -203,7 +203,7 @@ def _message(kind: str, level: int, change_pct: float, stiff_pct: float | None, 
     if stiff_pct is not None:
         sword = "lower" if stiff_pct < 0 else "higher"
         text += f" (stiffness about {abs(stiff_pct):.0f} % {sword})"
-    text += f" since {_when(since)} at {rpm:.0f} rpm"
+    text += f" since {when_text(since)} at {rpm:.0f} rpm"
     return ("fault: " if level >= 2 else "warning: ") + text
 
 
