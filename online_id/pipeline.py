@@ -123,7 +123,8 @@ class Pipeline:
         self.backlash_tests = 0
         self.last_backlash_test: BacklashTest | None = None
         self._references: dict[int, np.ndarray] = {}  # per baseline band: a window solution it was learned from
-        self._windows: dict[int, ReferenceWindow] = {}  # per baseline band: the window it was last learned with
+        # per baseline band, one per cell (load): the window of the cell's first estimates, see _keep_window
+        self._windows: dict[int, list[ReferenceWindow]] = {}
         self._rechecks: dict[str, dict] = {}  # per alarm kind: a recheck of a reference window under way
         self._next_learn: float | None = None
         self._next_alarm_repeat = 0.0
@@ -744,10 +745,9 @@ class Pipeline:
         solution = self.estimator.solution
         if solution is not None:
             self._references[self.baseline.key(speed)] = solution
-            job = self.estimator.verify_job() if why is None else None
-            if job is not None:  # the data the cell was learned from: see _recheck
-                self._windows[self.baseline.key(speed)] = ReferenceWindow(job.y, job.u, solution, speed, load, t_s)
         done = self.baseline.cell(speed, load)
+        if why is None and solution is not None and done is not None:
+            self._keep_window(done, speed, load, t_s, solution)
         if done is not None and done.count == d.min_count:
             ratio = done.spread_ratio
             self.events.append(Event(t_s, "learned", f"cell {speed:.0f} rpm, {load:.1f} Nm learned: f0 "
@@ -802,25 +802,39 @@ class Pipeline:
                                  f"{100 * width:.1f} % dead band", {"kind": kind, "change_pct": 100 * change}))
         return False
 
+    def _keep_window(self, cell: BandStats, speed: float, load: float, t_s: float, solution: np.ndarray) -> None:
+        """Keep the window of a cell's first estimates, the ones its frozen reference holds (up to
+        ``provisional_count``), for :meth:`_recheck`; later estimates do not replace it (one learned after a
+        change the learning check let through would make the recheck compare the change with itself)."""
+        if cell.count > self.baseline.provisional_count:
+            return
+        job = self.estimator.verify_job()
+        if job is None:
+            return
+        key = self.baseline.key(speed)
+        kept = [w for w in self._windows.get(key, []) if not self._same_cell(w, cell)]
+        self._windows[key] = kept + [ReferenceWindow(job.y, job.u, solution, speed, load, t_s)]
+
+    def _same_cell(self, window: ReferenceWindow, stats: BandStats) -> bool:
+        return stats.band[0] <= window.speed_rpm < stats.band[1] and not (
+            math.isfinite(stats.load_nm) and abs(window.load_nm - stats.load_nm) > 0.5 * self.baseline.load_band_nm)
+
     def _reference_window(self, stats: BandStats) -> ReferenceWindow | None:
-        """The window the cell of ``stats`` was last learned with, where ``stats`` is a cell's own baseline
-        (learned, learning or from a reference run) and the window is of that cell's band and load."""
+        """The window of the first estimates of the cell of ``stats``, where ``stats`` is a cell's own baseline
+        (learned, learning or from a reference run)."""
         if stats.kind not in ("learned", "learning", "reference"):
             return None
-        window = self._windows.get(self.baseline.key(0.5 * (stats.band[0] + stats.band[1])))
-        if window is None or not stats.band[0] <= window.speed_rpm < stats.band[1]:
-            return None
-        if math.isfinite(stats.load_nm) and abs(window.load_nm - stats.load_nm) > 0.5 * self.baseline.load_band_nm:
-            return None
-        return window
+        windows = self._windows.get(self.baseline.key(0.5 * (stats.band[0] + stats.band[1])), [])
+        return next((w for w in windows if self._same_cell(w, stats)), None)
 
     def _recheck(self, kind: str, stats: BandStats, t_s: float) -> bool | None:
         """The data the cell's baseline was learned from, refitted from the current window solution: is the
         change still there within one minimum of the criterion? (:mod:`~online_id.estimation.reference`)
 
         Withheld where the reference data in the current minimum give the
-        current estimate again (inside the dead band): the estimate moved to
-        another minimum, the driveline did not change. Raised where no window serves,
+        current estimate again (within the dead band plus one standard
+        deviation of the comparison): the estimate moved to another minimum,
+        the driveline did not change. Raised where no window serves,
         a fit fails or the worker does not answer within ``RECHECK_WAIT_S``.
         """
         check = self._rechecks.get(kind)
@@ -828,8 +842,15 @@ class Pipeline:
             window, solution, est = self._reference_window(stats), self.estimator.solution, self.estimator.estimate()
             if window is None or solution is None or est is None:
                 return True
+            # the tolerance: the dead band plus one standard deviation of the difference of two single estimates
+            damping = kind == DAMPING
+            value, own, spread = ((est.zeta, est.zeta_std, stats.std_zeta) if damping
+                                  else (est.f0_hz, est.f0_std_hz, stats.std_f))
+            noise = math.hypot(*(x if math.isfinite(x) else 0.0 for x in (own, spread))) / value
+            width = self.detector.min_change_zeta if damping else self.detector.min_change_f
             check = self._rechecks[kind] = {"t_s": t_s, "window": window, "f0_hz": est.f0_hz, "zeta": est.zeta,
-                                            "solution": solution, "result": None, "submitted": False}
+                                            "solution": solution, "result": None, "submitted": False,
+                                            "tolerance": width + (noise if math.isfinite(noise) else 0.0)}
         if t_s - check["t_s"] > RECHECK_WAIT_S:
             del self._rechecks[kind]
             return True
@@ -848,9 +869,9 @@ class Pipeline:
             return PENDING
         del self._rechecks[kind]
         fits, error = check["result"]
-        damping = kind == DAMPING
-        width = self.detector.min_change_zeta if damping else self.detector.min_change_f
-        r = judge(fits, self.estimator.dt, check["f0_hz"], check["zeta"], damping, width) if error is None else None
+        damping, tolerance = kind == DAMPING, check["tolerance"]
+        r = judge(fits, self.estimator.dt, check["f0_hz"], check["zeta"], damping, tolerance) if error is None \
+            else None
         if r is None or not r.withhold:
             return True
         window = check["window"]
@@ -858,11 +879,12 @@ class Pipeline:
         self.events.append(Event(
             t_s, "withheld", f"{kind} alarm withheld: the data cell {window.speed_rpm:.0f} rpm, "
             f"{window.load_nm:.1f} Nm was learned from ({when_text(window.t_s)}), refitted from the current "
-            f"window solution, give {what}, {100 * r.change:+.1f} % from the current estimate, inside the "
-            f"{100 * width:.1f} % dead band (loss {100 * r.loss_ratio:+.1f} % against their own solution): "
-            f"the estimate moved to another minimum of the criterion, not the driveline",
-            {"kind": kind, "change_pct": 100 * r.change, "loss_ratio_pct": 100 * r.loss_ratio,
-             "reference_t_s": window.t_s}))
+            f"window solution, give {what}, {100 * r.change:+.1f} % from the current estimate, within the "
+            f"{100 * tolerance:.1f} % tolerance (dead band and the comparison's noise; loss "
+            f"{100 * r.loss_ratio:+.1f} % against their own solution): the estimate moved to another minimum "
+            f"of the criterion, not the driveline",
+            {"kind": kind, "change_pct": 100 * r.change, "tolerance_pct": 100 * tolerance,
+             "loss_ratio_pct": 100 * r.loss_ratio, "reference_t_s": window.t_s}))
         return False
 
     def _alert_out(self, alarm: Alarm, t_s: float) -> AlertOut:
@@ -944,7 +966,7 @@ class Pipeline:
                 "baseline": self.baseline.to_dict(), "detector": self.detector.to_dict(),
                 "tracker": self.tracker.to_dict(), "healthy_rpm": self._healthy_rpm,
                 "references": {str(k): v.tolist() for k, v in self._references.items()},
-                "windows": {str(k): w.to_dict() for k, w in self._windows.items()},
+                "windows": {str(k): [w.to_dict() for w in ws] for k, ws in self._windows.items()},
                 "alerts": [a.__dict__ | {"kind": int(a.kind)} for a in self.alerts[-50:]]}
 
     def load_state(self, state: dict, new_run: bool = False) -> None:
@@ -975,9 +997,12 @@ class Pipeline:
         self._references = {int(k): np.asarray(v, dtype=float) for k, v in state.get("references", {}).items()
                             if isinstance(v, (list, np.ndarray)) and len(v) == n}
         windows = state.get("windows", {})
-        self._windows = {int(k): w for k, v in (windows.items() if isinstance(windows, dict) else ())
-                         if str(k).lstrip("-").isdigit() and isinstance(v, dict)
-                         and (w := ReferenceWindow.from_dict(v, n)) is not None}
+        self._windows = {}
+        for k, v in windows.items() if isinstance(windows, dict) else ():
+            saved = v if isinstance(v, list) and str(k).lstrip("-").isdigit() else []
+            kept = [w for w in (ReferenceWindow.from_dict(x, n) for x in saved if isinstance(x, dict)) if w is not None]
+            if kept:
+                self._windows[int(k)] = kept
         self._rechecks = {}
         rpm = state.get("healthy_rpm")
         self._healthy_rpm = float(rpm) if isinstance(rpm, (int, float)) and not new_run else None

@@ -88,11 +88,11 @@ def check_state(state: dict, settings: Settings) -> None:
         if not band.lstrip("-").isdigit() or _kind(theta) != "list" or len(theta) != n \
                 or not all(_number(x) for x in theta):
             raise StateRejected(f"references.{band[:20]}: expected {n} finite numbers under an integer key")
-    for band, window in state["windows"].items():
-        if not band.lstrip("-").isdigit() or _kind(window) != "mapping" \
-                or ReferenceWindow.from_dict(window, n) is None:
-            raise StateRejected(f"windows.{band[:20]}: expected a learned-from window (samples y and u, {n} "
-                                f"finite solution numbers, speed_rpm, load_nm, t_s) under an integer key")
+    for band, windows in state["windows"].items():
+        if not band.lstrip("-").isdigit() or _kind(windows) != "list" or not all(
+                _kind(w) == "mapping" and ReferenceWindow.from_dict(w, n) is not None for w in windows):
+            raise StateRejected(f"windows.{band[:20]}: expected a list of learned-from windows (samples y and u, "
+                                f"{n} finite solution numbers, speed_rpm, load_nm, t_s) under an integer key")
     names = {f.name for f in fields(AlertOut)}
     for i, a in enumerate(state["alerts"]):
         ok = (isinstance(a, dict) and set(a) == names and isinstance(a["message"], str)

@@ -77,8 +77,8 @@ def _broken(state, key, value):
 @pytest.mark.parametrize("key,value", [
     ("baseline", []), ("detector", "x"), ("tracker", 42), ("estimator", []), ("alerts", {}),
     ("references", {"5": [1.0, 2.0]}),  # was: dropped silently, the rest restored
-    ("windows", {"5": {"y": "AAAA", "u": "AAAA", "solution": [1.0], "speed_rpm": 1.0, "load_nm": 0.0, "t_s": 0}}),
-    ("windows", {"x": {}}), ("windows", []),
+    ("windows", {"5": [{"y": "AAAA", "u": "AAAA", "solution": [1.0], "speed_rpm": 1.0, "load_nm": 0.0, "t_s": 0}]}),
+    ("windows", {"5": {}}), ("windows", {"x": []}), ("windows", []),
     ("healthy_rpm", "fast"),
     ("estimator.rels.P", {"__array__": [[1, 2], [3, 4]], "dtype": "float64"}),  # wrong shape
     ("estimator.rels.theta", {"__array__": [1, 2, 3], "dtype": "object"}),  # was: accepted by the loader

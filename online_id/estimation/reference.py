@@ -27,9 +27,13 @@ current minimum) is the change itself: on the evaluation's benches with
 backlash, 1.7-5.6 % in frequency for 5-10 % stiffness losses and 31-60 % in
 damping for +-50 % damping changes. If only the minimum changed, the
 reference data in the current minimum give the current estimate again
-(1017: 31.20 Hz against 31.20 Hz, where its cell was learned at 30.75 Hz):
-the apparent change is inside the dead band, and the alarm is withheld
-(:func:`judge`).
+(1017: 31.03-31.06 Hz against 31.06-31.20 Hz, where its cell was learned
+at 30.75 Hz): the apparent change is within the tolerance, and the alarm is
+withheld (:func:`judge`). The tolerance is the detector's dead band plus one
+standard deviation of the difference of two single estimates (the current
+one's own, and the cell's spread: 0.3 % in frequency on 1017), so that the
+change must stand out of the dead band by more than the noise of the
+comparison for the alarm to stand.
 
 The verdict takes the change only, not the loss. How well the current
 minimum fits the reference data says nothing here: on 1017 it fits them
@@ -119,7 +123,7 @@ class Recheck:
     ``loss_ratio``: its loss over that of the fit from the reference's own
     solution, less one; ``change``: the current estimate's relative change
     against it, of the quantity judged; ``withhold``: the change is inside the
-    dead band.
+    tolerance.
     """
 
     f0_hz: float
@@ -130,11 +134,11 @@ class Recheck:
 
 
 def judge(fits: tuple[ArmaxFit | None, ...], dt: float, f0_hz: float, zeta: float, damping: bool,
-          dead_band: float) -> Recheck | None:
+          tolerance: float) -> Recheck | None:
     """Judge an alarm by the reference window's fits ``(from its own solution, from the current one)``.
 
     ``f0_hz``, ``zeta``: the current estimate; ``damping``: the alarm is of
-    the damping (else the frequency); ``dead_band``: its relative dead band.
+    the damping (else the frequency); ``tolerance``: the largest relative change withheld (see the module notes).
     None where a fit failed or has no lightly damped pole (the alarm stands).
     """
     if len(fits) != 2 or fits[0] is None or fits[1] is None or not (fits[0].V > 0 and math.isfinite(fits[1].V)):
@@ -146,4 +150,4 @@ def judge(fits: tuple[ArmaxFit | None, ...], dt: float, f0_hz: float, zeta: floa
     pole = min(poles, key=lambda p: abs(p.f_hz - f0_hz))
     ratio = current.V / own.V - 1.0
     change = zeta / pole.zeta - 1.0 if damping else f0_hz / pole.f_hz - 1.0
-    return Recheck(pole.f_hz, pole.zeta, ratio, change, abs(change) <= dead_band)
+    return Recheck(pole.f_hz, pole.zeta, ratio, change, abs(change) <= tolerance)
