@@ -47,7 +47,11 @@ minima differ by 1-3 % in the resonance. Where the data prefer the other
 minimum by more (plant 1017 of ``online-id evaluate``, 0.59 mrad of
 backlash: at a learned point the estimate sat 0.9 % above its baseline for
 four minutes, where the fit from the baseline's solution lost 1.7 % more
-than the best), the alarm is raised.
+than the best), the service rechecks against the cell's own data: the window
+of the cell's first estimates, refitted from the current solution, gives
+the current estimate again when only the minimum moved, and the healthy
+resonance when the driveline changed
+(:mod:`~online_id.estimation.reference`).
 
 **Autocorrelation.**  The estimates come from fits over overlapping windows
 (10 s, refitted every second), so neighbouring samples are strongly
@@ -119,7 +123,10 @@ detection delays on simulated benches come from ``online-id evaluate``
   not fit exactly (backlash), the prediction-error criterion has several
   nearly equal minima, and a warm-started fit can stay in one whose
   resonance or damping differs from the baseline's while another start
-  fits the same data as well or better;
+  fits the same data as well or better. Against a cell's own baseline it
+  then refits the data the cell was learned from, from the current
+  solution, and withholds the alarm where they give the current estimate
+  again (see above);
 * *suppression*: while ``suppressed`` is true or ``baseline`` is None the
   sample is ignored: the statistics stay frozen, the current interval is
   discarded and nothing is raised.
