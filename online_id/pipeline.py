@@ -833,8 +833,9 @@ class Pipeline:
 
         Withheld where the reference data in the current minimum give the
         current estimate again (within the dead band plus one standard
-        deviation of the comparison): the estimate moved to another minimum,
-        the driveline did not change. Raised where no window serves,
+        deviation of the comparison) and fit there within the second look's
+        tie of their own minimum: the estimate moved to another minimum, the
+        driveline did not change. Raised where no window serves,
         a fit fails or the worker does not answer within ``RECHECK_WAIT_S``.
         """
         check = self._rechecks.get(kind)
@@ -870,8 +871,10 @@ class Pipeline:
         del self._rechecks[kind]
         fits, error = check["result"]
         damping, tolerance = kind == DAMPING, check["tolerance"]
-        r = judge(fits, self.estimator.dt, check["f0_hz"], check["zeta"], damping, tolerance) if error is None \
-            else None
+        d = self.settings.detection
+        tie = (d.damping_tie_pct if damping else d.frequency_tie_pct) / 100.0
+        r = judge(fits, self.estimator.dt, check["f0_hz"], check["zeta"], damping, tolerance, tie) \
+            if error is None else None
         if r is None or not r.withhold:
             return True
         window = check["window"]
