@@ -69,7 +69,7 @@ LINEARITY = "linearity"  # worker lane of the backlash test (see _test_backlash)
 BACKLASH_TEST_MAX_S = 30.0  # the backlash test takes at most this much of an operating point's steady samples
 PENDING = None  # a multi-start check is running in the worker: decide later
 VERIFY_FRESH_S = 5.0  # a multi-start check older than this is not used for a decision
-RECHECK_WAIT_S = 10.0  # a recheck of the reference window not back after this long: the alarm is raised
+RECHECK_WAIT_S = 10.0  # a recheck of a reference window older than this is dropped (see _confirm)
 STEADY_S = 5.0  # learning needs the estimates this long ago within the dead bands (or 3 own stds), see _steady
 SPREAD_RATIO_REPORTED = 5.0  # a learned spread this many times the estimator's own uncertainty is reported
 
@@ -764,7 +764,11 @@ class Pipeline:
         """Before a new drift alarm: does the change stand a second look at the window, and a recheck of the
         data the baseline was learned from? True: raise it; False: withhold it; None: a check runs in the worker
         (the detector asks again at its next interval)."""
-        if kind not in self._rechecks:
+        check = self._rechecks.get(kind)
+        if check is not None and (t_s - check["t_s"] > RECHECK_WAIT_S or check["band"] != stats.band):
+            del self._rechecks[kind]  # of an alarm the detector no longer asks about: this one starts afresh
+            check = None
+        if check is None:
             verdict = self._second_look(kind, stats, t_s)
             if verdict is not True:
                 return verdict
@@ -835,8 +839,10 @@ class Pipeline:
         current estimate again (within the dead band plus one standard
         deviation of the comparison) and fit there within the second look's
         tie of their own minimum: the estimate moved to another minimum, the
-        driveline did not change. Raised where no window serves,
-        a fit fails or the worker does not answer within ``RECHECK_WAIT_S``.
+        driveline did not change. Raised where no window serves or a fit
+        fails. A recheck the detector has not asked about again within
+        ``RECHECK_WAIT_S`` (or asks about at another band) is dropped, and the
+        next alarm starts with a second look.
         """
         check = self._rechecks.get(kind)
         if check is None:
@@ -847,14 +853,12 @@ class Pipeline:
             damping = kind == DAMPING
             value, own, spread = ((est.zeta, est.zeta_std, stats.std_zeta) if damping
                                   else (est.f0_hz, est.f0_std_hz, stats.std_f))
-            noise = math.hypot(*(x if math.isfinite(x) else 0.0 for x in (own, spread))) / value
+            noise = math.hypot(*(x if math.isfinite(x) else 0.0 for x in (own, spread))) / value if value > 0 else 0.0
             width = self.detector.min_change_zeta if damping else self.detector.min_change_f
-            check = self._rechecks[kind] = {"t_s": t_s, "window": window, "f0_hz": est.f0_hz, "zeta": est.zeta,
-                                            "solution": solution, "result": None, "submitted": False,
+            check = self._rechecks[kind] = {"t_s": t_s, "band": stats.band, "window": window, "f0_hz": est.f0_hz,
+                                            "zeta": est.zeta, "solution": solution, "result": None,
+                                            "submitted": False,
                                             "tolerance": width + (noise if math.isfinite(noise) else 0.0)}
-        if t_s - check["t_s"] > RECHECK_WAIT_S:
-            del self._rechecks[kind]
-            return True
         if not check["submitted"]:
             if self.worker.busy(WINDOW):
                 return PENDING

@@ -19,6 +19,7 @@ from online_id.estimation.model import ArmaxOrders
 from online_id.estimation.pem import fit_armax
 from online_id.estimation.reference import ReferenceWindow, judge, refit_each
 from online_id.io.statefile import save_state
+from online_id.offload import InlineWorker
 from online_id.pipeline import run_bench_data
 from online_id.restore import restore_pipeline
 from online_id.records import AlertKind
@@ -183,3 +184,46 @@ def test_a_baseline_learned_in_another_minimum_is_not_alarmed_against_but_a_chan
                             run_label="day 2")
     drift = [a for a in faulty.alerts if a.kind == AlertKind.FREQ_DRIFT]
     assert drift and "lower" in drift[0].message, list(faulty.events)[-6:]
+
+
+class _DeferredWorker(InlineWorker):
+    """A worker whose results come back at the next poll, as the live service's process worker's do later."""
+
+    asynchronous = True
+
+    def __init__(self):
+        super().__init__()
+        self.queue = []
+
+    def busy(self, lane):
+        return any(q[0] == lane for q in self.queue)
+
+    def submit(self, lane, fn, args, callback):
+        self.stats.count(self.stats.submitted, lane)
+        self.queue.append((lane, fn, args, callback))
+
+    def poll(self):
+        done, self.queue = self.queue, []
+        for lane, fn, args, callback in done:
+            InlineWorker.submit(self, lane, fn, args, callback)
+        return len(done)
+
+
+@pytest.mark.slow
+def test_the_recheck_waits_for_a_worker_that_answers_later():
+    """With results one poll later (the live service), the recheck gives the inline verdicts: a baseline of
+    another minimum is withheld, a real change alarmed; the second look is not run again while it waits."""
+    seed, shift = 33, 1.015
+    sc, settings = _bench(seed, 60.0)
+    first = run_bench_data(simulate_bench(sc).to_data("day 1"), settings, run_label="day 1")
+    later = dataclasses.replace(sc, seed=seed + 100,
+                                operating_points=(OperatingPoint(sc.operating_points[0].speed_rpm, 50.0),))
+    worker = _DeferredWorker()
+    healthy = run_bench_data(simulate_bench(later).to_data("day 2"), settings, worker=worker,
+                             state=_shift_cells(first.get_state(), shift), run_label="day 2")
+    assert not [a for a in healthy.alerts if a.kind == AlertKind.FREQ_DRIFT], healthy.alerts
+    assert [e for e in healthy.events if e.kind == "withheld" and "another minimum" in e.message]
+    changed = dataclasses.replace(later, faults=(Fault(15.0, stiffness_factor=0.9),))
+    faulty = run_bench_data(simulate_bench(changed).to_data("day 2"), settings, worker=_DeferredWorker(),
+                            state=_shift_cells(first.get_state(), shift), run_label="day 2")
+    assert [a for a in faulty.alerts if a.kind == AlertKind.FREQ_DRIFT]
