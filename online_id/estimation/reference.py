@@ -50,6 +50,7 @@ from __future__ import annotations
 import base64
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -74,7 +75,13 @@ class ReferenceWindow:
     t_s: float
 
     def to_dict(self) -> dict:
-        """JSON-ready: the samples as base64 of little-endian float32 (about 53 kB for 10 s at 500 Hz)."""
+        """JSON-ready: the samples as base64 of little-endian float32 (about 53 kB for 10 s at 500 Hz).
+
+        Encoded once (the window never changes; the service snapshots its state every minute)."""
+        return dict(self._saved)
+
+    @cached_property
+    def _saved(self) -> dict:
         return {"y": _pack(self.y), "u": _pack(self.u), "solution": [float(x) for x in self.solution],
                 "speed_rpm": float(self.speed_rpm), "load_nm": float(self.load_nm), "t_s": float(self.t_s)}
 
