@@ -673,7 +673,11 @@ class Pipeline:
         another band's or load's)."""
         if stats.kind == "learning":
             return True  # only a cell's own first estimates serve it while it learns
-        return (stats.kind in ("learned", "reference") and stats.band[0] <= speed < stats.band[1]
+        return stats.kind in ("learned", "reference") and self._at(stats, speed, load)
+
+    def _at(self, stats: BandStats, speed: float, load: float) -> bool:
+        """Whether ``speed`` and ``load`` fall in the band and load cell of ``stats`` (any load if it has none)."""
+        return (stats.band[0] <= speed < stats.band[1]
                 and not abs(stats.load_nm - load) > 0.5 * self.baseline.load_band_nm)
 
     def _learn(self, est: OnlineEstimate, t_s: float, speed: float, load: float) -> OnlineEstimate:
@@ -790,9 +794,7 @@ class Pipeline:
         # where the baseline's own minimum fits the window nearly as well as the best, the data do not tell them
         # apart: a mismatched model (backlash) has nearly equal minima whose damping differs by 30-40 % and whose
         # resonance differs by 1-3 %, and the estimate may sit in either for minutes at a learned operating point
-        d = self.settings.detection
-        tie = (d.damping_tie_pct if kind == DAMPING else d.frequency_tie_pct) / 100.0
-        if self._verify(("confirm", kind), t_s, (ref,), tie) is PENDING:
+        if self._verify(("confirm", kind), t_s, (ref,), self._tie(kind)) is PENDING:
             return None
         est = self.estimator.estimate()
         if kind == FREQUENCY:  # beyond the bounds of a bracketed baseline
@@ -816,12 +818,13 @@ class Pipeline:
         if job is None:
             return
         key = self.baseline.key(speed)
-        kept = [w for w in self._windows.get(key, []) if not self._same_cell(w, cell)]
+        kept = [w for w in self._windows.get(key, []) if not self._at(cell, w.speed_rpm, w.load_nm)]
         self._windows[key] = kept + [ReferenceWindow(job.y, job.u, solution, speed, load, t_s)]
 
-    def _same_cell(self, window: ReferenceWindow, stats: BandStats) -> bool:
-        return stats.band[0] <= window.speed_rpm < stats.band[1] and not (
-            math.isfinite(stats.load_nm) and abs(window.load_nm - stats.load_nm) > 0.5 * self.baseline.load_band_nm)
+    def _tie(self, kind: str) -> float:
+        """The share of loss within which two minima are not told apart (``detection.*_tie_pct``), for ``kind``."""
+        d = self.settings.detection
+        return (d.damping_tie_pct if kind == DAMPING else d.frequency_tie_pct) / 100.0
 
     def _reference_window(self, stats: BandStats) -> ReferenceWindow | None:
         """The window of the first estimates of the cell of ``stats``, where ``stats`` is a cell's own baseline
@@ -829,7 +832,7 @@ class Pipeline:
         if stats.kind not in ("learned", "learning", "reference"):
             return None
         windows = self._windows.get(self.baseline.key(0.5 * (stats.band[0] + stats.band[1])), [])
-        return next((w for w in windows if self._same_cell(w, stats)), None)
+        return next((w for w in windows if self._at(stats, w.speed_rpm, w.load_nm)), None)
 
     def _recheck(self, kind: str, stats: BandStats, t_s: float) -> bool | None:
         """The data the cell's baseline was learned from, refitted from the current window solution: is the
@@ -875,9 +878,7 @@ class Pipeline:
         del self._rechecks[kind]
         fits, error = check["result"]
         damping, tolerance = kind == DAMPING, check["tolerance"]
-        d = self.settings.detection
-        tie = (d.damping_tie_pct if damping else d.frequency_tie_pct) / 100.0
-        r = judge(fits, self.estimator.dt, check["f0_hz"], check["zeta"], damping, tolerance, tie) \
+        r = judge(fits, self.estimator.dt, check["f0_hz"], check["zeta"], damping, tolerance, self._tie(kind)) \
             if error is None else None
         if r is None or not r.withhold:
             return True

@@ -17,7 +17,7 @@ the loss of the baseline's minimum by only 1.0 %. No tie on the loss
 separates the two.
 
 What separates them is the data the baseline was learned from. The window of
-the cell's last learned estimate (:class:`ReferenceWindow`, 10 s of the
+the cell's first estimates, those its frozen reference holds (:class:`ReferenceWindow`, 10 s of the
 filtered, decimated dyno speed and torque, about 80 kB) is refitted from two
 starts: its own solution, and the solution the window refits hold now
 (:func:`refit_each`). If the driveline changed, the healthy data pull the
@@ -64,8 +64,8 @@ MAX_ZETA = 0.3  # a driveline pole is lightly damped: the candidates of the curr
 
 @dataclass(frozen=True)
 class ReferenceWindow:
-    """The window (``y`` dyno speed, ``u`` dyno torque, filtered and decimated) and window solution a cell's
-    baseline was last learned with, at ``speed_rpm`` and ``load_nm``, stream time ``t_s``."""
+    """The window (``y`` dyno speed, ``u`` dyno torque, filtered and decimated) and window solution of a cell's
+    first estimates, at ``speed_rpm`` and ``load_nm``, stream time ``t_s``."""
 
     y: np.ndarray
     u: np.ndarray
