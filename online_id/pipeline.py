@@ -521,12 +521,12 @@ class Pipeline:
                 and self.baseline.learned_range_rpm is not None):
             # on a shaft with backlash the resonance moves with the operating point (rising with the load's
             # magnitude): where no learned cell bounds it (a load below them all, farther than they span, or
-            # no cell yet), the visit's own first settled estimates serve (the frequency only), then the cell's,
+            # no cell yet), the visit's own first settled estimates serve, then the cell's,
             # and a change that comes with the visit shows at the established points (it shows everywhere)
             self._visit_not_compared = self._visit
             self.events.append(Event(t_s, "not_compared", f"at {speed:.0f} rpm, {load:.1f} Nm no learned cell is "
                                      f"compared with: the shaft shows backlash, so its resonance moves with the "
-                                     f"load, and no learned cell bounds it here; the frequency is compared with "
+                                     f"load, and no learned cell bounds it here; the estimates are compared with "
                                      f"the first estimates of this visit", {}))
         if self._visit_serves(stats):
             self._visit_sample(est, t_s, speed, load, healthy and not settling, stats)
@@ -627,9 +627,9 @@ class Pipeline:
 
     def _visit_serves(self, stats: BandStats | None) -> bool:
         """Whether the first estimates of the visit serve where ``stats`` (what :meth:`_baseline_for` gives)
-        does: on a shaft with backlash, where no learned cell bounds the point, or bounds it on one side only."""
-        return self.baseline.nonlinear and (stats is None or (stats.kind == "bracketed"
-                                                              and not math.isfinite(stats.above_f + stats.below_f)))
+        does: on a shaft with backlash, where no learned cell of this point serves (its damping; its frequency
+        too where no learned cell bounds the point, or bounds it on one side only)."""
+        return self.baseline.nonlinear and (stats is None or stats.kind == "bracketed")
 
     def _visit_sample(self, est: OnlineEstimate, t_s: float, speed: float, load: float, settled: bool,
                       bounds: BandStats | None) -> None:
@@ -648,16 +648,24 @@ class Pipeline:
             ref = self._visit_ref = VisitReference(self._visit, load, self.baseline.band_of(speed),
                                                    min_count=self.baseline.provisional_count,
                                                    size=self.baseline.freeze_count,
-                                                   min_rel_std_f=self.baseline.min_rel_std_f)
+                                                   min_rel_std_f=self.baseline.min_rel_std_f,
+                                                   min_rel_std_zeta=self.baseline.min_rel_std_zeta)
             self._next_visit_sample = t_s
         if t_s >= self._next_visit_sample:
             self._next_visit_sample = t_s + 1.0  # about one independent-ish estimate per second
-            ref.add(t_s, est.f0_hz, est.zeta, load, self.detector.min_change_f, self.estimator.solution)
+            solution = self.estimator.solution
+            if (ref.add(t_s, est.f0_hz, est.zeta, load, self.detector.min_change_f, solution,
+                        self.detector.min_change_zeta) and len(ref.f) <= ref.min_count and solution is not None):
+                job = self.estimator.verify_job()  # the data of the frozen first estimates, for a recheck
+                if job is not None:
+                    ref.window = ReferenceWindow(job.y, job.u, solution, speed, load, t_s)
 
     def _with_visit(self, stats: BandStats | None, load: float) -> BandStats | None:
         """``stats``, or the first estimates of this visit where they serve (:meth:`_visit_serves`) and hold
-        ``provisional_count`` estimates: their frequency, and the damping of ``stats`` (a one-sided bracket's,
-        or none)."""
+        ``provisional_count`` estimates: their frequency where nothing or one side bounds the point; their damping
+        where the learned cells do not measure how far it moves between points (fewer than
+        ``MIN_CELLS_DAMPING``, :meth:`Baseline.bracketed`: it moves 3-57 % between points with backlash, and
+        was not compared at all), in a two-sided bracket too (:attr:`BandStats.zeta_visit`)."""
         ref = self._visit_ref
         if not self._visit_serves(stats) or ref is None or not ref.matches(self._visit, load,
                                                                            self.settings.detection.load_band_nm):
@@ -665,8 +673,14 @@ class Pipeline:
         visit = ref.stats()
         if visit is None or stats is None:
             return visit or stats
-        return dataclasses.replace(visit, mean_zeta=stats.mean_zeta, std_zeta=stats.std_zeta,
-                                   tolerance_zeta=stats.tolerance_zeta, between_zeta=stats.between_zeta)
+        one_sided = not math.isfinite(stats.above_f + stats.below_f)
+        if math.isfinite(stats.std_zeta):  # the learned cells measure how far the damping moves between points
+            return dataclasses.replace(visit, mean_zeta=stats.mean_zeta, std_zeta=stats.std_zeta,
+                                       tolerance_zeta=stats.tolerance_zeta,
+                                       between_zeta=stats.between_zeta) if one_sided else stats
+        return visit if one_sided else dataclasses.replace(
+            stats, mean_zeta=visit.mean_zeta, std_zeta=visit.std_zeta, tolerance_zeta=0.0, between_zeta=math.nan,
+            widen=visit.widen, zeta_visit=True)
 
     def _own(self, stats: BandStats, speed: float, load: float) -> bool:
         """Whether ``stats`` is the baseline of the cell of ``speed`` and ``load`` itself (not the pool's or
@@ -698,7 +712,7 @@ class Pipeline:
         (:meth:`_baseline_for`, :meth:`Baseline.bracketed`): an estimate
         outside them is learned into a held cell; where nothing bounds the
         point from below, the first estimates of the visit serve
-        (:mod:`~online_id.monitoring.visit`, the frequency only): an estimate
+        (:mod:`~online_id.monitoring.visit`): an estimate
         that disagrees with them is learned into a held cell too.
         """
         d = self.settings.detection
@@ -755,7 +769,8 @@ class Pipeline:
         if done is not None and done.count == d.min_count:
             ratio = done.spread_ratio
             self.events.append(Event(t_s, "learned", f"cell {speed:.0f} rpm, {load:.1f} Nm learned: f0 "
-                                     f"{done.mean_f:.3f} +- {done.std_f:.3f} Hz, zeta {done.mean_zeta:.4f}",
+                                     f"{done.mean_f:.3f} +- {done.std_f:.3f} Hz, zeta {done.mean_zeta:.4f}"
+                                     + (" (held: no baseline until released)" if done.kind == "held" else ""),
                                      done.as_dict()))
             if math.isfinite(ratio) and ratio > SPREAD_RATIO_REPORTED:
                 self.events.append(Event(t_s, "wide_baseline", f"baseline at {speed:.0f} rpm, {load:.1f} Nm: "
@@ -785,7 +800,7 @@ class Pipeline:
         (see :class:`~online_id.monitoring.detection.ChangeDetector`, *confirm*).
         None while the refit runs in the worker.
         """
-        if stats.kind == "visit" and self._visit_ref is not None:
+        if (stats.kind == "visit" or (kind == DAMPING and stats.zeta_visit)) and self._visit_ref is not None:
             ref = self._visit_ref.solution  # the minimum the visit's first estimates sat in
         else:
             key = self.baseline.key(0.5 * (stats.band[0] + stats.band[1]))
@@ -826,9 +841,13 @@ class Pipeline:
         d = self.settings.detection
         return (d.damping_tie_pct if kind == DAMPING else d.frequency_tie_pct) / 100.0
 
-    def _reference_window(self, stats: BandStats) -> ReferenceWindow | None:
+    def _reference_window(self, stats: BandStats, kind: str) -> ReferenceWindow | None:
         """The window of the first estimates of the cell of ``stats``, where ``stats`` is a cell's own baseline
-        (learned, learning or from a reference run)."""
+        (learned, learning or from a reference run), or of this visit's (kind ``"visit"``, or the damping of a
+        bracket that holds the visit's, :attr:`BandStats.zeta_visit`)."""
+        if stats.kind == "visit" or (kind == DAMPING and stats.zeta_visit):
+            ref = self._visit_ref
+            return ref.window if ref is not None and ref.visit == self._visit else None
         if stats.kind not in ("learned", "learning", "reference"):
             return None
         windows = self._windows.get(self.baseline.key(0.5 * (stats.band[0] + stats.band[1])), [])
@@ -849,7 +868,7 @@ class Pipeline:
         """
         check = self._rechecks.get(kind)
         if check is None:
-            window, solution, est = self._reference_window(stats), self.estimator.solution, self.estimator.estimate()
+            window, solution, est = self._reference_window(stats, kind), self.estimator.solution, self.estimator.estimate()
             if window is None or solution is None or est is None:
                 return True
             # the tolerance: the dead band plus one standard deviation of the difference of two single estimates
@@ -884,10 +903,11 @@ class Pipeline:
             return True
         window = check["window"]
         what = f"{r.zeta:.4f}" if damping else f"{r.f0_hz:.3f} Hz"
+        whose = ("of this visit's first estimates" if stats.kind == "visit" or (damping and stats.zeta_visit) else
+                 f"cell {window.speed_rpm:.0f} rpm, {window.load_nm:.1f} Nm was learned from")
         self.events.append(Event(
-            t_s, "withheld", f"{kind} alarm withheld: the data cell {window.speed_rpm:.0f} rpm, "
-            f"{window.load_nm:.1f} Nm was learned from ({when_text(window.t_s)}), refitted from the current "
-            f"window solution, give {what}, {100 * r.change:+.1f} % from the current estimate, within the "
+            t_s, "withheld", f"{kind} alarm withheld: the data {whose} ({when_text(window.t_s)}), refitted from "
+            f"the current window solution, give {what}, {100 * r.change:+.1f} % from the current estimate, within the "
             f"{100 * tolerance:.1f} % tolerance (dead band and the comparison's noise; loss "
             f"{100 * r.loss_ratio:+.1f} % against their own solution): the estimate moved to another minimum "
             f"of the criterion, not the driveline",
@@ -1030,13 +1050,14 @@ def _against(stats: BandStats) -> str:
     from run 3", "the pooled baseline (...)", "the bounds of the learned cells of other loads (...)", "the first
     estimates of this visit since t = 67.0 s (22.28 Hz)"."""
     if stats.kind == "visit":
-        return (f"the first estimates of {stats.source} ({stats.mean_f:.2f} Hz)"
-                + (", the damping against the learned cells of other loads" if math.isfinite(stats.std_zeta) else ""))
+        return f"the first estimates of {stats.source} ({stats.mean_f:.2f} Hz, zeta {stats.mean_zeta:.4f})"
     what = (f"the pooled baseline ({stats.mean_f:.2f} Hz)" if stats.kind == "pooled" else
             f"the bounds of the learned cells of other loads ({_bounds(stats)})" if stats.kind == "bracketed" else
             f"the {stats.kind} baseline of {0.5 * (stats.band[0] + stats.band[1]):.0f} rpm"
             + (f", {stats.load_nm:.0f} Nm" if math.isfinite(stats.load_nm) else "") + f" ({stats.mean_f:.2f} Hz)")
-    return what + (f", learned from {stats.source}" if stats.source else "")
+    return (what + (f", learned from {stats.source}" if stats.source else "")
+            + (f", the damping against the first estimates of this visit ({stats.mean_zeta:.4f})"
+               if stats.zeta_visit else ""))
 
 
 def _bounds(stats: BandStats) -> str:

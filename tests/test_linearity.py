@@ -6,8 +6,9 @@
   (the pool) is not compared with, only the bounds the learned cells of smaller and larger loads set
   (the resonance rises with the load's magnitude), so the first visit of a point whose resonance differs
   raises nothing, while a fault raises an alarm against those bounds or at an established point, and a fault
-  during the first visit of a point nothing bounds from below, against the visit's first estimates; on a
-  linear shaft the pool still serves;
+  during the first visit of a point nothing bounds from below, against the visit's first estimates (a damping
+  change during a first visit against its damping, wherever the point lies); on a linear shaft the pool still
+  serves;
 * what it found is kept with the baselines: saved, restored, and forgotten by a relearn.
 """
 
@@ -120,6 +121,26 @@ def test_a_fault_on_a_shaft_with_backlash_is_alarmed_against_bounds_or_at_an_est
         assert t < 135.0 and "learned baseline" in drift[0].message, (t, drift[0].message)  # back at A
 
 
+def _fault_in_first_visit(seed, kind, **fault):
+    """A for 55 s, B (a first visit) for 55 s, A for 30 s on the first plant with backlash from ``seed`` on, a fault
+    14 s into B, cells that wait 25 s to settle before they learn: the speeds, the pipeline and its alerts of
+    ``kind``, the first raised during B's visit (asserted)."""
+    (seed, plant, speeds), = _plants(True, 1, seed)
+    a, b = speeds
+    fault_at = 55.0 + 3.0 + 14.0
+    sc, rec = _run(seed, plant, [OperatingPoint(a, 55.0), OperatingPoint(b, 55.0), OperatingPoint(a, 30.0)],
+                   (Fault(fault_at, **fault),))
+    settings = ev.settings_for(ev.RunSpec("x", seed, sc))
+    settings = dataclasses.replace(settings, detection=dataclasses.replace(settings.detection, settle_s=25.0))
+    pipe = run_bench_data(rec.to_data("tour"), settings, run_label="tour")
+    assert pipe.baseline.nonlinear
+    drift = [x for x in pipe.alerts if x.kind == kind]
+    assert drift, [e.message for e in list(pipe.events)[-10:]]
+    t = drift[0].t_s - pipe.t_first
+    assert fault_at < t < 113.0 and abs(drift[0].speed_rpm - b) < 50.0, (t, drift[0].message)
+    return a, b, pipe, drift
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [24, 43, 61])
 def test_a_fault_during_the_first_visit_of_a_point_is_alarmed_during_that_visit(seed):
@@ -127,25 +148,26 @@ def test_a_fault_during_the_first_visit_of_a_point_is_alarmed_during_that_visit(
     # to settle before they learn (detection.settle_s): against the first estimates of B's visit (where B's load
     # is the larger, A's cell bounds them from below, and the bound serves until they hold three) -- during the
     # visit, not only once the bench is back at A -- and the changed resonance does not become B's baseline
-    (seed, plant, speeds), = _plants(True, 1, seed)
-    a, b = speeds
-    fault_at = 55.0 + 3.0 + 14.0
-    sc, rec = _run(seed, plant, [OperatingPoint(a, 55.0), OperatingPoint(b, 55.0), OperatingPoint(a, 30.0)],
-                   (Fault(fault_at, stiffness_factor=0.85),))
-    settings = ev.settings_for(ev.RunSpec("x", seed, sc))
-    settings = dataclasses.replace(settings, detection=dataclasses.replace(settings.detection, settle_s=25.0))
-    pipe = run_bench_data(rec.to_data("tour"), settings, run_label="tour")
-    assert pipe.baseline.nonlinear
-    drift = [x for x in pipe.alerts if x.kind == AlertKind.FREQ_DRIFT]
-    assert drift, [e.message for e in list(pipe.events)[-10:]]
-    t = drift[0].t_s - pipe.t_first
-    assert fault_at < t < 113.0 and abs(drift[0].speed_rpm - b) < 50.0, (t, drift[0].message)
+    a, b, pipe, drift = _fault_in_first_visit(seed, AlertKind.FREQ_DRIFT, stiffness_factor=0.85)
     assert "lower" in drift[0].message
     (a_load,) = [abs(c.load_nm) for c in pipe.baseline.bands if c.band[0] <= a < c.band[1]]
     b_load = abs(float(re.search(r"cell \d+ rpm, (-?\d+) Nm", drift[0].message).group(1)))
     # a bound from below where B's load is the larger, which the visit's first estimates (within it) tighten
     assert "first estimates of this visit" in drift[0].message or (
         b_load > a_load - 1.0 and "bounds of the learned cells" in drift[0].message), (a_load, drift[0].message)
+    cells = [c for c in pipe.baseline.bands if c.band[0] <= b < c.band[1]]
+    assert all(c.kind != "learned" for c in cells), cells
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed,factor", [(24, 0.5), (43, 1.5), (61, 0.5)])
+def test_a_damping_change_during_the_first_visit_of_a_point_is_alarmed_during_that_visit(seed, factor):
+    # as above, a +-50 % damping change 14 s into B: the learned cells' damping is other points' (it moves 3-57 %
+    # between points with backlash), so B's damping is compared with the first estimates of B's visit, and the
+    # changed damping does not become B's baseline
+    a, b, pipe, drift = _fault_in_first_visit(seed, AlertKind.DAMPING_DRIFT, damping_factor=factor)
+    assert ("lower" if factor < 1.0 else "higher") in drift[0].message
+    assert "first estimates of this visit" in drift[0].message, drift[0].message
     cells = [c for c in pipe.baseline.bands if c.band[0] <= b < c.band[1]]
     assert all(c.kind != "learned" for c in cells), cells
 

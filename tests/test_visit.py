@@ -1,9 +1,9 @@
 """The first estimates of a visit (online_id.monitoring.visit): what a point no learned cell bounds is compared with.
 
 * nothing serves before ``min_count`` estimates; then the mean of the estimates, their spread floored and widened
-  for a few correlated estimates, the damping not compared;
+  for a few correlated estimates, the damping alike;
 * a step during the visit is never absorbed: estimates beyond the dead band plus three spreads do not join, and the
-  detector alarms the step against the reference (random truths, steps and seeds);
+  detector alarms the step against the reference (random truths, steps and seeds), of the frequency or the damping;
 * an estimate of another visit or another load does not belong to it.
 """
 
@@ -37,7 +37,8 @@ def test_the_reference_serves_from_min_count_with_a_widened_floored_spread(seed)
     assert s.mean_f == pytest.approx(f0, rel=1e-4)
     # nearly equal estimates: the floor, widened by sqrt(10 / 3)
     assert s.std_f == pytest.approx(0.002 * s.mean_f * math.sqrt(10 / 3), rel=1e-3)
-    assert math.isinf(s.std_zeta) and "since t = 0.0 s" in s.source
+    assert s.mean_zeta == pytest.approx(0.05) and s.std_zeta == pytest.approx(0.03 * 0.05 * math.sqrt(10 / 3))
+    assert "since t = 0.0 s" in s.source
 
 
 @pytest.mark.parametrize("seed", range(6))
@@ -69,11 +70,34 @@ def test_healthy_estimates_join_until_size_and_raise_nothing(seed):
     det = ChangeDetector()
     for k in range(120):
         f = f0 * (1.0 + 0.002 * rng.standard_normal())
-        ref.add(float(k), f, 0.05, -10.0, 0.005)
+        z = 0.05 * (1.0 + 0.04 * rng.standard_normal())
+        ref.add(float(k), f, z, -10.0, 0.005, min_change_zeta=0.2)
         for j in range(10):
-            assert det.update(t_s=k + 0.1 * j, speed_rpm=2000.0, f0_hz=f, zeta=0.05 * (1 + 0.5 * (k > 60)),
-                              f0_std_hz=0.02, zeta_std=0.002, baseline=ref.stats(), suppressed=False) is None
-    assert ref.stats().count == 10  # the damping (+50 % from 60 s) is not compared
+            assert det.update(t_s=k + 0.1 * j, speed_rpm=2000.0, f0_hz=f, zeta=z, f0_std_hz=0.02, zeta_std=0.003,
+                              baseline=ref.stats(), suppressed=False) is None
+    assert ref.stats().count == 10
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_a_damping_step_during_the_visit_is_not_absorbed_and_is_alarmed(seed):
+    rng = np.random.default_rng([seed, 18])
+    f0, z0 = float(rng.uniform(15.0, 40.0)), float(rng.uniform(0.03, 0.08))
+    step = float(rng.choice([-1.0, 1.0]) * rng.uniform(0.4, 0.6))
+    ref = VisitReference(2, -10.0, (1875.0, 2125.0), min_count=3, size=10)
+    for k in range(4):
+        assert ref.add(float(k), f0, z0 * (1.0 + 0.03 * rng.standard_normal()), -10.0, 0.005, min_change_zeta=0.2)
+    before = ref.stats()
+    det = ChangeDetector()
+    alarm = None
+    for k in range(40):
+        t = 4.0 + k
+        z = z0 * (1.0 + step) * (1.0 + 0.03 * rng.standard_normal())
+        assert not ref.add(t, f0, z, -10.0, 0.005, min_change_zeta=0.2)
+        for j in range(10):
+            alarm = alarm or det.update(t_s=t + 0.1 * j, speed_rpm=2000.0, f0_hz=f0, zeta=z, f0_std_hz=0.02,
+                                        zeta_std=0.05 * z, baseline=ref.stats(), suppressed=False)
+    assert ref.stats() == before and ref.refused == 40
+    assert alarm is not None and alarm.kind == "damping" and alarm.change_pct * step > 0, alarm
 
 
 def test_another_visit_or_load_does_not_belong_to_it():

@@ -37,7 +37,7 @@ class BandStats:
         :meth:`~online_id.monitoring.baseline.Baseline.cell`) or ``"held"`` (a cell that disagreed with the
         baseline of another operating point, not a reference until
         :meth:`~online_id.monitoring.baseline.Baseline.release`) or ``"visit"`` (on a shaft with backlash, where no
-        learned cell bounds a point from below: the first estimates of the visit, the frequency only,
+        learned cell bounds a point from below: the first estimates of the visit,
         :mod:`~online_id.monitoring.visit`).
     source
         The run(s) the statistics were learned from ("" if unknown).
@@ -61,6 +61,9 @@ class BandStats:
         (:meth:`~online_id.monitoring.baseline.Baseline.disagrees`).
     cells
         Of a pooled baseline: how many cells it pools (1 for a cell).
+    zeta_visit
+        Of a ``"bracketed"`` baseline: its damping is that of the first estimates of the visit (this point's own,
+        where the learned cells' damping is other points'; ``Pipeline._with_visit``), not the pooled cells'.
     above_f, below_f
         Of a ``"bracketed"`` baseline (:meth:`~online_id.monitoring.baseline.Baseline.bracketed`): how far
         above and below ``mean_f`` the frequency may lie before it deviates [Hz] (``inf``: no bound on that
@@ -84,6 +87,7 @@ class BandStats:
     cells: int = 1
     above_f: float = 0.0
     below_f: float = 0.0
+    zeta_visit: bool = False
 
     @property
     def bounds_f(self) -> tuple[float, float]:
@@ -118,7 +122,7 @@ class BandStats:
                 "source": self.source, "f0_uncertainty_hz": fin(self.uncertainty_f),
                 "spread_ratio": fin(self.spread_ratio), "zeta_uncertainty": fin(self.uncertainty_zeta),
                 "zeta_pool_tolerance": fin(self.tolerance_zeta), "zeta_between_cells": fin(self.between_zeta),
-                "f0_above_hz": fin(self.above_f), "f0_below_hz": fin(self.below_f)}
+                "f0_above_hz": fin(self.above_f), "f0_below_hz": fin(self.below_f), "zeta_of_visit": self.zeta_visit}
 
 
 class Cell:

@@ -14,10 +14,16 @@ estimates under-state it), as a cell's provisional reference; a later estimate j
 ``size`` have joined, they serve. Against the running statistics of all it holds, a change that the 10 s fit window
 takes in bit by bit would creep in, each estimate within the tolerance of those before it.
 
-It compares the frequency only: the damping of a mismatched model moves by 30-40 % between nearly equal minima of the
-fit, which a visit's few estimates cannot tell from a change. The caller keeps the window solution of the last
-estimate that joined (:attr:`solution`), so that a deviation is confirmed against the minimum the reference sat in
-(see ``Pipeline._confirm``).
+It compares the damping too, with the same frozen first estimates (spread floored at ``min_rel_std_zeta`` of the mean
+and widened alike); a later estimate joins only when its damping agrees as well (half the damping dead band plus three
+unwidened spreads, the learning check's). The damping of a mismatched model moves by 30-40 % between nearly equal
+minima of the fit, which a visit's few estimates cannot tell from a change; the alarm's checks do (see
+``Pipeline._confirm``): the second look refits the window from the minimum the reference sat in (:attr:`solution`),
+and the recheck refits the data of the reference's first estimates (:attr:`window`, a
+:class:`~online_id.estimation.reference.ReferenceWindow` the caller keeps) from the current solution, which gives the
+current estimate again where only the minimum moved. Without them (a damping change on a shaft with backlash at a
+point no cell had learned, plant 13700 of ``online-id evaluate``'s family (a): -42 % at 2001 rpm, 9 s into the visit)
+the change went into the point's cell and was never seen.
 """
 
 from __future__ import annotations
@@ -43,12 +49,12 @@ class VisitReference:
         Estimates the reference needs before it serves (and before an estimate must agree to join).
     size
         Estimates it holds at most.
-    min_rel_std_f
-        Floor of the frequency spread, relative to the mean.
+    min_rel_std_f, min_rel_std_zeta
+        Floors of the frequency and damping spreads, relative to the means.
     """
 
     def __init__(self, visit: int, load_nm: float, band: tuple[float, float], *, min_count: int = 3, size: int = 10,
-                 min_rel_std_f: float = 0.002) -> None:
+                 min_rel_std_f: float = 0.002, min_rel_std_zeta: float = 0.03) -> None:
         if not (2 <= min_count <= size):
             raise ValueError(f"VisitReference: expected 2 <= min_count <= size, got {min_count} and {size}")
         self.visit = visit
@@ -57,11 +63,13 @@ class VisitReference:
         self.min_count = min_count
         self.size = size
         self.min_rel_std_f = min_rel_std_f
+        self.min_rel_std_zeta = min_rel_std_zeta
         self.t_first: float | None = None
         self.f: list[float] = []
         self.z: list[float] = []
         self.loads: list[float] = []
         self.solution: Any = None
+        self.window: Any = None  # the caller's window of the first estimates (their data, for a recheck)
         self.refused = 0  # estimates that disagreed and did not join
 
     def matches(self, visit: int, load_nm: float, load_band_nm: float) -> bool:
@@ -73,12 +81,15 @@ class VisitReference:
         return sum(self.loads) / len(self.loads) if self.loads else self.load_nm
 
     def add(self, t_s: float, f0_hz: float, zeta: float, load_nm: float, min_change_f: float,
-            solution: Any = None) -> bool:
-        """Offer one estimate; True if it joined (see module notes)."""
+            solution: Any = None, min_change_zeta: float = math.inf) -> bool:
+        """Offer one estimate; True if it joined (see module notes). ``min_change_zeta``: the damping's dead band
+        (relative; half of it, plus three unwidened spreads, is what a joining estimate's damping must agree
+        within)."""
         if len(self.f) >= self.size or not all(math.isfinite(x) for x in (f0_hz, zeta, load_nm)):
             return False
         stats = self.stats()
-        if stats is not None and stats.outside_f(f0_hz, min_change_f, 3.0):
+        if stats is not None and (stats.outside_f(f0_hz, min_change_f, 3.0) or abs(zeta - stats.mean_zeta)
+                                  > 0.5 * min_change_zeta * stats.mean_zeta + 3.0 * stats.std_zeta / stats.widen):
             self.refused += 1
             return False
         if self.t_first is None:
@@ -93,8 +104,7 @@ class VisitReference:
     def stats(self) -> BandStats | None:
         """What an estimate of the visit is compared with (kind ``"visit"``), or None with fewer than
         ``min_count`` estimates: the first ``min_count`` estimates until it holds ``size`` (frozen, so that a
-        change the fit window takes in bit by bit cannot creep into it), then all ``size``. The damping's spread
-        is infinite: it is not compared."""
+        change the fit window takes in bit by bit cannot creep into it), then all ``size``; the damping alike."""
         n = len(self.f)
         if n < self.min_count:
             return None
@@ -103,7 +113,11 @@ class VisitReference:
         f = self.f[:n]
         mean = sum(f) / n
         std = math.sqrt(sum((x - mean) ** 2 for x in f) / (n - 1))
+        z = self.z[:n]
+        mean_z = sum(z) / n
+        std_z = math.sqrt(sum((x - mean_z) ** 2 for x in z) / (n - 1))
         widen = math.sqrt(self.size / n)
         std = max(std, self.min_rel_std_f * abs(mean)) * widen
-        return BandStats(mean, std, sum(self.z[:n]) / n, math.inf, n, self.band, self.mean_load, "visit",
+        std_z = max(std_z, self.min_rel_std_zeta * abs(mean_z)) * widen
+        return BandStats(mean, std, mean_z, std_z, n, self.band, self.mean_load, "visit",
                          f"this visit since t = {self.t_first:.1f} s", widen=widen)
