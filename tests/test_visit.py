@@ -4,9 +4,12 @@
   for a few correlated estimates, the damping alike;
 * a step during the visit is never absorbed: estimates beyond the dead band plus three spreads do not join, and the
   detector alarms the step against the reference (random truths, steps and seeds), of the frequency or the damping;
-* an estimate of another visit or another load does not belong to it.
+* an estimate of another visit or another load does not belong to it;
+* next to the bounds the learned cells set on a shaft with backlash, it serves the damping wherever fewer than three
+  learned cells measure it, and the frequency where the bounds are one-sided or none.
 """
 
+import dataclasses
 import math
 
 import numpy as np
@@ -133,3 +136,43 @@ def test_the_band_of_a_speed_is_the_baselines():
 
     base = Baseline(band_rpm=250.0)
     assert base.band_of(2004.0) == (1875.0, 2125.0) and base.band_of(2125.0) == (2125.0, 2375.0)
+
+
+def _bracket(rng, lo, hi, std_zeta):
+    from online_id.monitoring.cells import BandStats
+
+    mean = lo if math.isfinite(lo) else hi
+    return BandStats(mean, 0.002 * mean, float(rng.uniform(0.03, 0.08)), std_zeta, 20, (1875.0, 2125.0), -10.0,
+                     "bracketed", "run 1", above_f=hi - mean if math.isfinite(hi) else math.inf,
+                     below_f=mean - lo if math.isfinite(lo) else math.inf)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_what_the_visit_serves_next_to_the_bounds_the_learned_cells_set(seed):
+    # on a shaft with backlash: the visit's damping wherever the learned cells do not measure it (fewer than three:
+    # an infinite spread), their damping where they do; the visit's frequency where one side or none is bounded,
+    # the bounds where both are
+    from online_id.config import Settings
+    from online_id.pipeline import Pipeline
+
+    rng = np.random.default_rng([seed, 19])
+    pipe = Pipeline(Settings())
+    pipe.baseline.backlash = {"gain": 0.1}
+    f0, z0 = float(rng.uniform(18.0, 30.0)), float(rng.uniform(0.03, 0.08))
+    pipe._visit_ref = ref = VisitReference(pipe._visit, -10.0, (1875.0, 2125.0))
+    for k in range(3):
+        ref.add(float(k), f0 * (1 + 0.001 * k), z0 * (1 + 0.01 * k), -10.0, 0.005, min_change_zeta=0.2)
+    visit = ref.stats()
+    two = _bracket(rng, 0.99 * f0, 1.01 * f0, math.inf)
+    got = pipe._with_visit(two, -10.0)
+    assert got.kind == "bracketed" and got.bounds_f == two.bounds_f and got.zeta_visit
+    assert (got.mean_zeta, got.std_zeta) == (visit.mean_zeta, visit.std_zeta)
+    measured = _bracket(rng, 0.99 * f0, 1.01 * f0, 0.004)
+    assert pipe._with_visit(measured, -10.0) == measured
+    one = _bracket(rng, 0.99 * f0, math.inf, math.inf)
+    assert pipe._with_visit(one, -10.0) == visit and pipe._with_visit(None, -10.0) == visit
+    got = pipe._with_visit(dataclasses.replace(one, std_zeta=0.004), -10.0)
+    assert got.kind == "visit" and got.mean_f == visit.mean_f and got.std_zeta == 0.004 and not got.zeta_visit
+    assert pipe._with_visit(two, -14.0) == two  # another load: another operating point, not this visit
+    pipe.baseline.backlash = None
+    assert pipe._with_visit(two, -10.0) == two  # a linear shaft: the pool and the learned cells serve
