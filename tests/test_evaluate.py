@@ -74,6 +74,21 @@ def test_summary_counts_false_alarms_and_delays():
     assert damp["by_plant"]["no backlash"]["warning_delay_s_median"] == 30.0 and "backlash" not in row["by_plant"]
 
 
+def test_families_a_and_b_are_summarised_together_per_plant_type_as_well():
+    def rr(family, seed, effects, delay):
+        return ev.RunResult("damping +50 %", seed, 150.0, 25.0, 0.05, effects, t_fault_s=80.0,
+                            warning_delay_s=delay, family=family)
+
+    results = [rr("a", 1, ["backlash"], 70.0), rr("a", 2, ["backlash"], None), rr("a", 3, [], 20.0),
+               rr("b", 4, ["backlash"], 25.0), rr("b", 5, ["backlash"], 30.0), rr("b", 6, [], 12.0)]
+    rows = {r["family"]: r for r in ev.summarize(results)["faults"] if r["case"] == "damping +50 %"}
+    assert set(rows) == {"a", "b", "a+b"}
+    both = rows["a+b"]["by_plant"]["backlash"]
+    assert (both["runs"], both["detected"], both["warning_delay_s_median"]) == (4, 3, 30.0)
+    assert rows["a"]["by_plant"]["backlash"]["warning_delay_s_median"] == 70.0
+    assert "a+b" not in {r["family"] for r in ev.summarize(results[:3])["faults"]}  # family (a) alone
+
+
 def test_friction_drift_changes_the_load_like_warming_oil():
     base = dataclasses.replace(BenchScenario(), operating_points=(OperatingPoint(1500.0, 90.0),), seed=2)
     cold = simulate_bench(dataclasses.replace(base, friction=Friction(b0=8.0, b1=0.1)))

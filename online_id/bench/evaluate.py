@@ -412,8 +412,11 @@ def summarize(results: list[RunResult]) -> dict[str, Any]:
         for kind in ("long", "short") if (rs := [r for r in free if r.family == kind])}
     groups = [(fam, label) for fam in FAMILIES
               for label, *_ in (FAULT_CASES if fam == "c" else FAMILY_CASES)]
+    if {"a", "b"} <= {r.family for r in results}:
+        # families (a) and (b) together: the damping target counts the runs on each plant type
+        groups += [("a+b", label) for label, *_ in FAMILY_CASES]
     for fam, label in groups:
-        rs = [r for r in results if r.case == label and r.family == fam]
+        rs = [r for r in results if r.case == label and r.family in fam.split("+")]
         if not rs:
             continue
         fault = [r.fault_delay_s for r in rs if r.fault_delay_s is not None]
