@@ -163,7 +163,7 @@ def run_live(args: argparse.Namespace) -> int:
         err = f"{100 * (est - truth[key]) / truth[key]:+7.2f}%" if est is not None else "-"
         print(f"  {name:14} {truth[key]:10.4g} {est if est is not None else float('nan'):10.4g} {err:>8}")
     if slowed[0]:
-        print(f"\nThe bench was sent at real time for about {slowed[0] * 0.1:.0f} s of its {truth['duration_s']:.0f} s, "
+        print(f"\nThe bench was sent at real time for about {slowed[0] * 0.1:.1f} s of its {truth['duration_s']:.0f} s, "
               f"while the service's refits ran behind the stream (this machine gave them less than "
               f"{args.speed:g}x the CPU a bench needs)")
     print(f"\nFiles: {out_dir}/service-result.json, bench.truth.json")
