@@ -673,14 +673,21 @@ class Pipeline:
         visit = ref.stats()
         if visit is None or stats is None:
             return visit or stats
-        one_sided = not math.isfinite(stats.above_f + stats.below_f)
-        if math.isfinite(stats.std_zeta):  # the learned cells measure how far the damping moves between points
-            return dataclasses.replace(visit, mean_zeta=stats.mean_zeta, std_zeta=stats.std_zeta,
-                                       tolerance_zeta=stats.tolerance_zeta,
-                                       between_zeta=stats.between_zeta) if one_sided else stats
-        return visit if one_sided else dataclasses.replace(
+        measured = math.isfinite(stats.std_zeta)  # the learned cells measure how far the damping moves between points
+        if not math.isfinite(stats.above_f + stats.below_f):  # bounded on one side only: the visit's frequency
+            return visit if not measured else dataclasses.replace(
+                visit, mean_zeta=stats.mean_zeta, std_zeta=stats.std_zeta, tolerance_zeta=stats.tolerance_zeta,
+                between_zeta=stats.between_zeta, zeta_visit=False)
+        return stats if measured else dataclasses.replace(
             stats, mean_zeta=visit.mean_zeta, std_zeta=visit.std_zeta, tolerance_zeta=0.0, between_zeta=math.nan,
             widen=visit.widen, zeta_visit=True)
+
+    @staticmethod
+    def _of_visit(stats: BandStats, kind: str) -> bool:
+        """Whether an alarm of ``kind`` against ``stats`` is checked against the visit's first estimates (their
+        solution and window): of the visit's own baseline (kind ``"visit"``), or of a bracket's damping that is
+        the visit's (:attr:`BandStats.zeta_visit`)."""
+        return stats.kind == "visit" or (kind == DAMPING and stats.zeta_visit)
 
     def _own(self, stats: BandStats, speed: float, load: float) -> bool:
         """Whether ``stats`` is the baseline of the cell of ``speed`` and ``load`` itself (not the pool's or
@@ -731,9 +738,9 @@ class Pipeline:
             return est
         # where nothing else bounds the point, an estimate that disagrees with the visit's first ones is held
         ref = self._with_visit(self._baseline_for(speed, load, learning=True), load)
-        # the damping with half its dead band (see Baseline.disagrees): a change on its way in must not be learned
-        why = (self.baseline.disagrees(ref, est.f0_hz, est.zeta, self.detector.min_change_f,
-                                       0.5 * self.detector.min_change_zeta) if ref is not None else None)
+        # the damping with half its dead band (see BandStats.disagrees): a change on its way in must not be learned
+        why = (ref.disagrees(est.f0_hz, est.zeta, self.detector.min_change_f, 0.5 * self.detector.min_change_zeta)
+               if ref is not None else None)
         own = ref is not None and self._own(ref, speed, load)
         n = self.baseline.release() if why is None and own else 0  # held cells: the driveline did not change
         if n:
@@ -800,7 +807,7 @@ class Pipeline:
         (see :class:`~online_id.monitoring.detection.ChangeDetector`, *confirm*).
         None while the refit runs in the worker.
         """
-        if (stats.kind == "visit" or (kind == DAMPING and stats.zeta_visit)) and self._visit_ref is not None:
+        if self._of_visit(stats, kind) and self._visit_ref is not None:
             ref = self._visit_ref.solution  # the minimum the visit's first estimates sat in
         else:
             key = self.baseline.key(0.5 * (stats.band[0] + stats.band[1]))
@@ -845,7 +852,7 @@ class Pipeline:
         """The window of the first estimates of the cell of ``stats``, where ``stats`` is a cell's own baseline
         (learned, learning or from a reference run), or of this visit's (kind ``"visit"``, or the damping of a
         bracket that holds the visit's, :attr:`BandStats.zeta_visit`)."""
-        if stats.kind == "visit" or (kind == DAMPING and stats.zeta_visit):
+        if self._of_visit(stats, kind):
             ref = self._visit_ref
             return ref.window if ref is not None and ref.visit == self._visit else None
         if stats.kind not in ("learned", "learning", "reference"):
@@ -868,7 +875,8 @@ class Pipeline:
         """
         check = self._rechecks.get(kind)
         if check is None:
-            window, solution, est = self._reference_window(stats, kind), self.estimator.solution, self.estimator.estimate()
+            window, solution = self._reference_window(stats, kind), self.estimator.solution
+            est = self.estimator.estimate()
             if window is None or solution is None or est is None:
                 return True
             # the tolerance: the dead band plus one standard deviation of the difference of two single estimates
@@ -903,7 +911,7 @@ class Pipeline:
             return True
         window = check["window"]
         what = f"{r.zeta:.4f}" if damping else f"{r.f0_hz:.3f} Hz"
-        whose = ("of this visit's first estimates" if stats.kind == "visit" or (damping and stats.zeta_visit) else
+        whose = ("of this visit's first estimates" if self._of_visit(stats, kind) else
                  f"cell {window.speed_rpm:.0f} rpm, {window.load_nm:.1f} Nm was learned from")
         self.events.append(Event(
             t_s, "withheld", f"{kind} alarm withheld: the data {whose} ({when_text(window.t_s)}), refitted from "
@@ -1050,7 +1058,9 @@ def _against(stats: BandStats) -> str:
     from run 3", "the pooled baseline (...)", "the bounds of the learned cells of other loads (...)", "the first
     estimates of this visit since t = 67.0 s (22.28 Hz)"."""
     if stats.kind == "visit":
-        return f"the first estimates of {stats.source} ({stats.mean_f:.2f} Hz, zeta {stats.mean_zeta:.4f})"
+        return (f"the first estimates of {stats.source} ({stats.mean_f:.2f} Hz"
+                + (f", zeta {stats.mean_zeta:.4f})" if stats.zeta_visit else
+                   "), the damping against the learned cells of other loads"))
     what = (f"the pooled baseline ({stats.mean_f:.2f} Hz)" if stats.kind == "pooled" else
             f"the bounds of the learned cells of other loads ({_bounds(stats)})" if stats.kind == "bracketed" else
             f"the {stats.kind} baseline of {0.5 * (stats.band[0] + stats.band[1]):.0f} rpm"

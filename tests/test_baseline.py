@@ -180,9 +180,9 @@ def test_disagreeing_estimates_are_told_apart(seed, f0):
     _learn_cell(base, rng, 1500.0, f0, 0.05, 20)
     stats = base.lookup(2250.0)  # pooled
     # a 5 % stiffness loss (2.5 % in f0) disagrees; a healthy estimate and a small wobble do not
-    assert base.disagrees(stats, f0 * 0.975, 0.05, 0.005, 0.4) == "frequency"
-    assert base.disagrees(stats, f0 * 1.002, 0.05, 0.005, 0.4) is None
-    assert base.disagrees(stats, f0, 0.05 * 2.0, 0.005, 0.4) == "damping"
+    assert stats.disagrees(f0 * 0.975, 0.05, 0.005, 0.4) == "frequency"
+    assert stats.disagrees(f0 * 1.002, 0.05, 0.005, 0.4) is None
+    assert stats.disagrees(f0, 0.05 * 2.0, 0.005, 0.4) == "damping"
     base.reject(speed_rpm=2250.0, load_nm=0.0)  # no cell there yet: nothing to count, no error
 
 
@@ -216,7 +216,7 @@ def test_a_change_while_learning_cannot_creep_into_what_it_is_checked_with(seed,
     learned = rejected = 0
     for f in np.concatenate([healthy, creep]):
         ref = base.cell(1500.0, 0.0, frozen=True)
-        if ref is not None and ref.count >= base.freeze_count and base.disagrees(ref, f, 0.05, 0.005, 0.4):
+        if ref is not None and ref.count >= base.freeze_count and ref.disagrees(f, 0.05, 0.005, 0.4):
             base.reject(speed_rpm=1500.0)
             rejected += 1
             continue
@@ -230,7 +230,7 @@ def test_a_change_while_learning_cannot_creep_into_what_it_is_checked_with(seed,
     run = Baseline(min_count=20)
     for f in np.concatenate([healthy, creep]):
         ref = run.cell(1500.0, 0.0)
-        if ref is not None and ref.count >= 10 and run.disagrees(ref, f, 0.05, 0.005, 0.4):
+        if ref is not None and ref.count >= 10 and ref.disagrees(f, 0.05, 0.005, 0.4):
             continue
         run.learn(speed_rpm=1500.0, f0_hz=f, zeta=0.05)
     assert run.lookup(1500.0) is not None  # learned, fault included
@@ -280,15 +280,15 @@ def test_cells_still_learning_join_the_pool_once_a_cell_is_learned(seed, f0, shi
         base.learn(speed_rpm=1000.0, f0_hz=fk, zeta=0.044, load_nm=-8.0)
     alone = base.lookup(2750.0, -14.0)
     healthy = f0 * (1 + shift)
-    assert alone.kind == "pooled" and base.disagrees(alone, healthy, 0.044, 0.005, 0.2) == "frequency"
+    assert alone.kind == "pooled" and alone.disagrees(healthy, 0.044, 0.005, 0.2) == "frequency"
     for fk in f0 * (1 + shift * 0.85 + 0.001 * rng.standard_normal(9)):
         base.learn(speed_rpm=2250.0, f0_hz=fk, zeta=0.044, load_nm=-13.0)
     pool = base.lookup(2750.0, -14.0)
     assert pool.kind == "pooled" and pool.count == 20 + base.provisional_count  # the learning cell: its first 3
-    assert base.disagrees(pool, healthy, 0.044, 0.005, 0.2) is None
+    assert pool.disagrees(healthy, 0.044, 0.005, 0.2) is None
     # a stiffness loss of 15 % (-7.8 % in f0) still disagrees with the pool (the spread of the pool, widened by
     # the 3 % between the points, keeps smaller ones for the detector's statistic, not the learning check)
-    assert base.disagrees(pool, 0.922 * healthy, 0.044, 0.005, 0.2) == "frequency"
+    assert pool.disagrees(0.922 * healthy, 0.044, 0.005, 0.2) == "frequency"
     # nothing learned: no pool from learning cells alone (the caller's provisional path)
     fresh = Baseline(min_count=20)
     for fk in f0 * (1 + 0.001 * rng.standard_normal(9)):
@@ -327,15 +327,15 @@ def test_a_damping_change_of_half_is_never_learned_into_a_new_cell(seed, zeta, s
     assert pooled.std_zeta == pytest.approx(np.hypot(within, unc * zeta), rel=1e-9)
     # the learning check (20 % dead band + 3 spreads, without the tolerance) refuses +-50 %, learns the healthy
     for factor in (1.5, 0.5):
-        assert base.disagrees(pooled, 25.0, zeta * factor, 0.005, 0.20) == "damping"
+        assert pooled.disagrees(25.0, zeta * factor, 0.005, 0.20) == "damping"
     for factor in (0.9, 1.0, 1.1):
-        assert base.disagrees(pooled, 25.0, zeta * factor, 0.005, 0.20) is None
+        assert pooled.disagrees(25.0, zeta * factor, 0.005, 0.20) is None
     # the same against a cell that is learning (its own first ten estimates, frozen)
     _learn_damping(base, rng, 2500.0, zeta, spread, unc, n=10)
     own = base.cell(2500.0, frozen=True)
     assert own.kind == "learning" and own.tolerance_zeta == 0.0
-    assert base.disagrees(own, 25.0, zeta * 1.5, 0.005, 0.20) == "damping"
-    assert base.disagrees(own, 25.0, zeta * 0.5, 0.005, 0.20) == "damping"
+    assert own.disagrees(25.0, zeta * 1.5, 0.005, 0.20) == "damping"
+    assert own.disagrees(25.0, zeta * 0.5, 0.005, 0.20) == "damping"
 
 
 def test_a_state_saved_before_the_damping_uncertainty_was_kept_still_refuses_half():
@@ -348,8 +348,8 @@ def test_a_state_saved_before_the_damping_uncertainty_was_kept_still_refuses_hal
     base = Baseline.from_dict(json.loads(json.dumps(base.to_dict())))
     pooled = base.lookup(2500.0)
     assert pooled.tolerance_zeta == pytest.approx(0.10 * pooled.mean_zeta, rel=1e-9)
-    assert base.disagrees(pooled, 25.0, 0.0368 * 1.5, 0.005, 0.20) == "damping"
-    assert base.disagrees(pooled, 25.0, 0.0368 * 1.05, 0.005, 0.20) is None
+    assert pooled.disagrees(25.0, 0.0368 * 1.5, 0.005, 0.20) == "damping"
+    assert pooled.disagrees(25.0, 0.0368 * 1.05, 0.005, 0.20) is None
 
 
 @pytest.mark.parametrize("seed, step", [(16, 0.0), (17, 0.08), (18, -0.15)])

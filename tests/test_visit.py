@@ -153,7 +153,7 @@ def test_what_the_visit_serves_next_to_the_bounds_the_learned_cells_set(seed):
     # an infinite spread), their damping where they do; the visit's frequency where one side or none is bounded,
     # the bounds where both are
     from online_id.config import Settings
-    from online_id.pipeline import Pipeline
+    from online_id.pipeline import Pipeline, _against
 
     rng = np.random.default_rng([seed, 19])
     pipe = Pipeline(Settings())
@@ -173,6 +173,9 @@ def test_what_the_visit_serves_next_to_the_bounds_the_learned_cells_set(seed):
     assert pipe._with_visit(one, -10.0) == visit and pipe._with_visit(None, -10.0) == visit
     got = pipe._with_visit(dataclasses.replace(one, std_zeta=0.004), -10.0)
     assert got.kind == "visit" and got.mean_f == visit.mean_f and got.std_zeta == 0.004 and not got.zeta_visit
+    # what an alert names: the damping of the learned cells there, the visit's own where it is the visit's
+    assert "damping against the learned cells" in _against(got) and "zeta" not in _against(got)
+    assert f"zeta {visit.mean_zeta:.4f}" in _against(visit) and "learned cells" not in _against(visit)
     assert pipe._with_visit(two, -14.0) == two  # another load: another operating point, not this visit
     pipe.baseline.backlash = None
     assert pipe._with_visit(two, -10.0) == two  # a linear shaft: the pool and the learned cells serve

@@ -51,7 +51,7 @@ once a band has been learned over several correlation times; feed
 served at once by the learned cells pooled, with a spread widened for the
 unknown dependence on speed and load; where the learned cells disagree, a
 least-squares fit against speed (and load) gives its mean. The caller keeps
-a change out of the baseline with :meth:`Baseline.disagrees`: an estimate
+a change out of the baseline with :meth:`~online_id.monitoring.cells.BandStats.disagrees`: an estimate
 that deviates from what serves its cell beyond the dead band plus three
 spreads is not learned (:meth:`Baseline.reject` counts it). A cell still
 learning is checked against its own first ``freeze_count`` estimates, frozen
@@ -354,7 +354,7 @@ class Baseline:
         (``pool_tolerance_zeta`` :math:`\\cdot \\bar\\zeta` only for cells
         saved before it was kept):
         :math:`s_{p,\\zeta}^2 = \\overline{s_{i,\\zeta}^2} + s_{b,\\zeta}^2 + t_\\zeta^2`.
-        The learning check leaves :math:`t_\\zeta` out (:meth:`disagrees`).
+        The learning check leaves :math:`t_\\zeta` out (:meth:`BandStats.disagrees`).
         ``min_n``: pool the cells with at least this many estimates (default
         ``min_count``: the learned ones). ``measured``: the frequency's
         between-cell spread is kept whether or not the cells agree, as the
@@ -499,29 +499,6 @@ class Baseline:
         """``"learned"``, ``"reference"``, ``"pooled"`` or ``"unknown"``: what serves an estimate there."""
         stats = self.lookup(speed_rpm, load_nm)
         return "unknown" if stats is None else stats.kind
-
-    def disagrees(self, stats: BandStats, f0_hz: float, zeta: float, min_change_f: float, min_change_zeta: float,
-                  n_sigma: float = 3.0) -> str | None:
-        """Which of frequency and damping deviates from ``stats`` beyond the tolerance (None: neither).
-
-        The tolerance of a quantity is its dead band plus ``n_sigma`` spreads:
-        :math:`|f_0 - \\bar f| > \\delta_f \\bar f + n_\\sigma s_f`. For the damping
-        the spread leaves out a pooled baseline's tolerance
-        (``stats.tolerance_zeta``): :math:`s_\\zeta^2 - t_\\zeta^2`, the spread
-        of single estimates within and between the learned cells, so a change
-        of the damping (the detector's dead band plus three of those spreads)
-        is never learned into a new cell; and a provisional reference's
-        damping spread without its widening (``stats.widen``): the caller
-        checks learning against half the damping dead band, so that a change
-        the fit window is still taking in (+25 % on the way to +50 %) is not
-        learned into the cell's first estimates either.
-        """
-        if stats.outside_f(f0_hz, min_change_f, n_sigma):
-            return "frequency"
-        std_z = math.sqrt(max((stats.std_zeta / stats.widen) ** 2 - stats.tolerance_zeta ** 2, 0.0))
-        if abs(zeta - stats.mean_zeta) > min_change_zeta * stats.mean_zeta + n_sigma * std_z:
-            return "damping"
-        return None
 
     @property
     def learned_range_rpm(self) -> tuple[float, float] | None:

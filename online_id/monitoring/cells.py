@@ -51,19 +51,20 @@ class BandStats:
     tolerance_zeta
         The part of ``std_zeta`` that widens a pooled baseline for the
         unknown dependence of the damping on the operating point (0 for a
-        cell); the learning check leaves it out (:meth:`~online_id.monitoring.baseline.Baseline.disagrees`).
+        cell); the learning check leaves it out (:meth:`BandStats.disagrees`).
     between_zeta
         Of a pooled baseline: the spread of the damping between the pooled
         cells (:meth:`~online_id.monitoring.baseline.Baseline.pooled`), nan for a cell or a single one.
     widen
         The factor a provisional reference's spreads were widened by (1
         otherwise); the damping's learning check leaves it out
-        (:meth:`~online_id.monitoring.baseline.Baseline.disagrees`).
+        (:meth:`BandStats.disagrees`).
     cells
         Of a pooled baseline: how many cells it pools (1 for a cell).
     zeta_visit
-        Of a ``"bracketed"`` baseline: its damping is that of the first estimates of the visit (this point's own,
-        where the learned cells' damping is other points'; ``Pipeline._with_visit``), not the pooled cells'.
+        Its damping is that of the first estimates of the visit (this point's own, where the learned cells'
+        damping is other points'; ``Pipeline._with_visit``): of a ``"visit"`` baseline unless the learned cells
+        measure the damping between points, and of a ``"bracketed"`` one where they do not.
     above_f, below_f
         Of a ``"bracketed"`` baseline (:meth:`~online_id.monitoring.baseline.Baseline.bracketed`): how far
         above and below ``mean_f`` the frequency may lie before it deviates [Hz] (``inf``: no bound on that
@@ -104,6 +105,29 @@ class BandStats:
         """Whether ``f0_hz`` lies beyond :attr:`bounds_f` by more than the dead band ``min_change_f`` (relative to
         ``mean_f``) plus ``n_sigma`` spreads (False for nan)."""
         return abs(self.excess_f(f0_hz)) > min_change_f * self.mean_f + n_sigma * self.std_f
+
+    def disagrees(self, f0_hz: float, zeta: float, min_change_f: float, min_change_zeta: float,
+                  n_sigma: float = 3.0) -> str | None:
+        """Which of frequency and damping deviates from these statistics beyond the tolerance (None: neither).
+
+        The tolerance of a quantity is its dead band plus ``n_sigma`` spreads:
+        :math:`|f_0 - \\bar f| > \\delta_f \\bar f + n_\\sigma s_f`. For the damping
+        the spread leaves out a pooled baseline's tolerance
+        (:attr:`tolerance_zeta`): :math:`s_\\zeta^2 - t_\\zeta^2`, the spread
+        of single estimates within and between the learned cells, so a change
+        of the damping (the detector's dead band plus three of those spreads)
+        is never learned into a new cell; and a provisional reference's
+        damping spread without its widening (:attr:`widen`): the caller
+        checks learning against half the damping dead band, so that a change
+        the fit window is still taking in (+25 % on the way to +50 %) is not
+        learned into the cell's first estimates either.
+        """
+        if self.outside_f(f0_hz, min_change_f, n_sigma):
+            return "frequency"
+        std_z = math.sqrt(max((self.std_zeta / self.widen) ** 2 - self.tolerance_zeta ** 2, 0.0))
+        if abs(zeta - self.mean_zeta) > min_change_zeta * self.mean_zeta + n_sigma * std_z:
+            return "damping"
+        return None
 
     @property
     def spread_ratio(self) -> float:

@@ -10,7 +10,7 @@ change that comes with the visit still shows at the learned points).
 The reference never absorbs a change. Its first ``min_count`` estimates are frozen at once and serve, their spread
 floored at ``min_rel_std_f`` of the mean and widened by :math:`\\sqrt{N_\\text{size} / N}` (a few strongly correlated
 estimates under-state it), as a cell's provisional reference; a later estimate joins only when it agrees with them
-(the detector's dead band plus three spreads, as :meth:`~online_id.monitoring.baseline.Baseline.disagrees`), and once
+(the detector's dead band plus three spreads, as :meth:`~online_id.monitoring.cells.BandStats.disagrees`), and once
 ``size`` have joined, they serve. Against the running statistics of all it holds, a change that the 10 s fit window
 takes in bit by bit would creep in, each estimate within the tolerance of those before it.
 
@@ -88,8 +88,7 @@ class VisitReference:
         if len(self.f) >= self.size or not all(math.isfinite(x) for x in (f0_hz, zeta, load_nm)):
             return False
         stats = self.stats()
-        if stats is not None and (stats.outside_f(f0_hz, min_change_f, 3.0) or abs(zeta - stats.mean_zeta)
-                                  > 0.5 * min_change_zeta * stats.mean_zeta + 3.0 * stats.std_zeta / stats.widen):
+        if stats is not None and stats.disagrees(f0_hz, zeta, min_change_f, 0.5 * min_change_zeta):
             self.refused += 1
             return False
         if self.t_first is None:
@@ -120,4 +119,4 @@ class VisitReference:
         std = max(std, self.min_rel_std_f * abs(mean)) * widen
         std_z = max(std_z, self.min_rel_std_zeta * abs(mean_z)) * widen
         return BandStats(mean, std, mean_z, std_z, n, self.band, self.mean_load, "visit",
-                         f"this visit since t = {self.t_first:.1f} s", widen=widen)
+                         f"this visit since t = {self.t_first:.1f} s", widen=widen, zeta_visit=True)
