@@ -71,6 +71,27 @@ def test_follows_a_stiffness_step_within_one_window(factor):
     assert before and all(abs(f / truth["f0_hz"] - 1) < 0.005 for f in before)
 
 
+@pytest.mark.parametrize("J2, c_s, d_s, rpm, seed", PLANTS)
+@pytest.mark.parametrize("factor", [0.85, 0.9])
+def test_after_a_step_in_a_long_steady_stretch_the_fit_drops_the_older_system(J2, c_s, d_s, rpm, seed, factor):
+    """A stiffness step of 10-15 % 40 s into a steady stretch: once the estimate moves by more than 0.5 % between
+    refits or is no longer valid (the window holds two systems), the refit takes the newest min_window_s (5 s);
+    where that is valid, the older samples are cut. A valid estimate within 1 % of the new resonance within 7 s
+    of the step (5-6 s on these plants; 8-10 s while the 10 s window had to pass the step), none beyond either
+    resonance before, and all within 1 % of the new one from 12 s on."""
+    t_step = 40.0
+    sc = dataclasses.replace(BenchScenario(), J2=J2, c_s=c_s, d_s=d_s, seed=seed,
+                             operating_points=(OperatingPoint(rpm, 70.0),),
+                             faults=(Fault(t_step, stiffness_factor=factor),))
+    truth, out = _run(sc, _estimator(), every_s=0.5)
+    f_old, f_new = truth["f0_hz"], truth["f0_hz"] * np.sqrt(factor)
+    valid = [(t, f) for t, f, _z, v, _w in out if v and t > t_step]
+    new = [t for t, f in valid if abs(f / f_new - 1) < 0.01]
+    assert new and new[0] - t_step <= 7.0, [(t, round(f, 3), v, why) for t, f, _z, v, why in out if t > t_step][:24]
+    assert all(f_new * 0.99 < f < f_old * 1.01 for _t, f in valid)  # between the two, never beyond
+    assert all(abs(f / f_new - 1) < 0.01 for t, f in valid if t > t_step + 12.0)
+
+
 def test_speed_ramp_is_not_fitted_and_excitation_off_is_not_fitted():
     sc = dataclasses.replace(BenchScenario(), seed=3, ramp_s=15.0,
                              operating_points=(OperatingPoint(1200.0, 25.0), OperatingPoint(2400.0, 20.0)))
@@ -136,6 +157,37 @@ def test_after_a_speed_step_the_fit_takes_the_steady_samples_less_the_guard_and_
     grown = [n for _dk, n in after[first:]]
     assert grown == sorted(grown) and grown[-1] == 2000  # grows by a refit's samples up to the window
     assert "speed not steady" in w.reason or w.current
+
+
+@pytest.mark.parametrize("seed", [6, 7, 8])
+def test_a_fit_of_the_newest_seconds_cuts_the_window_where_valid_and_is_undone_where_not(seed):
+    rng = np.random.default_rng(seed)
+    w = SlidingPem(ORDERS, 0.002, window_s=4.0, refit_s=0.5, min_excitation_nm=0.1, min_window_s=1.0, auto=False)
+    y, u = _arx(rng, 8000)
+    k = 0
+
+    def step(newest=False):  # push to the next refit and fit it
+        nonlocal k
+        while not w.push(y[k], u[k], 150.0):
+            k += 1
+        k += 1
+        job = w.prepare(newest=newest)
+        assert job is not None and w.complete(job, solve(job))
+        return job
+
+    while k < 2500:
+        assert len(step().y) <= 2000
+    long = step()
+    assert len(long.y) == 2000 and not long.newest and not w.settle_newest(True)  # not a fit of the newest seconds
+    long_theta = w.fit.theta.copy()
+    probe = step(newest=True)
+    assert probe.newest and len(probe.y) == 500 and probe.first == k - 500 and w.fit_newest
+    assert w.settle_newest(False) and not w.fit_newest  # not valid: the long fit is current again
+    assert np.array_equal(w.fit.theta, long_theta) and w.fit_first == long.first
+    probe = step(newest=True)
+    assert not w.settle_newest(True)  # valid: the samples before it are cut
+    grown = [len(step().y) for _ in range(8)]
+    assert grown[0] == 500 + 250 and grown == sorted(grown) and grown[-1] == 2000  # grows again from the cut
 
 
 def test_the_dc_blockers_transient_is_taken_out_of_the_fit():

@@ -27,7 +27,14 @@ Per input sample (dyno speed :math:`y`, dyno torque :math:`u`, engine speed
    less the DC blocker's decaying transient), growing to ``window_s``; a cold
    refit also starts from the last solution whose estimate was valid, and
    every other refit is cold while the estimate is not valid or its
-   resonance has just moved by more than ``MOVED_REL`` (0.5 %).
+   resonance has just moved by more than ``MOVED_REL`` (0.5 %). Where a
+   valid estimate of a full window moved so, the next refit takes only the
+   newest ``min_window_s``, and so does every other refit after one stopped
+   being valid, until it is valid again (in a steady stretch longer than the
+   window); where the estimate of such a fit is valid the window forgets the
+   samples before it (a change of the driveline: the window held two
+   systems), else the fit before it serves on (see
+   :mod:`~online_id.estimation.window`).
 
 :meth:`OnlineDriveline.estimate` (called at the publish rate, not per
 sample) takes the poles of :math:`A` of the latest refit (of the recursive
@@ -175,6 +182,9 @@ class OnlineDriveline:
         self._valid = False
         self._good: np.ndarray | None = None  # the window solution of the last valid estimate
         self._last_cold = False
+        self._valid_then = False  # the estimate was valid when the previous refit was prepared
+        self._fell = False  # a valid estimate stopped being valid in a long steady stretch (see refit_job)
+        self._last_newest = False  # the last refit took the newest seconds only
         self._pick_then: float | None = None  # the resonance picked when the previous refit was prepared
         self._poles_key: tuple | None = None
         self._memo: dict = {}  # per window fit: pole -> residue, std (see _cached)
@@ -230,10 +240,17 @@ class OnlineDriveline:
         jumped = (self._pick is not None and self._pick_then is not None
                   and abs(self._pick - self._pick_then) > MOVED_REL * self._pick_then)
         self._pick_then = self._pick
-        cold = self.window.current and (not self._valid or jumped) and not self._last_cold
-        job = self.window.prepare(starts=(self._good,), cold=cold)
+        w = self.window
+        # a change of the driveline in a steady stretch longer than the window (not the settling after a change of
+        # operating point): the newest seconds, where the estimate moved, and every other refit while not valid
+        long = w.current and w.steady_s >= w.window_s
+        self._fell = long and not self._valid and (self._fell or self._valid_then)
+        self._valid_then = self._valid
+        cold = w.current and (not self._valid or jumped) and not self._last_cold
+        newest = long and ((self._valid and jumped) or (self._fell and not self._last_newest))
+        job = w.prepare(starts=(self._good,), cold=cold, newest=newest)
         if job is not None:
-            self._last_cold = job.mode == "cold"
+            self._last_cold, self._last_newest = job.mode == "cold", job.newest
         return job
 
     def _refit_here(self) -> None:
@@ -320,6 +337,18 @@ class OnlineDriveline:
 
     def estimate(self) -> OnlineEstimate:
         """The current driveline estimate (see module notes)."""
+        if not self.window.fit_newest:
+            return self._estimate()
+        # a fit of the newest seconds: where its estimate is valid the window forgets the older samples, else the
+        # fit before it serves again, as if it had not run (see SlidingPem.settle_newest)
+        pick, valid, good = self._pick, self._valid, self._good
+        est = self._estimate()
+        if self.window.settle_newest(est.valid):
+            self._pick, self._valid, self._good = pick, valid, good
+            est = self._estimate()
+        return est
+
+    def _estimate(self) -> OnlineEstimate:
         a, b, _c, cov_a, V, source = self.polynomials()
         poles = self._poles_for(a, source)
         cands = self._candidates(poles)

@@ -54,6 +54,23 @@ is poorly determined, or follow a step of the stiffness only slowly; the
 cold fit keeps the lowest loss of all its starts, the warm one's among
 them).
 
+**After a change of the driveline.** A step of the stiffness in the middle
+of a steady stretch reaches the 10 s window bit by bit: its fits hold two
+systems and move from the one to the other over the window's length (the
+estimate was within 1 % of a 10-15 % loss only 8-10 s after the step on
+the simulated benches, and where the mixture is not valid, with backlash,
+not at all before the next change of operating point). The caller may
+therefore ask for a fit of the newest ``min_window_s`` of a longer segment
+(``prepare(newest=True)``; the streaming estimator does so when the valid
+estimate of a full window moved by more than 0.5 % since the refit before,
+and every other refit after one stopped being valid, in a steady stretch
+longer than the window), and judges it (:meth:`SlidingPem.settle_newest`):
+where its estimate is valid, the older samples are cut and the segment grows
+again from the cut as after a change of operating point (within 1 % of the
+new resonance 5-6 s after the step); where it is not, the fit before it is
+current again, as if the probe had not run (a shaft with backlash, whose
+shorter fits are less often valid, keeps its estimates).
+
 Refits fall due at fixed sample counts. With ``auto`` they run inside
 :meth:`SlidingPem.push`. The pipeline instead splits a refit in three:
 :meth:`SlidingPem.prepare` checks the window and copies it into a
@@ -151,6 +168,8 @@ class RefitJob:
     warm_iterations: int = 40
     warm_tol: float = 1e-3
     prefer_last_within: float = 0.0  # verify: see fit_two_starts
+    first: int = -1  # stream count of the job's first sample
+    newest: bool = False  # only the newest ``min_window_s`` of a longer segment (see SlidingPem.prepare)
 
 
 def solve(job: RefitJob) -> ArmaxFit:
@@ -181,6 +200,7 @@ class SlidingPem:
         self.orders = orders
         self.dt = float(dt)
         self.n_window = max(int(round(window_s / dt)), 4 * orders.n_params)
+        self.window_s = self.n_window * self.dt
         # the shortest steady segment fitted after a change of operating point (default: the whole window)
         self.n_min = self.n_window if min_window_s is None else min(
             self.n_window, max(int(round(min_window_s / dt)), 4 * orders.n_params))
@@ -189,6 +209,7 @@ class SlidingPem:
         # d**k for k = 0 .. n_window - 1: the transient's regressor of a segment of any length (see _last)
         self._decay_k = None if dc_decay is None else float(dc_decay) ** np.arange(self.n_window)
         self._steady_since: int | None = None  # sample count at which the current steady stretch began
+        self._cut: int | None = None  # sample count before which the window holds another system (see cut)
         self.n_refit = max(1, int(round(refit_s / dt)))
         self.n_block = max(1, int(round(0.5 / dt)))
         self.max_span_rad_s = max_speed_span_rpm * np.pi / 30.0
@@ -203,6 +224,9 @@ class SlidingPem:
         self._start: np.ndarray | None = None  # an earlier solution (kept across a restart)
         self.fit_speed_rpm = float("nan")
         self.fit_load_nm = float("nan")  # mean raw torque of the fitted window (the load at the operating point)
+        self.fit_first = -1  # stream count of the first sample of the current fit
+        self.fit_newest = False  # the current fit took only the newest min_window_s of a longer segment
+        self._before: tuple | None = None  # the fit before a fit of the newest seconds (see settle_newest)
         self.current = False  # the last refit attempt succeeded on a steady, excited window
         self.reason = "window filling"
         self.auto = auto  # refit inside push(); otherwise the owner calls refit() when it suits (``due``)
@@ -246,6 +270,7 @@ class SlidingPem:
         self._since = 0
         self._pos = 0
         self._steady_since = None
+        self._cut = None
         self._generation += 1
         self.due = False
         self.current = False
@@ -291,6 +316,8 @@ class SlidingPem:
             self._steady_since = self._count - n_avail  # steady since the window began, or since the start
         span = float(np.ptp(means))
         usable = min(n_avail, self._count - self._steady_since - self.n_guard)
+        if self._cut is not None:
+            usable = min(usable, self._count - self._cut)
         return (usable if usable >= self.n_min else 0), span
 
     def _last(self, n_fit: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -304,12 +331,20 @@ class SlidingPem:
             y, u = (np.column_stack((y, u)) - X @ coef).T
         return y, u, n, load
 
-    def prepare(self, starts: tuple = (), cold: bool = False) -> RefitJob | None:
+    def cut(self, first: int) -> None:
+        """The samples before stream count ``first`` belong to another system: fit none of them again.
+
+        The segment then grows from ``first`` as it does after a change of operating point.
+        """
+        self._cut = first if self._cut is None else max(self._cut, first)
+
+    def prepare(self, starts: tuple = (), cold: bool = False, newest: bool = False) -> RefitJob | None:
         """The due refit as a job (None when none is due or the window is not steady and excited).
 
         ``starts``: further starts of a cold fit (e.g. the last solution whose estimate was valid: the
         driveline is the same at another operating point); ``cold``: a cold fit, from the current solution
-        among the others, even where a warm one would do (see the module notes).
+        among the others, even where a warm one would do (see the module notes); ``newest``: fit only the
+        newest ``min_window_s`` of a longer segment (the job says so; see :meth:`cut`).
         """
         if not self.due:
             return None
@@ -322,6 +357,9 @@ class SlidingPem:
                 self.current = False
                 self.reason = f"speed not steady ({span * 30 / np.pi:.0f} rpm in the window)"
             return None
+        newest = newest and n_fit > self.n_min
+        if newest:
+            n_fit = self.n_min
         y, u, n, load = self._last(n_fit)
         speed_rpm = float(np.mean(n)) * 30.0 / np.pi
         if float(np.std(u)) < self.min_excitation_nm:
@@ -335,7 +373,7 @@ class SlidingPem:
         else:
             mode, starts = "warm", (self._start,)
         return RefitJob(y, u, self.orders, mode, starts, float(np.mean(load)), speed_rpm, self._generation,
-                        self.warm_iterations, self.warm_tol)
+                        self.warm_iterations, self.warm_tol, first=self._count - n_fit, newest=newest)
 
     def prepare_verify(self, starts: tuple = (), prefer_last_within: float = 0.0) -> RefitJob | None:
         """A multi-start refit of the current segment as a job (None if there is none or the fit is not current).
@@ -356,7 +394,8 @@ class SlidingPem:
             return None
         y, u, n, load = self._last(n_fit)
         return RefitJob(y, u, self.orders, "verify", (self._start, *starts), float(np.mean(load)),
-                        float(np.mean(n)) * 30.0 / np.pi, self._generation, prefer_last_within=prefer_last_within)
+                        float(np.mean(n)) * 30.0 / np.pi, self._generation, prefer_last_within=prefer_last_within,
+                        first=self._count - n_fit)
 
     def complete(self, job: RefitJob, fit: ArmaxFit | None, error: str | None = None) -> bool:
         """Adopt the result of ``job`` (from :func:`solve`); returns True when a fit was adopted.
@@ -380,10 +419,29 @@ class SlidingPem:
             return False
         if job.mode == "cold":
             self.n_cold += 1
+        self._before = (self.fit, self._start, self.fit_load_nm, self.fit_speed_rpm, self.fit_first) \
+            if job.newest and self.fit is not None else None
         self._adopt(fit, job.load_nm)
+        self.fit_first, self.fit_newest = job.first, job.newest
         self.fit_speed_rpm = job.speed_rpm
         self.current = True
         self.reason = ""
+        return True
+
+    def settle_newest(self, valid: bool) -> bool:
+        """Judge the current fit of the newest seconds (``prepare(newest=True)``): where its estimate is ``valid``,
+        the samples before it are :meth:`cut`; else the fit before it is current again. True if it reverted."""
+        if not self.fit_newest:
+            return False
+        self.fit_newest = False
+        if valid:
+            self.cut(self.fit_first)
+            return False
+        if self._before is None:
+            return False
+        self.fit, self._start, self.fit_load_nm, self.fit_speed_rpm, self.fit_first = self._before
+        self._before = None
+        self.n_fits += 1  # another current fit: its poles are computed again
         return True
 
     def _run(self, job: RefitJob | None) -> bool:
