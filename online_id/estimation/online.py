@@ -27,14 +27,13 @@ Per input sample (dyno speed :math:`y`, dyno torque :math:`u`, engine speed
    less the DC blocker's decaying transient), growing to ``window_s``; a cold
    refit also starts from the last solution whose estimate was valid, and
    every other refit is cold while the estimate is not valid or its
-   resonance has just moved by more than ``MOVED_REL`` (0.5 %). Where a
-   valid estimate of a full window moved so, the next refit takes only the
-   newest ``min_window_s``, and so does every other refit after one stopped
-   being valid, until it is valid again (in a steady stretch longer than the
-   window); where the estimate of such a fit is valid the window forgets the
-   samples before it (a change of the driveline: the window held two
-   systems), else the fit before it serves on (see
-   :mod:`~online_id.estimation.window`).
+   resonance has just moved by more than ``MOVED_REL`` (0.5 %). In a steady
+   stretch longer than the window, where a valid estimate moved so, the next
+   refit takes only the newest ``min_window_s``, and so does every other
+   refit after one stopped being valid, until it is valid again; where the
+   estimate of such a fit is valid the window forgets the samples before it
+   (a change of the driveline: the window held two systems), else the fit
+   before it serves on (see :mod:`~online_id.estimation.window`).
 
 :meth:`OnlineDriveline.estimate` (called at the publish rate, not per
 sample) takes the poles of :math:`A` of the latest refit (of the recursive

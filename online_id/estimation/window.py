@@ -61,10 +61,10 @@ estimate was within 1 % of a 10-15 % loss only 8-10 s after the step on
 the simulated benches, and where the mixture is not valid, with backlash,
 not at all before the next change of operating point). The caller may
 therefore ask for a fit of the newest ``min_window_s`` of a longer segment
-(``prepare(newest=True)``; the streaming estimator does so when the valid
-estimate of a full window moved by more than 0.5 % since the refit before,
-and every other refit after one stopped being valid, in a steady stretch
-longer than the window), and judges it (:meth:`SlidingPem.settle_newest`):
+(``prepare(newest=True)``; the streaming estimator does so, in a steady
+stretch longer than the window, when the valid estimate moved by more than
+0.5 % since the refit before, and every other refit after one stopped being
+valid), and judges it (:meth:`SlidingPem.settle_newest`):
 where its estimate is valid, the older samples are cut and the segment grows
 again from the cut as after a change of operating point (within 1 % of the
 new resonance 5-6 s after the step); where it is not, the fit before it is
