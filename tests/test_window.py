@@ -184,7 +184,11 @@ def test_a_fit_of_the_newest_seconds_cuts_the_window_where_valid_and_is_undone_w
     assert probe.newest and len(probe.y) == 500 and probe.first == k - 500 and w.fit_newest
     assert w.settle_newest(False) and not w.fit_newest  # not valid: the long fit is current again
     assert np.array_equal(w.fit.theta, long_theta) and w.fit_first == long.first
-    probe = step(newest=True)
+    step(newest=True)
+    check = w.prepare_verify()  # a multi-start check of the segment, back before the probe is judged
+    assert check is not None and w.complete(check, solve(check))
+    assert not w.fit_newest and not w.settle_newest(False)  # it supersedes the probe: nothing to judge or undo
+    step(newest=True)
     assert not w.settle_newest(True)  # valid: the samples before it are cut
     grown = [len(step().y) for _ in range(8)]
     assert grown[0] == 500 + 250 and grown == sorted(grown) and grown[-1] == 2000  # grows again from the cut

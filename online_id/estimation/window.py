@@ -409,6 +409,9 @@ class SlidingPem:
         if job.mode == "verify":
             if failed is not None:
                 return False
+            # a multi-start fit of the whole segment supersedes a fit of the newest seconds not judged yet (with the
+            # process worker a check can start between a probe's return and the next estimate)
+            self.fit_newest, self._before = False, None
             self._adopt(fit, job.load_nm)
             self.n_cold += 1
             return True
