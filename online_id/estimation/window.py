@@ -168,7 +168,7 @@ class RefitJob:
     warm_iterations: int = 40
     warm_tol: float = 1e-3
     prefer_last_within: float = 0.0  # verify: see fit_two_starts
-    first: int = -1  # stream count of the job's first sample
+    first: int = -1  # refit: stream count of the job's first sample (where a probe of the newest seconds cuts)
     newest: bool = False  # only the newest ``min_window_s`` of a longer segment (see SlidingPem.prepare)
 
 
@@ -394,8 +394,7 @@ class SlidingPem:
             return None
         y, u, n, load = self._last(n_fit)
         return RefitJob(y, u, self.orders, "verify", (self._start, *starts), float(np.mean(load)),
-                        float(np.mean(n)) * 30.0 / np.pi, self._generation, prefer_last_within=prefer_last_within,
-                        first=self._count - n_fit)
+                        float(np.mean(n)) * 30.0 / np.pi, self._generation, prefer_last_within=prefer_last_within)
 
     def complete(self, job: RefitJob, fit: ArmaxFit | None, error: str | None = None) -> bool:
         """Adopt the result of ``job`` (from :func:`solve`); returns True when a fit was adopted.
