@@ -17,9 +17,14 @@ import subprocess
 import sys
 import threading
 import time
+import dataclasses
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
+from online_id.bench.scenario import BenchScenario, OperatingPoint
 from online_id.io.bus import CanBus
 from online_id.io.dbc import load_dbc
 from online_id.io.dbc_output import OutputEncoder
@@ -27,6 +32,20 @@ from online_id.io.dbc_output import OutputEncoder
 STOPPED = re.compile(r"stopped: (?P<frames_in>\d+) frames in, (?P<frames_out>\d+) frames out, (?P<samples>\d+) samples, "
                      r"(?P<bad>\d+) bad frames, (?P<missing>\d+) missing frames, (?P<dropped>\d+) dropped by the kernel, "
                      r"(?P<foreign>\d+) foreign frames")
+
+
+def live_plant(seed: int) -> BenchScenario:
+    """A bench drawn from a realistic range (resonance 15-35 Hz, damping ratio 0.04-0.12), two steady operating
+    points of 35 s."""
+    rng = np.random.default_rng(seed)
+    J1, J2 = rng.uniform(0.5, 1.2), rng.uniform(0.2, 0.45)
+    w0 = 2 * math.pi * rng.uniform(15.0, 35.0)
+    zeta = rng.uniform(0.04, 0.12)
+    jr = J1 * J2 / (J1 + J2)
+    points = (OperatingPoint(float(rng.uniform(1300, 1700)), 35.0),
+              OperatingPoint(float(rng.uniform(1900, 2300)), 35.0))
+    return dataclasses.replace(BenchScenario(), J1=J1, J2=J2, c_s=w0 ** 2 * jr, d_s=2 * zeta * w0 * jr,
+                               operating_points=points, seed=seed)
 
 
 def _send(group: str, frames: list, speed: float, marks: list[int], out, min_sleep_s: float = 0.001) -> None:

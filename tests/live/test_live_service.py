@@ -11,14 +11,10 @@ physical fits and state saves too.
 
 from __future__ import annotations
 
-import dataclasses
-import math
-
 import numpy as np
 import pytest
 
-from harness import run_live
-from online_id.bench.scenario import BenchScenario, OperatingPoint
+from harness import live_plant, run_live
 from online_id.bench.simulate import simulate_bench
 from online_id.io.dbc import encode_inputs, load_dbc
 
@@ -27,22 +23,9 @@ pytestmark = pytest.mark.live
 GROUP = "239.74.163.17"  # an administratively scoped IPv4 multicast group (TTL 1: this machine only)
 
 
-def _plant(seed: int) -> BenchScenario:
-    """A bench drawn from a realistic range (resonance 15-35 Hz), two steady operating points of 35 s."""
-    rng = np.random.default_rng(seed)
-    J1, J2 = rng.uniform(0.5, 1.2), rng.uniform(0.2, 0.45)
-    w0 = 2 * math.pi * rng.uniform(15.0, 35.0)
-    zeta = rng.uniform(0.04, 0.12)
-    jr = J1 * J2 / (J1 + J2)
-    points = (OperatingPoint(float(rng.uniform(1300, 1700)), 35.0),
-              OperatingPoint(float(rng.uniform(1900, 2300)), 35.0))
-    return dataclasses.replace(BenchScenario(), J1=J1, J2=J2, c_s=w0 ** 2 * jr, d_s=2 * zeta * w0 * jr,
-                               operating_points=points, seed=seed)
-
-
 def test_service_process_keeps_up_at_real_time_on_a_kernel_socket(tmp_path) -> None:
     seed = 11
-    record = simulate_bench(_plant(seed))
+    record = simulate_bench(live_plant(seed))
     truth = record.truth
     frames = encode_inputs(record.time_s, record.dyno_speed_rpm, record.engine_speed_rpm, record.dyno_torque_nm,
                            db=load_dbc(None))
