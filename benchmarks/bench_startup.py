@@ -76,13 +76,45 @@ def spin(n: int) -> list[subprocess.Popen]:
     return [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
 
 
+def summarise(rows: list[dict], loads: list[int]) -> dict:
+    """Per load: how many runs never published a valid estimate, and the median and worst of those that did."""
+    summary = {}
+    for load in loads:
+        rs = [r for r in rows if r["load"] == load]
+        live = np.array([r["live_s"] for r in rs], dtype=float)
+        added = np.array([r["added_s"] for r in rs], dtype=float)
+        ok = np.isfinite(live)
+        summary[str(load)] = {"runs": len(rs), "never_valid": int((~ok).sum()),
+                              "live_median_s": float(np.median(live[ok])) if ok.any() else None,
+                              "live_max_s": float(np.max(live[ok])) if ok.any() else None,
+                              "added_median_s": float(np.median(added[ok])) if ok.any() else None,
+                              "added_max_s": float(np.max(added[ok])) if ok.any() else None}
+    return summary
+
+
+def print_summary(summary: dict) -> None:
+    def f(x: float | None) -> str:
+        return "-" if x is None else f"{x:.1f}"
+    print("\n| busy processes | runs | never valid in the run | first valid, median / worst [s] | added by the load, "
+          "median / worst [s] |")
+    print("|---:|---:|---:|---:|---:|")
+    for load, s in summary.items():
+        print(f"| {load} | {s['runs']} | {s['never_valid']} | {f(s['live_median_s'])} / {f(s['live_max_s'])} | "
+              f"{f(s['added_median_s'])} / {f(s['added_max_s'])} |")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--plants", type=int, default=3)
     ap.add_argument("--loads", type=lambda s: [int(x) for x in s.split(",")], default=[0, 1, 2])
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--out", default="bench-startup-out")
+    ap.add_argument("--from-results", metavar="JSON", help="print the summary of an earlier run's bench-startup.json")
     args = ap.parse_args()
+    if args.from_results:
+        rows = json.loads(Path(args.from_results).read_text())["rows"]
+        print_summary(summarise(rows, sorted({r["load"] for r in rows})))
+        return 0
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -120,24 +152,15 @@ def main() -> int:
                        "lost": None if not n else n["dropped"] + n["missing"] + (len(frames) - (n["frames_in"] - n["foreign"])),
                        "returncode": run.returncode}
                 rows.append(row)
-                print(f"  plant {seed} ({truth['f0_hz']:.1f} Hz), {load} busy process(es): first valid "
-                      f"{t_live:.1f} s after the bench started (in-process {t_inproc:.1f} s of stream; "
-                      f"+{row['added_s']:.1f} s), frames lost {row['lost']}, f0 error {row['f0_error_pct']:+.2f} %",
+                when = (f"first valid {t_live:.1f} s after the bench started (+{row['added_s']:.1f} s)" if valid
+                        else f"never valid in the {record.time_s[-1] - record.time_s[0]:.0f} s run")
+                print(f"  plant {seed} ({truth['f0_hz']:.1f} Hz), {load} busy process(es): {when} (in-process "
+                      f"{t_inproc:.1f} s of stream), frames lost {row['lost']}, f0 error {row['f0_error_pct']:+.2f} %",
                       flush=True)
     result["machine"]["load_avg_end"] = os.getloadavg()
-    summary = {}
-    for load in args.loads:
-        live = np.array([r["live_s"] for r in rows if r["load"] == load])
-        added = np.array([r["added_s"] for r in rows if r["load"] == load])
-        summary[str(load)] = {"live_median_s": float(np.nanmedian(live)), "live_max_s": float(np.nanmax(live)),
-                              "added_median_s": float(np.nanmedian(added)), "added_max_s": float(np.nanmax(added))}
-    result["summary"] = summary
+    result["summary"] = summarise(rows, args.loads)
     (out_dir / "bench-startup.json").write_text(json.dumps(result, indent=2))
-    print("\n| busy processes | first valid, median / worst [s] | added by the load, median / worst [s] |")
-    print("|---:|---:|---:|")
-    for load, s in summary.items():
-        print(f"| {load} | {s['live_median_s']:.1f} / {s['live_max_s']:.1f} | "
-              f"{s['added_median_s']:.1f} / {s['added_max_s']:.1f} |")
+    print_summary(result["summary"])
     try:
         import matplotlib
         matplotlib.use("Agg")
