@@ -55,11 +55,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests" / "live"))
 
-from harness import run_live  # noqa: E402
+from harness import live_config, live_settings, run_live  # noqa: E402
 
 from online_id.bench.scenario import BenchScenario, OperatingPoint  # noqa: E402
 from online_id.bench.simulate import simulate_bench  # noqa: E402
-from online_id.config import InertiaSettings, ModelSettings, Settings  # noqa: E402
 from online_id.io.dbc import encode_inputs, load_dbc  # noqa: E402
 from online_id.offload import InlineWorker  # noqa: E402
 from online_id.runtime import Runtime  # noqa: E402
@@ -79,18 +78,9 @@ def _bench(seconds: float, seed: int = 3):
     return record, frames
 
 
-def _config(truth: dict, state_dir: Path, input_hz: float = 1000.0) -> str:
-    return (f"inertias: {{J1: {truth['J1']!r}}}\n"
-            f"input: {{sample_rate_hz: {input_hz!r}}}\n"
-            f"model: {{pulses_per_rev: {truth['pulses_per_rev']!r}}}\n"
-            f"state: {{directory: '{state_dir}', save_interval_s: 5}}\n")
-
-
 def _triggers(frames: list, truth: dict) -> list[int]:
     """Indices of the frames whose processing publishes an OidEstimate (in-process, same code)."""
-    settings = Settings(inertias=InertiaSettings(J1=truth["J1"]),
-                        model=dataclasses.replace(ModelSettings(), pulses_per_rev=truth["pulses_per_rev"]))
-    rt = Runtime(settings, worker=InlineWorker())
+    rt = Runtime(live_settings(truth), worker=InlineWorker())
     est_id = int(load_dbc(None).get_message_by_name("OidEstimate").frame_id)
     return [i for i, (t, ident, data) in enumerate(frames)
             if any(fid == est_id for fid, _d in rt.on_frame(t, ident, data))]
@@ -111,7 +101,7 @@ def latency(args, work: Path) -> dict:
     # Send times are kept for all candidates; m is the largest shift with (nearly) every latency positive:
     # a larger one would have the service answer frames not yet sent.
     cand = sorted({i + 3 * m for i in marks for m in range(PHASE_MAX + 1) if i + 3 * m < len(frames)})
-    run = run_live(frames, _config(record.truth, work / "state-lat"), work / "lat", GROUP, speed=1.0, marks=cand,
+    run = run_live(frames, live_config(record.truth, work / "state-lat"), work / "lat", GROUP, speed=1.0, marks=cand,
                    cpu=args.cpu, rt_priority=args.rt, min_sleep_s=args.pace_ms / 1e3)
     got = run.estimates
     out = {"frames": len(frames), "estimates_expected": len(marks), "estimates_received": len(got),
@@ -159,7 +149,7 @@ def rates(args, work: Path) -> list[dict]:
         t0 = time.perf_counter()
         # frames are stamped on arrival, so at ``speed`` x real time the bench's samples come at speed x 1 kHz:
         # the service is told so, and every frame goes into a sample, as on a bench sampled that fast
-        run = run_live(frames, _config(record.truth, work / f"state-{speed:g}", 1000.0 * speed),
+        run = run_live(frames, live_config(record.truth, work / f"state-{speed:g}", 1000.0 * speed),
                        work / f"rate-{speed:g}", GROUP, speed=speed, cpu=args.cpu,
                        rt_priority=args.rt)
         n = run.counts

@@ -30,7 +30,6 @@ prints a table. Timing is noisy on a shared machine: say what else ran.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import platform
@@ -45,10 +44,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests" / "live"))
 
-from harness import live_plant, run_live  # noqa: E402
+from harness import live_config, live_plant, live_settings, run_live  # noqa: E402
 
 from online_id.bench.simulate import simulate_bench  # noqa: E402
-from online_id.config import InertiaSettings, ModelSettings, Settings  # noqa: E402
 from online_id.io.dbc import encode_inputs, load_dbc  # noqa: E402
 from online_id.io.dbc_output import OutputEncoder  # noqa: E402
 from online_id.offload import InlineWorker  # noqa: E402
@@ -59,12 +57,10 @@ GROUP = "239.74.163.53"
 
 def in_process_first_valid(frames: list, truth: dict) -> float:
     """Stream seconds from the first frame to the first valid OidEstimate, in-process (nan: none)."""
-    settings = Settings(inertias=InertiaSettings(J1=truth["J1"]),
-                        model=dataclasses.replace(ModelSettings(), pulses_per_rev=truth["pulses_per_rev"]))
     db = load_dbc(None)
     est_id = int(db.get_message_by_name("OidEstimate").frame_id)
     decode = OutputEncoder(db).decode
-    rt = Runtime(settings, worker=InlineWorker())
+    rt = Runtime(live_settings(truth), worker=InlineWorker())
     for t, ident, data in frames:
         for fid, out in rt.on_frame(t, ident, data):
             if fid == est_id and decode(fid, out).get("Valid"):
@@ -131,9 +127,7 @@ def main() -> int:
             t_inproc = in_process_first_valid(frames, truth)
             for load in args.loads:
                 run_dir = work / f"{seed}-{load}"
-                config = (f"inertias: {{J1: {truth['J1']!r}}}\n"
-                          f"model: {{pulses_per_rev: {truth['pulses_per_rev']!r}}}\n"
-                          f"state: {{directory: '{run_dir / 'state'}', save_interval_s: 5}}\n")
+                config = live_config(truth, run_dir / "state")
                 spinners = spin(load)
                 try:
                     time.sleep(1.0)

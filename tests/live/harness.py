@@ -9,6 +9,8 @@ behind (and reports them the same way, see :meth:`online_id.io.bus.CanBus.droppe
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import multiprocessing as mp
 import os
 import re
@@ -17,14 +19,13 @@ import subprocess
 import sys
 import threading
 import time
-import dataclasses
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from online_id.bench.scenario import BenchScenario, OperatingPoint
+from online_id.config import InertiaSettings, ModelSettings, Settings
 from online_id.io.bus import CanBus
 from online_id.io.dbc import load_dbc
 from online_id.io.dbc_output import OutputEncoder
@@ -46,6 +47,22 @@ def live_plant(seed: int) -> BenchScenario:
               OperatingPoint(float(rng.uniform(1900, 2300)), 35.0))
     return dataclasses.replace(BenchScenario(), J1=J1, J2=J2, c_s=w0 ** 2 * jr, d_s=2 * zeta * w0 * jr,
                                operating_points=points, seed=seed)
+
+
+def live_config(truth: dict, state_dir: Path, input_hz: float | None = None) -> str:
+    """The service's configuration for a simulated bench of ``truth`` (its ``bus`` is added by :func:`run_live`):
+    the engine inertia and pulses per revolution, the state saved into ``state_dir`` every 5 s, and the input's
+    sample rate where ``input_hz`` is given (the default 1 kHz otherwise)."""
+    rate = "" if input_hz is None else f"input: {{sample_rate_hz: {input_hz!r}}}\n"
+    return (f"inertias: {{J1: {truth['J1']!r}}}\n" + rate
+            + f"model: {{pulses_per_rev: {truth['pulses_per_rev']!r}}}\n"
+            f"state: {{directory: '{state_dir}', save_interval_s: 5}}\n")
+
+
+def live_settings(truth: dict) -> Settings:
+    """The in-process settings that :func:`live_config` gives the service (for a run of the same frames)."""
+    return Settings(inertias=InertiaSettings(J1=truth["J1"]),
+                    model=dataclasses.replace(ModelSettings(), pulses_per_rev=truth["pulses_per_rev"]))
 
 
 def _send(group: str, frames: list, speed: float, marks: list[int], out, min_sleep_s: float = 0.001) -> None:

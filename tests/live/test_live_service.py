@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from harness import live_plant, run_live
+from harness import live_config, live_plant, run_live
 from online_id.bench.simulate import simulate_bench
 from online_id.io.dbc import encode_inputs, load_dbc
 
@@ -29,10 +29,7 @@ def test_service_process_keeps_up_at_real_time_on_a_kernel_socket(tmp_path) -> N
     truth = record.truth
     frames = encode_inputs(record.time_s, record.dyno_speed_rpm, record.engine_speed_rpm, record.dyno_torque_nm,
                            db=load_dbc(None))
-    config = (f"inertias: {{J1: {truth['J1']!r}}}\n"
-              f"model: {{pulses_per_rev: {truth['pulses_per_rev']!r}}}\n"
-              f"state: {{directory: '{tmp_path / 'state'}', save_interval_s: 5}}\n")
-    run = run_live(frames, config, tmp_path, GROUP)
+    run = run_live(frames, live_config(truth, tmp_path / "state"), tmp_path, GROUP)
     assert run.returncode == 0 and run.counts, run.text
     assert run.sent == len(frames)
     n = run.counts
