@@ -65,11 +65,14 @@ therefore ask for a fit of the newest ``min_window_s`` of a longer segment
 stretch longer than the window, when the valid estimate moved by more than
 0.5 % since the refit before, and every other refit after one stopped being
 valid), and judges it (:meth:`SlidingPem.settle_newest`):
-where its estimate is valid, the older samples are cut and the segment grows
+where its estimate is valid (and, after a valid estimate of the long
+window, differs from it by more than both their uncertainties allow:
+``online.NEWEST_SIGMAS``), the older samples are cut and the segment grows
 again from the cut as after a change of operating point (within 1 % of the
 new resonance 5-6 s after the step); where it is not, the fit before it is
 current again, as if the probe had not run (a shaft with backlash, whose
-shorter fits are less often valid, keeps its estimates).
+shorter fits are less often valid, or whose fits hop between nearby minima,
+keeps its estimates).
 
 Refits fall due at fixed sample counts. With ``auto`` they run inside
 :meth:`SlidingPem.push`. The pipeline instead splits a refit in three:
@@ -430,13 +433,14 @@ class SlidingPem:
         self.reason = ""
         return True
 
-    def settle_newest(self, valid: bool) -> bool:
-        """Judge the current fit of the newest seconds (``prepare(newest=True)``): where its estimate is ``valid``,
-        the samples before it are :meth:`cut`; else the fit before it is current again. True if it reverted."""
+    def settle_newest(self, cut: bool) -> bool:
+        """Judge the current fit of the newest seconds (``prepare(newest=True)``): with ``cut`` (the caller found
+        its estimate valid and different) the samples before it are :meth:`cut`; else the fit before it is current
+        again. True if it reverted."""
         if not self.fit_newest:
             return False
         self.fit_newest = False
-        if valid:
+        if cut:
             self.cut(self.fit_first)
             return False
         if self._before is None:
