@@ -38,6 +38,30 @@ once through :meth:`SampleAssembler.take_time_jump`, so that the consumer
 re-anchors its own schedules (publication, learning); the first sample after
 it has ``discontinuity = True``.
 
+De-jittering.  A frame's timestamp is when the receiving PC took it, not
+when the bench sent it: a PC busy with other work stamps frames late by
+milliseconds (the kernel's receive work waits for a CPU; a USB adapter
+delivers 1 ms batches), by a different amount for each frame.  On a 1 kHz
+grid a frame late by more than half a period is taken one sample late: a
+time jitter on the speeds that spoils the fit (measured: the frames the
+live service received on a loaded machine, replayed, never gave a valid
+estimate; stamped on the bench's clock they did at 10.1 s).  A fast role's
+frames carry an alive counter: its steps count the sender's periods
+between frames (lost frames included), so frame :math:`k` was sent at
+:math:`k\\,\\Delta t` on the sender's clock plus an offset, and its arrival
+is that plus a delay that is never negative.  The frame is stamped
+:math:`k\\,\\Delta t + \\min_j (a_j - j\\,\\Delta t)`, the least such
+difference over the role's last :data:`DEJITTER_WINDOW_S` (a running
+minimum: a late frame moves nothing, a sender's clock that runs fast or
+slow against :math:`\\Delta t` is followed within the window).  A frame
+far behind that (more than half the timeout: the sender paused with its
+counter running, or its clock jumped), a counter the time cannot explain,
+a role without a counter or a slow role is stamped on arrival, as before.
+Once every such role has a full window, the grid is moved once onto the
+phase of their frames (at most half a period; not where it is within a
+tenth of one), since late first frames set it.  Stamps on the bench's
+clock (a simulation, a clean log) are left as they are.
+
 Alive counters: a step of more than one is a ``COUNTER_JUMP``, counted once.
 The frames it says were lost are added to ``missing_frames`` only as far as
 the time since the role's previous frame allows; a counter that the time
@@ -53,6 +77,10 @@ from collections import deque
 from dataclasses import dataclass, field
 
 from online_id.records import ROLES, FrameFault, SignalSample
+
+DEJITTER_WINDOW_S = 1.0
+"""A fast role's frame is stamped at its send time: its sequence number (by the alive counter) times the period,
+plus the least lateness over this many seconds of the role's frames (see module notes, *de-jittering*)."""
 
 JUMP_CONFIRM = 2 * len(ROLES)
 """Frames in a row that must agree before a jump of the clock is believed."""
@@ -114,8 +142,16 @@ class SampleAssembler:
         self._last_counter: dict[str, int | None] = {r: None for r in ROLES}
         self._last_counter_t: dict[str, float] = {r: -math.inf for r in ROLES}
         self._resync: dict[str, int | None] = {r: None for r in ROLES}
+        # de-jittering (see module notes): the send time of each fast role's last frame, and the send periods since
+        # the role's previous frame by its alive counter (None: unknown)
+        self._step: int | None = None
+        self._seq: dict[str, int] = {r: 0 for r in ROLES}
+        self._minq: dict[str, deque[tuple[int, float]]] = {r: deque() for r in ROLES}
+        self._window_n = max(1, int(round(DEJITTER_WINDOW_S * sample_rate_hz)))
+        self.max_lag_s = 0.5 * timeout_s
         self._t0: float | None = None
         self._k = 0
+        self._phased = False  # the grid was moved onto the send clocks' phase (see _phase_grid)
         self._newest = -float("inf")  # the stream clock: newest accepted timestamp, or a poll shortly after it
         self._clock: float | None = None  # newest accepted frame timestamp
         self._ahead: list[SignalSample] = []  # frames beyond max_jump_s, held until confirmed
@@ -132,6 +168,7 @@ class SampleAssembler:
         return self._timed_out
 
     def _check_counter(self, s: SignalSample) -> bool:
+        self._step = None
         if s.counter is None:
             return True
         role = s.role
@@ -157,12 +194,35 @@ class SampleAssembler:
                     self._last_counter[role] = (last + 1) % self.counter_modulo
                     self._last_counter_t[role] = s.t_s
                     return False
+                step = 0  # the sender restarted its counter: the periods since its last frame are unknown
             else:
                 self.counters.count(FrameFault.COUNTER_JUMP)
                 self.counters.missing_frames += step - 1
         self._resync[role] = None
         self._last_counter[role], self._last_counter_t[role] = s.counter, s.t_s
+        self._step = step or None
         return True
+
+    def _send_time(self, role: str, t_s: float) -> float:
+        """The send time of a fast role's frame that arrived at ``t_s`` (see module notes, *de-jittering*)."""
+        step, q = self._step, self._minq[role]
+        if step is None or role in self.slow_roles:
+            q.clear()
+            return t_s
+        k = self._seq[role] = self._seq[role] + step if q else 0
+        offset = t_s - k * self.dt  # arrival less the sender's clock, up to a constant
+        while q and q[-1][1] >= offset:  # the running minimum over the last DEJITTER_WINDOW_S (monotonic queue)
+            q.pop()
+        q.append((k, offset))
+        while q[0][0] <= k - self._window_n:
+            q.popleft()
+        t = k * self.dt + q[0][1]
+        if t_s - t > self.max_lag_s:  # far behind: the sender paused or its clock jumped; start again here
+            q.clear()
+            q.append((0, t_s))
+            self._seq[role] = 0
+            return t_s
+        return t
 
     def _lost_by_time(self, role: str, t_s: float) -> float | None:
         """Most frames that can have been lost since the role's last counted frame (None: unknown rate)."""
@@ -234,13 +294,14 @@ class SampleAssembler:
             return []
         if not self._check_counter(s):
             return []
-        hist.append((s.t_s, s.value))
+        t = self._send_time(s.role, s.t_s)
+        hist.append((t, s.value))
         if self._start is None:
-            self._start = s.t_s
-        if self._clock is None or s.t_s > self._clock:
-            self._clock = s.t_s
-        if s.t_s > self._newest:
-            self._newest = s.t_s
+            self._start = t
+        if self._clock is None or t > self._clock:
+            self._clock = t
+        if t > self._newest:
+            self._newest = t
         return self._drain()
 
     def poll(self, now_s: float) -> list[AssembledSample]:
@@ -262,6 +323,7 @@ class SampleAssembler:
         for r in ROLES:
             self._last_counter[r] = None
             self._resync[r] = None
+            self._minq[r].clear()
         self._t0 = None
         self._newest = -float("inf")
         self._clock = None
@@ -296,6 +358,29 @@ class SampleAssembler:
         self.timed_out_roles = silent if now_out else ()
         return now_out
 
+    def _phase_grid(self) -> None:
+        """Once the fast roles' send clocks have a full window (de-jittering), move the grid so that their frames
+        fall on its points, not half a period off, where late first frames set it (see module notes)."""
+        fast = [r for r in self.fast_roles if self._last_counter[r] is not None]
+        if not fast:  # no alive counters, no send clocks: the stamps are all there is
+            self._phased = True
+            return
+        if any(not self._minq[r] or self._seq[r] < self._window_n for r in fast):
+            return
+        self._phased = True
+        dt, t0 = self.dt, self._t0
+        newest = [self._hist[r][-1][0] for r in fast if self._hist[r]]
+        if not newest:
+            return
+        wrap = lambda x: (x + 0.5 * dt) % dt - 0.5 * dt  # noqa: E731 - onto (-dt/2, dt/2]
+        ref = newest[0]
+        rel = [wrap(t - ref) for t in newest]  # the roles of one send instant, around the first one
+        if max(rel) - min(rel) >= 0.5 * dt:
+            return  # not one send instant: leave the grid
+        shift = wrap(ref + max(rel) - t0)  # the grid's points onto the last role's frames
+        if abs(shift) > 0.1 * dt:
+            self._t0 = t0 + shift
+
     @staticmethod
     def _value_at(h: deque[tuple[float, float]], limit: float) -> float | None:
         """The latest value of one role's history stamped at or before ``limit`` (None: none yet)."""
@@ -319,6 +404,9 @@ class SampleAssembler:
             # start the grid at the newest of the roles' first values still held
             self._t0 = max(h[0][0] for h in self._fast_hists) if self._fast_hists else self._newest
             self._k = 0
+            self._phased = False
+        elif not self._phased:
+            self._phase_grid()
         out: list[AssembledSample] = []
         half = 0.5 * dt
         t0, fast, value_at, counters = self._t0, self._fast_hists, self._value_at, self.counters
