@@ -126,7 +126,6 @@ class Pipeline:
         # per baseline band, one per cell (load): the window of the cell's first estimates, see _keep_window
         self._windows: dict[int, list[ReferenceWindow]] = {}
         self._rechecks: dict[str, dict] = {}  # per alarm kind: a recheck of a reference window under way
-        self._accepted: dict[str, dict] = {}  # per alarm kind: the minimum a recheck found the cell's data give
         self._next_learn: float | None = None
         self._next_alarm_repeat = 0.0
         self._stats: BandStats | None = None  # the baseline the latest estimate was compared with
@@ -273,7 +272,6 @@ class Pipeline:
             self._references.clear()
             self._windows.clear()
             self._rechecks.clear()
-            self._accepted.clear()
             self._visit_ref = None
             self.detector.reset()
             self.events.append(Event(t_s, "command", "baselines forgotten: learning anew"))
@@ -796,41 +794,11 @@ class Pipeline:
         if check is not None and (t_s - check["t_s"] > RECHECK_WAIT_S or check["band"] != stats.band):
             del self._rechecks[kind]  # of an alarm the detector no longer asks about: this one starts afresh
             check = None
-        if check is None and self._still_accepted(kind, stats, t_s):
-            return False
         if check is None:
             verdict = self._second_look(kind, stats, t_s)
             if verdict is not True:
                 return verdict
         return self._recheck(kind, stats, t_s)
-
-    def _still_accepted(self, kind: str, stats: BandStats, t_s: float) -> bool:
-        """Is the estimate still in the minimum that a recheck found the cell's own data give, in this visit?
-
-        A recheck that withheld an alarm showed that the data the cell was learned from give the current
-        estimate in the current minimum: the estimate moved to another minimum, the driveline did not change.
-        While the estimate stays there (within the recheck's tolerance of the value it accepted) at the same
-        cell in the same visit, that finding stands and the alarm is withheld again without another recheck:
-        each recheck's fits carry their own noise, and asking the same question every few tens of seconds
-        until one answer differs is how plant 1017 raised a warning (withheld at 2031 s, the estimate the same
-        31.08 Hz at 2075 s, a loss 1.6 % against the 1 % tie in the second recheck). An estimate that moves
-        away (a change of the driveline moves it beyond the tolerance) is rechecked afresh.
-        """
-        done = self._accepted.get(kind)
-        if done is None:
-            return False
-        est = self._estimate
-        value = None if est is None else (est.zeta if kind == DAMPING else est.f0_hz)
-        if (done["band"] != stats.band or done["visit"] != self._visit or value is None
-                or not abs(value / done["value"] - 1.0) <= done["tolerance"]):
-            del self._accepted[kind]
-            return False
-        self.events.append(Event(
-            t_s, "withheld", f"{kind} alarm withheld: the estimate is still in the minimum the recheck at "
-            f"{when_text(done['t_s'])} found the cell's own data give ({100 * (value / done['value'] - 1.0):+.1f} %, "
-            f"within its {100 * done['tolerance']:.1f} % tolerance)",
-            {"kind": kind, "change_pct": 100 * (value / done["value"] - 1.0), "recheck_t_s": done["t_s"]}))
-        return True
 
     def _second_look(self, kind: str, stats: BandStats, t_s: float) -> bool | None:
         """Does a refit of the window from several starts still deviate?
@@ -941,8 +909,6 @@ class Pipeline:
             if error is None else None
         if r is None or not r.withhold:
             return True
-        self._accepted[kind] = {"band": stats.band, "visit": self._visit, "t_s": t_s, "tolerance": tolerance,
-                                "value": check["zeta"] if damping else check["f0_hz"]}
         window = check["window"]
         what = f"{r.zeta:.4f}" if damping else f"{r.f0_hz:.3f} Hz"
         whose = ("of this visit's first estimates" if self._of_visit(stats, kind) else
@@ -1074,7 +1040,6 @@ class Pipeline:
             if kept:
                 self._windows[int(k)] = kept
         self._rechecks = {}
-        self._accepted = {}
         rpm = state.get("healthy_rpm")
         self._healthy_rpm = float(rpm) if isinstance(rpm, (int, float)) and not new_run else None
 
