@@ -12,11 +12,12 @@ from another process, and measures how long after the bench started the
 first valid OidEstimate is published, while ``load`` other processes spin
 at normal priority (``python -c "while True: pass"``, one per core at most
 as many as given). Each plant is also run in-process through the same
-runtime (``online_id.runtime.Runtime`` with the inline worker): the stream
-time of its first valid estimate is what the method needs, whatever the
-machine; the live figure minus it is what the machine's load added (the
-refits, which run in the service's worker process at nice +5, come later
-than the stream when they get less of a core).
+runtime (the harness's ``first_valid_in_process``: ``online_id.runtime.Runtime``
+with the inline worker): the stream time of its first valid estimate is
+what the method needs, whatever the machine; the live figure minus it is
+what the machine's load added (the refits, which run in the service's
+worker process at nice +5, come later than the stream when they get less
+of a core).
 
 Plants are drawn as in the live test (resonance 15-35 Hz, damping ratio
 0.04-0.12, two steady operating points of 35 s). Besides the start-up it
@@ -44,28 +45,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests" / "live"))
 
-from harness import live_config, live_plant, live_settings, run_live  # noqa: E402
+from harness import first_valid_in_process, live_config, live_plant, live_settings, run_live  # noqa: E402
 
 from online_id.bench.simulate import simulate_bench  # noqa: E402
 from online_id.io.dbc import encode_inputs, load_dbc  # noqa: E402
-from online_id.io.dbc_output import OutputEncoder  # noqa: E402
-from online_id.offload import InlineWorker  # noqa: E402
-from online_id.runtime import Runtime  # noqa: E402
 
 GROUP = "239.74.163.53"
-
-
-def in_process_first_valid(frames: list, truth: dict) -> float:
-    """Stream seconds from the first frame to the first valid OidEstimate, in-process (nan: none)."""
-    db = load_dbc(None)
-    est_id = int(db.get_message_by_name("OidEstimate").frame_id)
-    decode = OutputEncoder(db).decode
-    rt = Runtime(live_settings(truth), worker=InlineWorker())
-    for t, ident, data in frames:
-        for fid, out in rt.on_frame(t, ident, data):
-            if fid == est_id and decode(fid, out).get("Valid"):
-                return float(t - frames[0][0])
-    return float("nan")
 
 
 def spin(n: int) -> list[subprocess.Popen]:
@@ -124,7 +109,7 @@ def main() -> int:
             truth = record.truth
             frames = encode_inputs(record.time_s, record.dyno_speed_rpm, record.engine_speed_rpm,
                                    record.dyno_torque_nm, db=load_dbc(None))
-            t_inproc = in_process_first_valid(frames, truth)
+            t_inproc = first_valid_in_process(frames, live_settings(truth))
             for load in args.loads:
                 run_dir = work / f"{seed}-{load}"
                 config = live_config(truth, run_dir / "state")

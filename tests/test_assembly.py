@@ -1,10 +1,19 @@
 """Sample assembly from separately arriving, jittery, gappy signal values."""
 
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
-from online_id.assembly import SampleAssembler
-from online_id.records import FrameFault, SignalSample
+sys.path.insert(0, str(Path(__file__).parent / "live"))
+
+from harness import first_valid_in_process, live_plant, live_settings  # noqa: E402
+
+from online_id.assembly import SampleAssembler  # noqa: E402
+from online_id.bench.simulate import simulate_bench  # noqa: E402
+from online_id.io.dbc import encode_inputs, load_dbc  # noqa: E402
+from online_id.records import FrameFault, SignalSample  # noqa: E402
 
 ROLES = ("dyno_speed", "engine_speed", "dyno_torque")
 
@@ -199,56 +208,25 @@ def test_a_sender_that_pauses_with_its_counter_running_is_stamped_on_arrival_aga
     assert after[-1].t_s > 6.0 + pause - 0.01  # the grid is not left behind the frames
 
 
-def _first_valid_s(frames, settings) -> float:
-    """Stream seconds to the first valid OidEstimate of ``frames`` through the service's runtime, in-process."""
-    from online_id.io.dbc import load_dbc
-    from online_id.io.dbc_output import OutputEncoder
-    from online_id.offload import InlineWorker
-    from online_id.runtime import Runtime
-
-    db = load_dbc(None)
-    est_id = int(db.get_message_by_name("OidEstimate").frame_id)
-    decode = OutputEncoder(db).decode
-    rt = Runtime(settings, worker=InlineWorker())
-    for t, ident, data in frames:
-        for fid, out in rt.on_frame(t, ident, data):
-            if fid == est_id and decode(fid, out).get("Valid"):
-                return float(t - frames[0][0])
-    return float("nan")
-
-
 @pytest.mark.parametrize("seed", [21, 22, 23])
 def test_a_bench_stamped_late_by_a_busy_pc_is_valid_as_soon_as_a_clean_one(seed):
-    """Frames of a simulated bench (resonance drawn from 15-35 Hz) stamped late as a busy receiving PC stamps
-    them (stalls of 5-30 ms, 2 ms of jitter): the estimate is valid as soon as on the clean stamps. On the arrival
-    stamps it was not valid at all on one of three such benches measured on a loaded machine (the frames the
-    live service received, replayed; README, start-up under load)."""
-    import dataclasses
-    import math
-
-    from online_id.bench.scenario import BenchScenario, OperatingPoint
-    from online_id.bench.simulate import simulate_bench
-    from online_id.config import InertiaSettings, ModelSettings, Settings
-    from online_id.io.dbc import encode_inputs, load_dbc
-
-    rng = np.random.default_rng(seed)
-    J1, J2 = rng.uniform(0.5, 1.2), rng.uniform(0.2, 0.45)
-    w0, zeta = 2 * math.pi * rng.uniform(15.0, 35.0), rng.uniform(0.04, 0.12)
-    jr = J1 * J2 / (J1 + J2)
-    sc = dataclasses.replace(BenchScenario(), J1=J1, J2=J2, c_s=w0 ** 2 * jr, d_s=2 * zeta * w0 * jr, seed=seed,
-                             operating_points=(OperatingPoint(float(rng.uniform(1300, 2300)), 20.0),))
-    rec = simulate_bench(sc)
+    """Frames of a simulated bench (the live tier's plants: resonance drawn from 15-35 Hz) stamped late as a busy
+    receiving PC stamps them (stalls of 5-30 ms, 2 ms of jitter): the estimate is valid as soon as on the clean
+    stamps. On the arrival stamps it was not valid at all on one of three such benches measured on a loaded
+    machine (the frames the live service received, replayed; README, start-up under load)."""
+    rec = simulate_bench(live_plant(seed))
     frames = encode_inputs(rec.time_s, rec.dyno_speed_rpm, rec.engine_speed_rpm, rec.dyno_torque_nm,
                            db=load_dbc(None))
-    settings = Settings(inertias=InertiaSettings(J1=J1),
-                        model=dataclasses.replace(ModelSettings(), pulses_per_rev=rec.truth["pulses_per_rev"]))
-    clean = _first_valid_s(frames, settings)
+    settings = live_settings(rec.truth)
+    clean = first_valid_in_process(frames, settings)
     assert clean <= 12.0
+    rng = np.random.default_rng(seed)
     send = np.array([f[0] for f in frames])
     late = rng.uniform(0.0, 0.002, send.size)
-    for t_stall in rng.uniform(send[0], send[-1], 150):  # a stall of 5-30 ms every 130 ms on average
+    n_stalls = round((send[-1] - send[0]) / 0.13)  # a stall of 5-30 ms every 130 ms on average
+    for t_stall in rng.uniform(send[0], send[-1], n_stalls):
         inside = (send >= t_stall) & (send < t_stall + rng.uniform(0.005, 0.03))
         late[inside] = np.maximum(late[inside], send[inside][-1] - send[inside] if inside.any() else 0.0)
     arrival = np.maximum.accumulate(send + late)
     stamped = [(float(a), ident, data) for a, (_t, ident, data) in zip(arrival, frames)]
-    assert _first_valid_s(stamped, settings) <= clean + 0.5
+    assert first_valid_in_process(stamped, settings) <= clean + 0.5

@@ -1,10 +1,12 @@
 """Run ``online-id run`` as its own process on a kernel socket bus and feed it a bench from another process.
 
-Shared by the live test tier (``tests/live``) and the live benchmark
-(``benchmarks/bench_live.py``).  The bus is python-can's ``udp_multicast``
-interface: kernel UDP sockets with a finite receive buffer between
-processes, which loses frames the way SocketCAN does when a reader falls
-behind (and reports them the same way, see :meth:`online_id.io.bus.CanBus.dropped`).
+Shared by the live test tier (``tests/live``), the live benchmarks
+(``benchmarks/bench_live.py``, ``benchmarks/bench_startup.py``) and the
+assembly tests (:func:`live_plant`, :func:`first_valid_in_process`).  The
+bus is python-can's ``udp_multicast`` interface: kernel UDP sockets with a
+finite receive buffer between processes, which loses frames the way
+SocketCAN does when a reader falls behind (and reports them the same way,
+see :meth:`online_id.io.bus.CanBus.dropped`).
 """
 
 from __future__ import annotations
@@ -29,6 +31,8 @@ from online_id.config import InertiaSettings, ModelSettings, Settings
 from online_id.io.bus import CanBus
 from online_id.io.dbc import load_dbc
 from online_id.io.dbc_output import OutputEncoder
+from online_id.offload import InlineWorker
+from online_id.runtime import Runtime
 
 STOPPED = re.compile(r"stopped: (?P<frames_in>\d+) frames in, (?P<frames_out>\d+) frames out, (?P<samples>\d+) samples, "
                      r"(?P<bad>\d+) bad frames, (?P<missing>\d+) missing frames, (?P<dropped>\d+) dropped by the kernel, "
@@ -63,6 +67,21 @@ def live_settings(truth: dict) -> Settings:
     """The in-process settings that :func:`live_config` gives the service (for a run of the same frames)."""
     return Settings(inertias=InertiaSettings(J1=truth["J1"]),
                     model=dataclasses.replace(ModelSettings(), pulses_per_rev=truth["pulses_per_rev"]))
+
+
+def first_valid_in_process(frames: list, settings: Settings) -> float:
+    """Stream seconds from the first of ``frames`` to the first valid OidEstimate (nan: none), in-process: the
+    service's runtime (:class:`online_id.runtime.Runtime`) with ``settings`` and the inline worker, so the
+    figure is what the method needs, whatever the machine (the refits run inline, they take no stream time)."""
+    db = load_dbc(None)
+    estimate_id = int(db.get_message_by_name("OidEstimate").frame_id)
+    decode = OutputEncoder(db).decode
+    runtime = Runtime(settings, worker=InlineWorker())
+    for t, ident, data in frames:
+        for fid, out in runtime.on_frame(t, ident, data):
+            if fid == estimate_id and decode(fid, out).get("Valid"):
+                return float(t - frames[0][0])
+    return float("nan")
 
 
 def _send(group: str, frames: list, speed: float, marks: list[int], out, min_sleep_s: float = 0.001) -> None:
