@@ -11,6 +11,7 @@ from online_id.bench import evaluate as ev
 from online_id.bench.scenario import BenchScenario, Friction, OperatingPoint
 from online_id.bench.simulate import simulate_bench
 from online_id.cli import main
+from online_id.cli.evaluate import table
 from online_id.errors import FieldError
 
 
@@ -223,3 +224,42 @@ def test_time_to_a_valid_estimate_after_each_change_of_operating_point(seed, fam
     summary = ev.summarize([res, ev.RunResult("fault-free", 1, 60.0, 20.0, 0.05, [])])
     assert summary["revalid_after_change_s"]["changes"] == len(starts)
     assert summary["revalid_after_change_s"]["median"] == pytest.approx(float(np.median(back)))
+
+
+@pytest.mark.parametrize("t_fault, before, after", [(50.0, {"frequency": 1, "damping": 0}, {"frequency": 1, "damping": 1}),
+                                                    (None, {"frequency": 2, "damping": 1}, {"frequency": 0, "damping": 0}),
+                                                    (20.0, {"frequency": 0, "damping": 0}, {"frequency": 2, "damping": 1})])
+def test_the_alarms_the_confirm_withheld_are_counted_before_and_after_the_fault(monkeypatch, t_fault, before, after):
+    """Each run records the alarms the detector asked for and the confirm withheld, split at the fault (a
+    fault-free run's all before), without what a restored state brought (family (b)); the summary adds them per
+    case and over the fault-free hours, and the table prints them."""
+    from types import SimpleNamespace
+
+    steps = {30: ("frequency",), 70: ("frequency", "damping")}  # the pipeline's count grows at these times
+    rec = SimpleNamespace(time_s=np.array([0.0, 100.0]), truth={"f0_hz": 20.0, "zeta": 0.05, "effects": {}},
+                          to_data=lambda label: None)
+
+    def fake_run(data, settings, on_output=None, state=None, run_label=""):
+        pipe = SimpleNamespace(alerts=[], alerts_total=0, last_estimate=None, baseline=SimpleNamespace(bands=()),
+                               detector=SimpleNamespace(withheld={"frequency": 4, "damping": 2}, active=None))
+        for t in range(101):
+            for kind in steps.get(t, ()):
+                pipe.detector.withheld[kind] += 1
+            on_output(pipe, float(t), [])
+        return pipe
+
+    monkeypatch.setattr(ev, "simulate_bench", lambda sc: rec)
+    monkeypatch.setattr(ev, "run_bench_data", fake_run)
+    spec = ev.RunSpec("fault-free" if t_fault is None else "stiffness -10 %", 1, BenchScenario(), t_fault)
+    res = ev.run(spec)
+    assert (res.withheld_before_fault, res.withheld_after_fault) == (before, after)
+    summary = ev.summarize([res, dataclasses.replace(res, seed=2)])
+    if t_fault is None:
+        assert summary["fault_free"]["withheld"] == {k: 2 * n for k, n in before.items()}
+        assert f"{2 * before['frequency']} frequency, {2 * before['damping']} damping" in table(summary)
+    else:
+        row = next(r for r in summary["faults"] if r["case"] == spec.case and r["family"] == "c")
+        assert row["withheld_after_fault"] == {k: 2 * n for k, n in after.items()}
+        assert f"after it {2 * after['frequency']} frequency, {2 * after['damping']} damping" in table(summary)
+    old = [dataclasses.replace(r, withheld_before_fault={}, withheld_after_fault={}) for r in (res, res)]
+    assert "withheld" not in table(ev.summarize(old))  # a results.json from before the count: no line of zeros

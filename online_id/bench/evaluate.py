@@ -120,6 +120,10 @@ class RunResult:
     family: str = "c"
     cells: list[dict[str, Any]] = field(default_factory=list)  # the baseline cells at the end
     zeta_trace: list[list[float]] = field(default_factory=list)  # [t_s, zeta] of the valid estimates, 1 Hz (fault runs)
+    # alarms the detector asked for and the confirm withheld (second look, recheck), per kind, in this run before
+    # the fault (all of a fault-free run) and after it: how often the guards stood between the bench and an alarm
+    withheld_before_fault: dict[str, int] = field(default_factory=dict)
+    withheld_after_fault: dict[str, int] = field(default_factory=dict)
 
     def zeta_summary(self) -> dict[str, float | None]:
         """Spread of the healthy damping estimates (after 40 s, before any fault) and the change they show
@@ -301,8 +305,13 @@ def run(spec: RunSpec, settings: Settings | None = None) -> RunResult:
     operator = _Operator()
     n_pub = [0, 0]
     next_err = [0.0]
+    withheld: dict[str, dict[str, int] | None] = {"start": None, "fault": None}
 
     def on_output(pipe: Pipeline, t_s: float, out: list) -> None:
+        if withheld["start"] is None:  # (b): the earlier run's count comes with its state
+            withheld["start"] = dict(pipe.detector.withheld)
+        if withheld["fault"] is None and spec.t_fault_s is not None and t_s >= spec.t_fault_s:
+            withheld["fault"] = dict(pipe.detector.withheld)
         for a in operator.new_drift_alarms(pipe):
             res.alarms.append(_alarm_record(a))
             if spec.t_fault_s is None or a.t_s < spec.t_fault_s:
@@ -335,6 +344,10 @@ def run(spec: RunSpec, settings: Settings | None = None) -> RunResult:
     pipe = run_bench_data(data, settings, on_output=on_output, state=state, run_label="this run")
     res.family = spec.family
     res.cells = [b.as_dict() for b in pipe.baseline.bands]
+    end = dict(pipe.detector.withheld)
+    start, at_fault = withheld["start"] or {}, withheld["fault"] or end
+    res.withheld_before_fault = {k: max(at_fault.get(k, 0) - start.get(k, 0), 0) for k in end}
+    res.withheld_after_fault = {k: max(end[k] - at_fault.get(k, 0), 0) for k in end}
     res.valid_fraction = n_pub[1] / n_pub[0] if n_pub[0] else 0.0
     res.elapsed_s = time.monotonic() - t0
     return res
@@ -396,6 +409,7 @@ def summarize(results: list[RunResult]) -> dict[str, Any]:
             "valid_fraction": float(np.mean([r.valid_fraction for r in free])) if free else None,
             "f0_error_pct_p50_abs": float(np.median(np.abs(errs))) if errs.size else None,
             "f0_error_pct_p99_abs": float(np.quantile(np.abs(errs), 0.99)) if errs.size else None,
+            "withheld": _withheld(free, "withheld_before_fault"),
         },
         "faults": [],
     }
@@ -426,6 +440,8 @@ def summarize(results: list[RunResult]) -> dict[str, Any]:
             "fault_delay_s_worst": float(max(fault)) if fault else None,
             "fault_level_reached": len(fault),
             "false_alarms_before_fault": sum(r.false_alarms for r in rs),
+            "withheld_before_fault": _withheld(rs, "withheld_before_fault"),
+            "withheld_after_fault": _withheld(rs, "withheld_after_fault"),
             # per plant type: a linear model fitted to a shaft with backlash is a mismatched model
             "by_plant": {kind: _detections(sub) for kind in PLANT_TYPES
                          if (sub := [r for r in rs if ("backlash" in r.effects) == (kind == "backlash")])},
@@ -435,6 +451,16 @@ def summarize(results: list[RunResult]) -> dict[str, Any]:
                                       "p90": float(np.quantile(back, 0.9)), "max": float(max(back))}
                                      if back else None)
     return out
+
+
+def _withheld(rs: list[RunResult], name: str) -> dict[str, int] | None:
+    """The alarms withheld in ``rs`` (field ``name`` of each run), summed per kind; None where no run recorded
+    them (a results.json of a version before the count)."""
+    total: dict[str, int] = {}
+    for r in rs:
+        for kind, n in (getattr(r, name) or {}).items():
+            total[kind] = total.get(kind, 0) + int(n)
+    return total or None
 
 
 def revalid_after_changes(res: RunResult, gap_s: float = 1.5, within_s: float = 8.0) -> list[float]:

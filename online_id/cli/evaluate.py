@@ -75,6 +75,9 @@ def table(summary: dict) -> str:
         "| with backlash: detected, median [s] | without backlash: detected, median [s] |",
         "|---|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
+    if f.get("withheld") is not None and f["runs"]:
+        lines[1:1] = ["", "Alarms the detector asked for and the confirm withheld (second look, recheck of the cell's "
+                      f"own data) in the fault-free hours: {_kinds(f['withheld'])}."]
     back = summary.get("revalid_after_change_s")
     if back:
         lines[1:1] = ["", f"After a change of operating point the estimate was valid again {back['median']:.1f} s "
@@ -89,7 +92,19 @@ def table(summary: dict) -> str:
             f"{fmt(r['warning_delay_s_worst'], '.1f')} | {fmt(r['fault_delay_s_median'], '.1f')} / "
             f"{fmt(r['fault_delay_s_worst'], '.1f')} ({r['fault_level_reached']}/{r['runs']}) "
             f"| {r['false_alarms_before_fault']} | {plants} |")
+    faults = [r for r in summary["faults"] if r.get("family", "c") in ev.FAMILIES  # not the a+b rows again
+              and r.get("withheld_after_fault") is not None]
+    if faults:
+        before, after = ({k: sum((r.get(name) or {}).get(k, 0) for r in faults) for k in ("frequency", "damping")}
+                         for name in ("withheld_before_fault", "withheld_after_fault"))
+        lines += ["", f"Alarms withheld in the fault runs: before the fault {_kinds(before)}; after it "
+                  f"{_kinds(after)} (each one after the fault delayed a detection or was of the other kind)."]
     return "\n".join(lines)
+
+
+def _kinds(counts: dict) -> str:
+    """``{"frequency": 3, "damping": 1}`` as "3 frequency, 1 damping"."""
+    return ", ".join(f"{counts.get(k, 0)} {k}" for k in ("frequency", "damping"))
 
 
 def plot(results: list[ev.RunResult], path: Path) -> None:
