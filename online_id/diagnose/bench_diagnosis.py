@@ -217,17 +217,23 @@ def _refine_freq(series: BenchSeries, spec: Spec, base: BenchFit, f0: float, eq:
     return float(res.x) if res.fun < loss(fg) else fg
 
 
+def backlash_fits(series: BenchSeries, spec: Spec) -> tuple[bx.TwistTerm, BenchFit, BenchFit, float, float]:
+    """:func:`backlash_fit` with its reference: the term, the linear-twist fit, the dead-zone fit, gain and t."""
+    ref_spec = spec.with_term(bx.TwistTerm(nb=spec.nb))
+    ref = fit_spec(series, ref_spec, only=EQS)
+    term = bx.search_backlash(series, ref_spec)
+    new = fit_spec(series, ref_spec.with_term(term), only=EQS)
+    g, t = _gain(new, ref, EQS)
+    return term, ref, new, g, t
+
+
 def backlash_fit(series: BenchSeries, spec: Spec) -> tuple[bx.TwistTerm, BenchFit, float, float]:
     """A dead zone of the twist added to ``spec`` with the linear twist: the term, the fit, its gain and t.
 
     The reference is ``spec`` with the linear twist (a backlash term is judged against the torsion it
     replaces), both inertia equations (see :func:`~online_id.diagnose.bench_effects.search_backlash`).
     """
-    ref_spec = spec.with_term(bx.TwistTerm(nb=spec.nb))
-    ref = fit_spec(series, ref_spec, only=EQS)
-    term = bx.search_backlash(series, ref_spec)
-    new = fit_spec(series, ref_spec.with_term(term), only=EQS)
-    g, t = _gain(new, ref, EQS)
+    term, _ref, new, g, t = backlash_fits(series, spec)
     return term, new, g, t
 
 
