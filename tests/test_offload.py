@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import os
 import signal
 import time
@@ -69,6 +70,36 @@ def test_one_job_per_lane_and_lanes_are_independent() -> None:
         _wait(worker, results, 2)
         assert results == [("slow", 0.3), ("fast", 16.0)]  # one child: first in, first out
         assert not worker.busy("slow") and not worker.busy("fast")
+    finally:
+        worker.close()
+
+
+def _digest(data: np.ndarray) -> str:
+    return hashlib.sha256(data.tobytes()).hexdigest()
+
+
+def test_a_large_job_is_handed_over_without_waiting_for_the_child() -> None:
+    """submit returns at once while the child runs another lane's job, however large the job: a job larger
+    than the socket holds (the backlash test's rows are 380 KB) once held the receive loop in a blocking write
+    until the child had finished its refit (5 s on a loaded machine, 5,000 frames dropped). The job's bytes
+    arrive whole, and its arguments are those of the moment of submit."""
+    worker = ProcessWorker()
+    try:
+        results: list = []
+        worker.submit("slow", _sleep, (3.0,), lambda r, e: results.append(("slow", r, e)))
+        data = np.random.default_rng(7).integers(0, 256, 24 << 20, dtype=np.uint8)  # 24 MiB: more than any buffer
+        expected = _digest(data)
+        t0 = time.perf_counter()
+        worker.submit("big", _digest, (data,), lambda r, e: results.append(("big", r, e)))
+        took = time.perf_counter() - t0
+        data[:] = 0  # changed after submit: the job has the data as they were
+        assert took < 1.0, f"submit of a 24 MiB job took {took:.2f} s behind a 3 s job"
+        _wait(worker, results, 2)
+        assert results == [("slow", 3.0, None), ("big", expected, None)]
+        # and with nobody polling: wait() hands the rest over itself
+        worker.submit("big", _digest, (data,), lambda r, e: results.append(("big", r, e)))
+        assert worker.wait(60.0)
+        assert results[2] == ("big", _digest(data), None)
     finally:
         worker.close()
 
