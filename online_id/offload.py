@@ -149,9 +149,7 @@ def _serve(sock: socket.socket) -> None:
             (n,) = _HEADER.unpack(_read_exactly(sock, _HEADER.size))
             job = pickle.loads(_read_exactly(sock, n))
         except (EOFError, OSError, KeyboardInterrupt):
-            return
-        if job is None:
-            return
+            return  # the parent closed its end (close, restart) or went away
         job_id, fn, args = job
         try:
             reply = (job_id, fn(*args), None)
