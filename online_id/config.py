@@ -176,6 +176,7 @@ class DetectionSettings:
     settle_min_freq_change_pct: float = 2.0
     backlash_test_s: float = 12.0
     backlash_gain_pct: float = 3.0
+    engaged_flank: bool = True
 
 
 @dataclass(frozen=True)

@@ -30,11 +30,14 @@ import numpy as np
 
 from online_id.assembly import AssembledSample, SampleAssembler
 from online_id.config import Settings
+from online_id.diagnose.bench_data import DEFAULT_PULSES_PER_REV
 from online_id.diagnose.linearity import BacklashTest, backlash_test
 from online_id.monitoring.baseline import Baseline
 from online_id.monitoring.cells import BandStats
 from online_id.monitoring.detection import (DAMPING, FREQUENCY, Alarm, ChangeDetector, correlation_for_window,
                                             when_text)
+from online_id.monitoring import engaged as engaged_flank
+from online_id.monitoring.engaged import EngagedChange, EngagedFlank, EngagedReading
 from online_id.estimation.model import ArmaxOrders
 from online_id.estimation.online import OnlineDriveline, OnlineEstimate, physical_parameters
 from online_id.estimation.reference import ReferenceWindow, judge, refit_each
@@ -113,6 +116,10 @@ class Pipeline:
                                        correlation_s=correlation_for_window(settings.model.window_s),
                                        min_change_f=d.min_freq_change_pct / 100.0,
                                        min_change_zeta=d.min_damping_change_pct / 100.0)
+        # the engaged flank's readings on a shaft that showed backlash (see _test_backlash)
+        self.engaged = EngagedFlank(dead_band_zeta=d.min_damping_change_pct / 100.0)
+        self._next_engaged = -math.inf  # stream time of the next engaged-flank reading in this visit
+        self._engaged_out: list[Publication] = []  # its alerts, published with the next detection
         self._healthy_since: float | None = None  # start of the current healthy stretch (settle_s)
         self._recent: deque[tuple[float, float, float]] = deque()  # (t_s, f0, zeta) of the healthy stretch
         self._healthy_rpm: float | None = None  # engine speed of the last healthy estimate
@@ -270,6 +277,7 @@ class Pipeline:
             self.events.append(Event(t_s, "command", "estimator reset on command"))
         elif command == COMMAND_ACK:
             self.detector.acknowledge()
+            self.engaged.acknowledge()
             self.events.append(Event(t_s, "command", "alerts acknowledged"))
             out.append(AlertOut(t_s, AlertKind.NONE, 0, 0.0, self.estimator.speed_rpm, "alerts acknowledged"))
         elif command == COMMAND_RELEARN:
@@ -280,6 +288,7 @@ class Pipeline:
             self._accepted = None
             self._visit_ref = None
             self.detector.reset()
+            self.engaged.reset()
             self.events.append(Event(t_s, "command", "baselines forgotten: learning anew"))
             out.append(AlertOut(t_s, AlertKind.NONE, 0, 0.0, self.estimator.speed_rpm, "baselines re-learned"))
         return out
@@ -289,7 +298,8 @@ class Pipeline:
         if a.discontinuity and self.counters.samples > 1:
             self.estimator.restart_history()
             self._raw.clear()
-        if self.settings.detection.backlash_test_s > 0 and self.baseline.backlash is None:
+        if self.settings.detection.backlash_test_s > 0 and (self.baseline.backlash is None
+                                                             or self.settings.detection.engaged_flank):
             # the backlash test's samples, kept only while a test may run
             self._raw.append((a.t_s, a.dyno_speed, a.engine_speed, a.dyno_torque))
         self.estimator.update(a.dyno_speed, a.engine_speed, a.dyno_torque)
@@ -519,9 +529,12 @@ class Pipeline:
             self._next_learn = t_s + 1.0  # about one independent-ish estimate per second
             est = self._learn(est, t_s, speed, load)
             load = est.load_nm
-        if (healthy and d.backlash_test_s > 0 and not self.baseline.nonlinear and self._visit_tested != self._visit
-                and not self.worker.busy(LINEARITY)):
-            self._test_backlash(t_s, speed)
+        if healthy and d.backlash_test_s > 0 and not self.worker.busy(LINEARITY):
+            if not self.baseline.nonlinear and self._visit_tested != self._visit:
+                self._test_backlash(t_s, speed, load)
+            elif self.baseline.nonlinear and d.engaged_flank and (self._visit_tested != self._visit
+                                                                  or t_s >= self._next_engaged):
+                self._test_backlash(t_s, speed, load, engaged_flank.WINDOW_S)
         stats = self._baseline_for(speed, load)
         if (stats is None and healthy and self.baseline.nonlinear and self._visit_not_compared != self._visit
                 and self.baseline.learned_range_rpm is not None):
@@ -547,24 +560,31 @@ class Pipeline:
         if alarm is not None:
             self._raise(alarm, out)
             self._next_alarm_repeat = t_s + 1.0
-        elif self.detector.active is not None and t_s >= self._next_alarm_repeat:
+        elif self.detector.active is not None and t_s >= self._next_alarm_repeat and not self._engaged_out:
             # a latched alarm is repeated on CAN once a second until acknowledged (not logged again)
             self._next_alarm_repeat = t_s + 1.0
             out.append(self._alert_out(self.detector.active, t_s))
+        if self._engaged_out:  # an engaged-flank change (raised when its backlash test came back)
+            out.extend(self._engaged_out)
+            self._engaged_out.clear()
 
-    def _test_backlash(self, t_s: float, speed: float) -> None:
-        """The backlash test (:mod:`online_id.diagnose.linearity`) on this operating point's steady samples, once
-        per visit, once the speed has been steady for ``detection.backlash_test_s`` (at most the last
-        ``BACKLASH_TEST_MAX_S``), in the worker; until one point shows backlash."""
+    def _test_backlash(self, t_s: float, speed: float, load: float, window_s: float = BACKLASH_TEST_MAX_S) -> None:
+        """The backlash test (:mod:`online_id.diagnose.linearity`) on this operating point's steady samples, in the
+        worker, once the speed has been steady for ``detection.backlash_test_s`` (at most the last ``window_s``).
+
+        Until one point shows backlash, once per visit. On a shaft that showed backlash, with
+        ``detection.engaged_flank``, every ``EVERY_S`` of a visit on the last ``WINDOW_S`` of steady samples: its
+        engaged flank's resonance and damping go to :attr:`engaged` (:mod:`online_id.monitoring.engaged`)."""
         least = self.settings.detection.backlash_test_s
-        steady = min(self.estimator.window.steady_s, BACKLASH_TEST_MAX_S)
+        steady = min(self.estimator.window.steady_s, window_s)
         rate = self.settings.input.sample_rate_hz
-        # the samples are kept only while a test may run (from a relearn on, the buffer fills anew)
         if steady < least or len(self._raw) < least * rate:
             return
         self._visit_tested = self._visit
+        self._next_engaged = t_s + engaged_flank.EVERY_S
         n = min(len(self._raw), int(steady * rate))
         rows = np.asarray(list(itertools.islice(self._raw, len(self._raw) - n, None)), dtype=float)
+        visit = self._visit
 
         def done(test: BacklashTest | None, error: str | None) -> None:
             self.backlash_tests += 1
@@ -575,7 +595,8 @@ class Pipeline:
             self.last_backlash_test = test
             if test.shows_backlash(self.settings.detection.backlash_gain_pct / 100.0) and not self.baseline.nonlinear:
                 self.baseline.backlash = {**test.as_dict(), "source": self.run_label}
-                self._raw.clear()  # no test runs any more
+                if not self.settings.detection.engaged_flank:
+                    self._raw.clear()  # no test runs any more
                 # a cell held for disagreeing with another point's baseline: that baseline predicts nothing here
                 n = self.baseline.release()
                 self.events.append(Event(t_s, "backlash", f"the shaft shows backlash at {test.speed_rpm:.0f} rpm: a "
@@ -583,9 +604,43 @@ class Pipeline:
                                          f"error (t = {test.t_stat:.1f}); other operating points' baselines are no "
                                          f"longer compared with" + (f", {n} held cell(s) released" if n else ""),
                                          test.as_dict() | {"released": n}))
+            if self.baseline.nonlinear and self.settings.detection.engaged_flank:
+                reading = EngagedReading(t_s, visit, speed, load, test.engaged_f0_hz, test.engaged_zeta, self.run_label)
+                learn = self.detector.active is None and self.state == ServiceState.TRACKING
+                for change in self.engaged.offer(reading, learn=learn):
+                    self._raise_engaged(change)
 
-        self.worker.submit(LINEARITY, backlash_test, (rows[:, 0], rows[:, 3], rows[:, 1], rows[:, 2],
-                                                      self.settings.model.pulses_per_rev), done)
+        # the compression orders the test declares: the model's, else the bench diagnosis's default (a test with
+        # none failed on every point of a config without model.pulses_per_rev)
+        pulses = self.settings.model.pulses_per_rev or DEFAULT_PULSES_PER_REV
+        self.worker.submit(LINEARITY, backlash_test, (rows[:, 0], rows[:, 3], rows[:, 1], rows[:, 2], pulses), done)
+
+    def _raise_engaged(self, change: EngagedChange) -> None:
+        """A change of the engaged flank: latched by the detector (acknowledged as its own alarms are), raised
+        unless an alarm of its kind of the same or a higher level is latched (an escalation keeps its onset)."""
+        latched = next((a for a in self.detector.alarms if a.kind == change.kind), None)
+        since = latched.since_t_s if latched is not None else change.since_t_s
+        stiff = None if change.stiffness_change is None else 100.0 * change.stiffness_change
+        pct = 100.0 * change.change
+        word = "lower" if pct < 0 else "higher"
+        what = (f"engaged flank's resonance {abs(pct):.1f} % {word} (stiffness about {abs(stiff):.0f} % "
+                f"{'lower' if stiff < 0 else 'higher'})" if stiff is not None else
+                f"engaged flank's damping {abs(pct):.1f} % {word}")
+        ref = f"{change.reference:.2f} Hz" if change.kind == FREQUENCY else f"zeta {change.reference:.4f}"
+        message = (("fault: " if change.level >= 2 else "warning: ") + f"driveline {what} since {when_text(since)} "
+                   f"at {change.speed_rpm:.0f} rpm (cell {change.speed_rpm:.0f} rpm, {change.load_nm:.0f} Nm, against "
+                   f"the engaged-flank reference of {change.learned} backlash tests ({ref})"
+                   + (f", learned from {change.source}" if change.source else "")
+                   + f"; threshold {100 * change.threshold:.1f} %)")
+        alarm = Alarm(change.kind, change.level, since, change.detected_t_s, change.speed_rpm, pct, stiff, message)
+        if not self.detector.latch(alarm):
+            return
+        out: list[Publication] = []
+        self._record(self._alert_out(alarm, alarm.detected_t_s), out,
+                     alarm.as_dict() | {"baseline_kind": "engaged", "baseline_source": change.source,
+                                        "threshold_pct": 100 * change.threshold})
+        self._engaged_out.extend(out)
+        self._next_alarm_repeat = self.t_s + 1.0
 
     def _steady(self, est: OnlineEstimate, t_s: float) -> bool:
         """Whether the estimate stood still over the last ``STEADY_S``: its frequency within the dead band
@@ -1024,7 +1079,8 @@ class Pipeline:
             "baseline_notes": [{"t_s": e.t_s - t0, "kind": e.kind, "message": e.message} for e in self.events
                                if e.kind in ("learned", "not_learned", "wide_baseline", "backlash")][-20:],
             "backlash": {"shown": self.baseline.backlash, "tests": self.backlash_tests,
-                         "last_test": self.last_backlash_test.as_dict() if self.last_backlash_test else None},
+                         "last_test": self.last_backlash_test.as_dict() if self.last_backlash_test else None,
+                         "engaged_flank": self.engaged.summary()},
             "tracks": [{"id": t.id, "f_hz": t.f_hz, "zeta": t.zeta, "class": t.cls, "confidence": t.confidence,
                         "order": t.order} for t in self.tracker.tracks],
             "status_changes": [{"t_s": e.t_s - t0, "state": e.data["state"], "why": e.message}
@@ -1045,6 +1101,7 @@ class Pipeline:
         return {"version": STATE_VERSION, "estimator": self.estimator.get_state(),
                 "baseline": self.baseline.to_dict(), "detector": self.detector.to_dict(),
                 "tracker": self.tracker.to_dict(), "healthy_rpm": self._healthy_rpm,
+                "engaged": self.engaged.to_dict(),
                 "references": {str(k): v.tolist() for k, v in self._references.items()},
                 "windows": {str(k): [w.to_dict() for w in ws] for k, ws in self._windows.items()},
                 "alerts": [a.__dict__ | {"kind": int(a.kind)} for a in self.alerts[-50:]]}
@@ -1085,6 +1142,7 @@ class Pipeline:
                 self._windows[int(k)] = kept
         self._rechecks = {}
         self._accepted = None
+        self.engaged.load(state.get("engaged"))
         rpm = state.get("healthy_rpm")
         self._healthy_rpm = float(rpm) if isinstance(rpm, (int, float)) and not new_run else None
 

@@ -21,7 +21,7 @@ from online_id.benchlog import is_can_log, read_bench
 from online_id.config import Settings, load_config
 from online_id.diagnose.align import resample_uniform
 from online_id.diagnose import DiagnoseData, Diagnosis, diagnose
-from online_id.diagnose.bench_data import TARGET_FS_HZ, BenchSeries, prepare
+from online_id.diagnose.bench_data import DEFAULT_PULSES_PER_REV, TARGET_FS_HZ, BenchSeries, prepare
 from online_id.diagnose.bench_diagnosis import BenchDiagnosis, diagnose_bench
 from online_id.cli.diagnose_bench_report import bench_text, write_bench_report
 from online_id.diagnose.effects import shaft_angle
@@ -36,7 +36,6 @@ from online_id.progress import add_quiet_option, progress_for
 from online_id.cli import command_help
 
 BENCH_ORDERS = (8, 8, 8, 0)
-DEFAULT_PULSES_PER_REV = 2.0  # four-stroke four-cylinder
 DEMAND_COLUMN = "torque_demand_nm"  # the test-torque demand column `online-id simulate --with-demand` writes
 GENERIC_ORDERS = (2, 2, 2, 1)
 

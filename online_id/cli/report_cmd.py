@@ -33,6 +33,7 @@ from online_id.config import Settings, load_config
 from online_id.monitoring.baseline import Baseline
 from online_id.monitoring.cells import BandStats
 from online_id.monitoring.detection import ChangeDetector
+from online_id.monitoring.engaged import MIN_LEARNED as ENGAGED_MIN, EngagedFlank
 from online_id.monitoring.tracks import PoleTracker
 from online_id.errors import InputDataError, OnlineIdError
 from online_id.io.canlog import SUFFIXES as LOG_SUFFIXES
@@ -210,7 +211,8 @@ def from_log(path: Path, settings: Settings) -> ReportData:
         learned_t_s={k: v - t0 for k, v in runtime.learned_at.items()},
         extra={"frames_in": runtime.frames_in, "frames_out": runtime.frames_out,
                "replay_s": round(time.monotonic() - t_wall, 3), "quality": result["quality"],
-               "counters": result["counters"], "status_changes": result["status_changes"]},
+               "counters": result["counters"], "status_changes": result["status_changes"],
+               "engaged_flank": pipe.engaged.summary()},
     )
 
 
@@ -251,6 +253,8 @@ def from_state(path: Path) -> ReportData:
                              f"\"tracker\", but got {got}")
     try:
         baseline = Baseline.from_dict(state["baseline"])
+        engaged = EngagedFlank()
+        engaged.load(state.get("engaged"))
         detector = ChangeDetector.from_dict(state["detector"])
         tracker = PoleTracker.from_dict(state["tracker"])
         raw_alerts = [AlertOut(**(a | {"kind": AlertKind(a["kind"])})) for a in state.get("alerts", [])]
@@ -285,7 +289,8 @@ def from_state(path: Path) -> ReportData:
         source=path, kind="state", t0_s=t0, estimates=None, tracks=tracks, baselines=baseline.bands,
         min_count=baseline.min_count, alerts=[dataclasses.replace(a, t_s=a.t_s - t0) for a in raw_alerts],
         active_alarm=_alarm_dict(detector, t0), final=final,
-        extra={"state_version": state.get("version"), "tracks_reclassed": reclassed},
+        extra={"state_version": state.get("version"), "tracks_reclassed": reclassed,
+               "engaged_flank": engaged.summary()},
     )
 
 
@@ -443,6 +448,7 @@ def markdown(data: ReportData, doc: dict) -> str:
                           f"{b['f0_std_hz']:.3f} | {b['zeta']:.4f} | {b['zeta_std']:.4f} | {b['count']} | "
                           f"{b.get('kind', 'learned' if b['learned'] else 'learning')} | {b.get('source') or '-'} "
                           f"| {fmt(b.get('spread_ratio'), '.1f')} |" for b in doc["baselines"]])
+    lines += _engaged_section(doc.get("engaged_flank"))
     lines += _section("Alerts", "| t [s] | kind | level | speed [rpm] | change [%] | message |",
                       "|---:|---|---|---:|---:|---|", "No alerts.", [
                           f"| {fmt(a['t_s'], '.1f')} | {a['kind']} | {a['level']} | "
@@ -453,6 +459,20 @@ def markdown(data: ReportData, doc: dict) -> str:
               f"{alarm['message']} (detected at t = {alarm['detected_t_s']:.1f} s, not acknowledged)."
               if alarm else "None.", ""]
     return "\n".join(lines)
+
+
+def _engaged_section(e: dict | None) -> list[str]:
+    """The engaged flank's reference (shafts with backlash, :mod:`online_id.monitoring.engaged`); none where the
+    shaft showed no backlash."""
+    if not e or not e.get("learned"):
+        return []
+    when = "" if e["usable"] else f" (compared with from {ENGAGED_MIN} readings on)"
+    return ["", "## Engaged flank (shaft with backlash)", "",
+            "| f0 [Hz] | zeta [-] | readings | spread stiffness [%] | spread zeta [%] | alarm below stiffness [%] "
+            "| alarm beyond zeta [%] | learned from |", "|---:|---:|---:|---:|---:|---:|---:|---|",
+            f"| {e['f0_hz']:.3f} | {e['zeta']:.4f} | {e['learned']}{when} | {e['std_k_pct']:.2f} "
+            f"| {e['std_zeta_pct']:.1f} | -{e['threshold_k_pct']:.1f} | +-{e['threshold_zeta_pct']:.0f} "
+            f"| {', '.join(e.get('sources') or []) or '-'} |"]
 
 
 def write_report(data: ReportData, out: Path) -> list[Path]:

@@ -31,6 +31,7 @@ from online_id.errors import InputDataError
 from online_id.estimation.preprocess import decimation_factor
 
 RPM_PER_RAD_S = 30.0 / np.pi
+DEFAULT_PULSES_PER_REV = 2.0  # compression pulses per revolution where none is declared: four-stroke four-cylinder
 TARGET_FS_HZ = 500.0
 CUTOFF = 0.8  # passband edge, fraction of the decimated Nyquist frequency
 MIN_PLATEAU_S = 8.0

@@ -114,6 +114,7 @@ class BacklashTest:
     engaged_f0_hz: float = math.nan  # the engaged flank's resonance (see the notes); NaN where none is read
     engaged_share: float = math.nan  # the share of the estimation samples in the region it was read from
     linear_f0_hz: float = math.nan  # the resonance of the linear-twist fit (the apparent one)
+    engaged_zeta: float = math.nan  # the damping ratio of the engaged flank's pole pair; NaN where none is read
 
     def shows_backlash(self, min_gain: float = MIN_GAIN) -> bool:
         """Whether the dead zone removes at least ``min_gain`` of the error, significantly."""
@@ -141,11 +142,11 @@ def backlash_test(time_s: np.ndarray, torque_nm: np.ndarray, dyno_rad_s: np.ndar
     series = prepare(time_s, torque_nm, dyno_rad_s, engine_rad_s, source="backlash test",
                      pulses_per_rev=pulses_per_rev)
     term, ref, fit, gain, t_stat = backlash_fits(series, Spec(*ORDERS))
-    f_engaged, share, f_linear = engaged_resonance(ref, fit, term, f_ref_hz)
+    f_engaged, zeta_engaged, share, f_linear = engaged_resonance(ref, fit, term, f_ref_hz)
     t = np.asarray(time_s, dtype=float)
     return BacklashTest(float(gain), float(t_stat), float(term.gap),
                         float(np.median(np.asarray(engine_rad_s, dtype=float)) * RPM_PER_RAD_S),
-                        float(t[-1] - t[0]), f_engaged, share, f_linear)
+                        float(t[-1] - t[0]), f_engaged, share, f_linear, zeta_engaged)
 
 
 def _sum(*polys: np.ndarray) -> np.ndarray:
@@ -183,19 +184,25 @@ def twist_determinant(dyno: np.ndarray, engine: np.ndarray, lam_dyno: np.ndarray
 def resonance_near(a: np.ndarray, fs_hz: float, f_ref_hz: float | None = None) -> float:
     """The frequency [Hz] of ``A(q^-1)``'s complex pole pair in ``F_BAND_HZ`` nearest ``f_ref_hz`` (``None``:
     the lowest); NaN where it has none (or its coefficients are not finite)."""
+    return pair_near(a, fs_hz, f_ref_hz)[0]
+
+
+def pair_near(a: np.ndarray, fs_hz: float, f_ref_hz: float | None = None) -> tuple[float, float]:
+    """The frequency [Hz] and damping ratio of the pole pair :func:`resonance_near` reads; NaNs where none."""
     a = np.asarray(a, dtype=float)
     if not np.all(np.isfinite(a)):
-        return math.nan
+        return math.nan, math.nan
     lo, hi = F_BAND_HZ
-    f = [p.f_hz for p in poles_of(a, 1.0 / fs_hz) if p.kind == "complex" and lo < p.f_hz < hi]
-    if not f:
-        return math.nan
-    return min(f) if f_ref_hz is None else min(f, key=lambda x: abs(x - f_ref_hz))
+    pairs = [(p.f_hz, p.zeta) for p in poles_of(a, 1.0 / fs_hz) if p.kind == "complex" and lo < p.f_hz < hi]
+    if not pairs:
+        return math.nan, math.nan
+    return min(pairs) if f_ref_hz is None else min(pairs, key=lambda x: abs(x[0] - f_ref_hz))
 
 
 def engaged_resonance(ref: BenchFit, fit: BenchFit, term: TwistTerm,
-                      f_ref_hz: float | None = None) -> tuple[float, float, float]:
-    """The engaged flank's resonance, the share of its region and the linear-twist resonance [Hz].
+                      f_ref_hz: float | None = None) -> tuple[float, float, float, float]:
+    """The engaged flank's resonance [Hz] and damping ratio, the share of its region and the linear-twist
+    resonance [Hz].
 
     ``ref`` is the fit with the linear twist, ``fit`` the one with the dead zone ``term`` added
     (:func:`~online_id.diagnose.bench_diagnosis.backlash_fits`); read on the plateau with the most
@@ -210,17 +217,17 @@ def engaged_resonance(ref: BenchFit, fit: BenchFit, term: TwistTerm,
                               f_ref_hz)
     near = f_linear if f_ref_hz is None else f_ref_hz
     if not math.isfinite(near):
-        return math.nan, math.nan, f_linear
+        return math.nan, math.nan, math.nan, f_linear
     # the dead-zone fit's last 2 nb columns: the linear twist L, then clip(twist - c, +-gap/2) D
     dyno, engine = fit.eqs["dyno"].coefs[k], fit.eqs["engine"].coefs[k]
     lin_d, lin_e, dz_d, dz_e = dyno[-2 * nb:-nb], engine[-2 * nb:-nb], dyno[-nb:], engine[-nb:]
     twist = p.twist[p.rows][p.est] - term.centers[k]
     outside = float(np.mean(np.abs(twist) > 0.5 * term.gap))
-    best, share = math.nan, math.nan
+    best, zeta, share = math.nan, math.nan, math.nan
     for part, lam_d, lam_e in ((outside, lin_d, lin_e), (1.0 - outside, lin_d + dz_d, lin_e + dz_e)):
         if part < READABLE:
             continue
-        f = resonance_near(twist_determinant(dyno, engine, lam_d, lam_e, fit.spec, fs), fs, near)
+        f, z = pair_near(twist_determinant(dyno, engine, lam_d, lam_e, fit.spec, fs), fs, near)
         if math.isfinite(f) and not f <= best:  # the stiffer readable region: the engaged flank
-            best, share = f, part
-    return best, share, f_linear
+            best, zeta, share = f, z, part
+    return best, zeta, share, f_linear

@@ -462,6 +462,19 @@ class ChangeDetector:
         self._armed[kind] = False
         self._pending.append(alarm)
 
+    def latch(self, alarm: Alarm) -> bool:
+        """Latch an alarm another test raised (the engaged flank's, :mod:`online_id.monitoring.engaged`), as the
+        statistics' own alarms are: unless an alarm of its kind of the same or a higher level is latched.
+        Acknowledged with the others; the kind's statistics run on. Returns whether it was latched."""
+        if alarm.kind not in KINDS:
+            raise ValueError(f"ChangeDetector.latch: expected kind in {KINDS}, but got {alarm.kind!r}")
+        latched = self._latched[alarm.kind]
+        if latched is not None and alarm.level <= latched.level:
+            return False
+        self._latched[alarm.kind] = alarm
+        self._armed[alarm.kind] = False
+        return True
+
     # -- commands ----------------------------------------------------------------------------
     def acknowledge(self, kind: str | None = None) -> None:
         """Clear the latched alarm(s) and restart their statistics at zero.
