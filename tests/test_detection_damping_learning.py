@@ -67,11 +67,15 @@ def test_a_damping_change_while_a_cell_learns_is_never_absorbed(seed, factor):
         # at b, against a's baseline, after the new point settles and the window takes the change in
         assert damping[0].t_s - t_fault <= 45.0 and abs(damping[0].speed_rpm - b) < 50.0
     else:
-        # a shaft with backlash (shown by the backlash test): a's baseline does not predict b's, the change is
-        # alarmed back at a (from 116 s), against its learned baseline
+        # a shaft with backlash (shown by the backlash test): a's baseline does not predict b's apparent damping;
+        # the engaged flank's (which does not move with the load) finds the change at b, else it is alarmed back
+        # at a (from 116 s), against its learned baseline
         assert pipe.baseline.nonlinear
-        assert 116.0 - t_fault < damping[0].t_s - t_fault <= 116.0 + 35.0 - t_fault
-        assert abs(damping[0].speed_rpm - a) < 50.0 and "learned baseline" in damping[0].message
+        if "engaged-flank reference" in damping[0].message:
+            assert damping[0].t_s - t_fault <= 45.0 and abs(damping[0].speed_rpm - b) < 50.0
+        else:
+            assert 116.0 - t_fault < damping[0].t_s - t_fault <= 116.0 + 35.0 - t_fault
+            assert abs(damping[0].speed_rpm - a) < 50.0 and "learned baseline" in damping[0].message
     first = [c for c in pipe.baseline.bands if c.band[0] <= a < c.band[1] and c.kind == "learned"]
     assert first, pipe.baseline.bands
     # never absorbed: no cell of the second plateau that serves as a baseline holds the change (it is 50 %);
