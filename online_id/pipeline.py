@@ -445,6 +445,7 @@ class Pipeline:
         self._next_physical = -math.inf
         self._next_learn = None
         self._next_alarm_repeat = -math.inf
+        self._next_engaged = -math.inf
         self._healthy_since = None  # settle again before learning or detecting
         self._recent.clear()
         self.events.append(Event(t_s, "time", message, {"time_jumps": self.counters.time_jumps}))

@@ -230,3 +230,20 @@ def test_the_report_of_a_saved_state_shows_the_engaged_reference(tmp_path):
     assert e["learned"] == len(healthy.engaged.learned) and abs(e["f0_hz"] - ref["f0_hz"]) < 1e-9
     text = markdown(data, doc)
     assert "## Engaged flank" in text and f"{ref['f0_hz']:.3f}" in text and f"run {PLANTS[0]}" in text
+
+
+def test_readings_go_on_after_the_stream_clock_steps_back_mid_visit():
+    # the PC's clock set back 2 h in the middle of the top plateau: the assembler re-anchors, and the engaged
+    # flank's schedule with it (its next reading was due 2 h later in the old time base)
+    plant, speeds = _bench(PLANTS[0])
+    sc = dataclasses.replace(BenchScenario(), seed=PLANTS[0], **plant,
+                             operating_points=tuple(OperatingPoint(s, DWELL_S) for s in speeds))
+    data = simulate_bench(sc).to_data("clock step")
+    t_step = 2 * (DWELL_S + sc.ramp_s) + 20.0
+    stepped = dataclasses.replace(data, time_s=np.where(data.time_s >= t_step, data.time_s - 7200.0, data.time_s))
+    settings = Settings(model=ModelSettings(pulses_per_rev=sc.n_cyl / 2.0))
+    pipe = run_bench_data(stepped, settings)
+    assert pipe.counters.time_jumps == 1 and pipe.engaged.usable
+    healthy, _ = _run(PLANTS[0], None)
+    assert pipe.engaged.last.t_s < 0.0  # a reading in the new time base
+    assert pipe.engaged.readings >= healthy.engaged.readings - 2, (pipe.engaged.readings, healthy.engaged.readings)

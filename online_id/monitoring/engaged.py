@@ -131,6 +131,7 @@ class EngagedFlank:
         self.dead_band_zeta = float(dead_band_zeta)
         self.learned: list[EngagedReading] = []
         self.readings = 0  # readings offered
+        self.last: EngagedReading | None = None  # the latest readable one
         self.rejected = 0  # readings not learned (they disagreed with the learned ones)
         self._runs: dict[str, list[tuple[EngagedReading, float]]] = {FREQUENCY: [], DAMPING: []}
         self._raised: dict[str, int] = {FREQUENCY: 0, DAMPING: 0}  # level raised since the last acknowledgement
@@ -169,6 +170,7 @@ class EngagedFlank:
                 and reading.zeta > 0.0):
             return []
         self.readings += 1
+        self.last = reading
         ref = self.reference()
         if ref is None:
             if learn:
