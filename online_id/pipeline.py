@@ -446,6 +446,8 @@ class Pipeline:
         self._next_learn = None
         self._next_alarm_repeat = -math.inf
         self._next_engaged = -math.inf
+        self._next_visit_sample = -math.inf
+        self._next_reject_event = -math.inf
         self._healthy_since = None  # settle again before learning or detecting
         self._recent.clear()
         self.events.append(Event(t_s, "time", message, {"time_jumps": self.counters.time_jumps}))

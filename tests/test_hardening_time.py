@@ -21,6 +21,7 @@ from online_id.config import Settings
 from online_id.io.canlog import write_log
 from online_id.io.dbc import encode_inputs, load_dbc
 from online_id.io.dbc_output import OutputEncoder
+from online_id.pipeline import Pipeline
 from online_id.records import ROLES, FrameFault, ServiceState, SignalSample
 from online_id.runtime import Runtime
 
@@ -193,3 +194,17 @@ def test_replay_of_a_log_with_a_clock_set_back(tmp_path, bench):
     result = json.loads(res.stdout)
     assert result["counters"]["time_jumps"] == 1
     assert result["frames_out"] > 10 * 14  # published all along, after the step too
+
+
+def test_a_clock_step_re_anchors_every_stream_time_schedule_of_the_pipeline():
+    # each "_next_*" of the pipeline is a stream time something is next due at; after the clock steps back 2 h,
+    # one left in the old time base would hold its work back for 2 h (the engaged flank's readings, the visit's
+    # first estimates and the learning events did, within a visit)
+    p = Pipeline(Settings())
+    schedules = [k for k in vars(p) if k.startswith("_next_")]
+    assert {"_next_publish", "_next_learn", "_next_engaged", "_next_visit_sample"} <= set(schedules)
+    for k in schedules:
+        setattr(p, k, 1e9)
+    p._time_jumped("the clock stepped back", 0.0, [])
+    left = {k: getattr(p, k) for k in schedules if getattr(p, k) is not None and getattr(p, k) > 0.0}
+    assert not left, left
