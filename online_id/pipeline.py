@@ -34,8 +34,8 @@ from online_id.diagnose.bench_data import DEFAULT_PULSES_PER_REV
 from online_id.diagnose.linearity import BacklashTest, backlash_test
 from online_id.monitoring.baseline import Baseline
 from online_id.monitoring.cells import BandStats
-from online_id.monitoring.detection import (DAMPING, FREQUENCY, Alarm, ChangeDetector, correlation_for_window,
-                                            when_text)
+from online_id.monitoring.detection import (DAMPING, FREQUENCY, Alarm, ChangeDetector, alarm_message,
+                                            correlation_for_window, when_text)
 from online_id.monitoring import engaged as engaged_flank
 from online_id.monitoring.engaged import EngagedChange, EngagedFlank, EngagedReading
 from online_id.estimation.model import ArmaxOrders
@@ -625,24 +625,20 @@ class Pipeline:
         since = latched.since_t_s if latched is not None else change.since_t_s
         stiff = None if change.stiffness_change is None else 100.0 * change.stiffness_change
         pct = 100.0 * change.change
-        word = "lower" if pct < 0 else "higher"
-        what = (f"engaged flank's resonance {abs(pct):.1f} % {word} (stiffness about {abs(stiff):.0f} % "
-                f"{'lower' if stiff < 0 else 'higher'})" if stiff is not None else
-                f"engaged flank's damping {abs(pct):.1f} % {word}")
-        ref = f"{change.reference:.2f} Hz" if change.kind == FREQUENCY else f"zeta {change.reference:.4f}"
-        message = (("fault: " if change.level >= 2 else "warning: ") + f"driveline {what} since {when_text(since)} "
-                   f"at {change.speed_rpm:.0f} rpm (cell {change.speed_rpm:.0f} rpm, {change.load_nm:.0f} Nm, against "
-                   f"the engaged-flank reference of {change.learned} backlash tests ({ref})"
+        frequency = change.kind == FREQUENCY
+        ref = f"{change.reference:.2f} Hz" if frequency else f"zeta {change.reference:.4f}"
+        message = (alarm_message(change.kind, change.level, pct, stiff, since, change.speed_rpm,
+                                 what=f"driveline engaged flank's {'resonance' if frequency else 'damping'}")
+                   + f" (cell {change.speed_rpm:.0f} rpm, {change.load_nm:.0f} Nm, against the engaged-flank "
+                   f"reference of {change.learned} backlash tests ({ref})"
                    + (f", learned from {change.source}" if change.source else "")
                    + f"; threshold {100 * change.threshold:.1f} %)")
         alarm = Alarm(change.kind, change.level, since, change.detected_t_s, change.speed_rpm, pct, stiff, message)
         if not self.detector.latch(alarm):
             return
-        out: list[Publication] = []
-        self._record(self._alert_out(alarm, alarm.detected_t_s), out,
+        self._record(self._alert_out(alarm, alarm.detected_t_s), self._engaged_out,
                      alarm.as_dict() | {"baseline_kind": "engaged", "baseline_source": change.source,
                                         "threshold_pct": 100 * change.threshold})
-        self._engaged_out.extend(out)
         self._next_alarm_repeat = self.t_s + 1.0
 
     def _steady(self, est: OnlineEstimate, t_s: float) -> bool:

@@ -116,10 +116,19 @@ def test_unreadable_readings_are_ignored_and_the_state_round_trips():
     saved["learned"].append({**saved["learned"][0], "f0_hz": math.nan})
     again.load(saved)
     assert again.learned == flank.learned and again.reference() == flank.reference()
-    for junk in (None, [], {"learned": "x"}):
+    assert (again.readings, again.rejected) == (flank.readings, flank.rejected)
+    # a report of a saved state reads it with the dead bands it was saved with (the service keeps its config's)
+    wide = EngagedFlank(dead_band_zeta=0.35)
+    for r in flank.learned:
+        wide.offer(r, learn=True)
+    shown = EngagedFlank.from_dict(wide.to_dict())
+    assert shown.thresholds(shown.reference()) == wide.thresholds(wide.reference())
+    assert EngagedFlank.from_dict({**wide.to_dict(), "dead_band_zeta": "x"}).dead_band_zeta == 0.20
+    for junk in (None, [], {"learned": "x"}, {"readings": -3, "rejected": True}):
         fresh = EngagedFlank()
         fresh.load(junk)
-        assert fresh.learned == []
+        assert fresh.learned == [] and fresh.readings == 0 and fresh.rejected == 0
+        assert EngagedFlank.from_dict(junk).learned == []
 
 
 def test_the_detector_latches_an_engaged_alarm_as_its_own():

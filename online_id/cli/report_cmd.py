@@ -253,8 +253,7 @@ def from_state(path: Path) -> ReportData:
                              f"\"tracker\", but got {got}")
     try:
         baseline = Baseline.from_dict(state["baseline"])
-        engaged = EngagedFlank()
-        engaged.load(state.get("engaged"))
+        engaged = EngagedFlank.from_dict(state.get("engaged"))
         detector = ChangeDetector.from_dict(state["detector"])
         tracker = PoleTracker.from_dict(state["tracker"])
         raw_alerts = [AlertOut(**(a | {"kind": AlertKind(a["kind"])})) for a in state.get("alerts", [])]

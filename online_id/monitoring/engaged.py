@@ -67,8 +67,8 @@ from typing import Any
 
 import numpy as np
 
-FREQUENCY = "frequency"
-DAMPING = "damping"
+from online_id.monitoring.detection import DAMPING, FREQUENCY
+
 EVERY_S = 6.0  # a reading at most this often within a visit (the test's CPU: 0.16 s median)
 WINDOW_S = 14.0  # of the last this many seconds of steady samples (the survey's windows)
 MAX_LEARNED = 12  # readings a reference holds; then fixed until re-learned
@@ -139,6 +139,11 @@ class EngagedFlank:
         self.changes: deque[EngagedChange] = deque(maxlen=MAX_CHANGES)  # the latest of them
 
     # -- the reference ---------------------------------------------------------------------------
+    @property
+    def sources(self) -> list[str]:
+        """The runs the learned readings were taken in."""
+        return sorted({r.source for r in self.learned if r.source})
+
     @property
     def usable(self) -> bool:
         """Whether the reference holds enough readings to be compared with."""
@@ -214,12 +219,11 @@ class EngagedFlank:
             return None
         self._raised[kind] = level
         now = last[-1]
-        sources = sorted({r.source for r in self.learned if r.source})
         self.confirmed += 1
         self.changes.append(EngagedChange(kind, level, last[0].t_s, now.t_s, now.speed_rpm, now.load_nm, change,
                                           (1.0 + change) ** 2 - 1.0 if kind == FREQUENCY else None,
                                           ref["f0_hz"] if kind == FREQUENCY else ref["zeta"], threshold,
-                                          len(self.learned), ", ".join(sources)))
+                                          len(self.learned), ", ".join(self.sources)))
         return self.changes[-1]
 
     # -- commands --------------------------------------------------------------------------------
@@ -233,20 +237,31 @@ class EngagedFlank:
         """Forget the reference (re-learn on command: a new shaft)."""
         self.__init__(self.dead_band_k, self.dead_band_zeta)
 
-    def new_stream(self) -> None:
-        """A new run (another log, another day): the runs of readings belong to the other run's time base."""
-        for run in self._runs.values():
-            run.clear()
-
     # -- persistence -----------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
         return {"learned": [r.as_dict() for r in self.learned], "readings": self.readings,
-                "rejected": self.rejected, "raised": dict(self._raised)}
+                "rejected": self.rejected, "raised": dict(self._raised),
+                "dead_band_k": self.dead_band_k, "dead_band_zeta": self.dead_band_zeta}
+
+    @classmethod
+    def from_dict(cls, data: Any) -> EngagedFlank:
+        """A flank as :meth:`to_dict` saved it, with its dead bands (a report of a saved state; the service
+        restores with :meth:`load` and keeps the dead bands of the config in force)."""
+        bands = data if isinstance(data, dict) else {}
+        keep = {k: float(v) for k in ("dead_band_k", "dead_band_zeta") if isinstance(v := bands.get(k), (int, float))
+                and not isinstance(v, bool) and math.isfinite(v) and v >= 0.0}
+        flank = cls(**keep)
+        flank.load(data)
+        return flank
 
     def load(self, data: Any) -> None:
-        """Restore the learned readings saved by :meth:`to_dict` (malformed entries are skipped)."""
+        """Restore the learned readings and the counts saved by :meth:`to_dict` (malformed entries are skipped)."""
         if not isinstance(data, dict):
             return
+        for name in ("readings", "rejected"):
+            n = data.get(name)
+            if isinstance(n, int) and not isinstance(n, bool) and n >= 0:
+                setattr(self, name, n)
         kept = []
         for x in data.get("learned", []) if isinstance(data.get("learned"), list) else ():
             try:
@@ -269,5 +284,5 @@ class EngagedFlank:
             out |= {"f0_hz": ref["f0_hz"], "zeta": ref["zeta"], "std_k_pct": 100 * ref["std_k"],
                     "std_zeta_pct": 100 * ref["std_zeta"], "threshold_k_pct": 100 * th_k,
                     "threshold_zeta_pct": 100 * th_z,
-                    "sources": sorted({r.source for r in self.learned if r.source})}
+                    "sources": self.sources}
         return out
