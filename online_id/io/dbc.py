@@ -216,6 +216,10 @@ def _bounds(sig: Any) -> tuple[float, float]:
     return lo, hi
 
 
+signal_bounds = _bounds
+"""The physical range a cantools signal allows, widened by half a resolution step (for other modules)."""
+
+
 # --- input decoding ---------------------------------------------------------------------
 
 
