@@ -57,7 +57,8 @@ def is_mdf(path: str | Path) -> bool:
 def _quiet() -> Iterator[None]:
     """Silence asammdf's warnings, log records and the noise of its half-built objects on a bad file."""
     hook = sys.unraisablehook
-    sys.unraisablehook = lambda _info: None  # asammdf's MDF4.__del__ fails on a file it could not open
+    # asammdf's MDF4.__del__ fails on a file it could not open; an interrupt (SIGINT, SIGTERM) passes on
+    sys.unraisablehook = lambda info: hook(info) if isinstance(info.exc_value, KeyboardInterrupt) else None
     level = logging.getLogger("asammdf").level
     logging.getLogger("asammdf").setLevel(logging.CRITICAL)
     try:
