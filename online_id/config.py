@@ -23,7 +23,8 @@ import yaml
 from online_id.estimation.settings import IdentificationSettings, InertiaSettings
 from online_id.errors import ConfigError, FieldError
 
-OUTPUT_MESSAGE_NAMES = ("OidEstimate", "OidShaft", "OidQuality", "OidStatus", "OidAlert", "OidExcitation")
+OUTPUT_MESSAGE_NAMES = ("OidEstimate", "OidShaft", "OidQuality", "OidStatus", "OidAlert", "OidExcitation",
+                        "OidFreshness")
 """Output messages whose IDs ``publish.frame_ids`` may change (those of ``online_id.io.dbc_output``)."""
 
 __all__ = [
@@ -90,7 +91,8 @@ class MappingSettings:
     dyno_torque: RoleSettings = field(default_factory=lambda: RoleSettings("DynoTorque", "DynoTorque", "Nm", "braking", "DynoTorqueCounter"))
     command_message: str = "OidCommand"
     command_signal: str = "Command"
-    command_counter: str | None = "CommandCounter"
+    command_freshness: str | None = "CommandFreshness"
+    command_mac: str | None = "CommandMac"
     command_crc: str | None = "OidCommandCRC"
 
 
@@ -182,16 +184,20 @@ class DetectionSettings:
 
 @dataclass(frozen=True)
 class CommandSettings:
-    """What the OidCommand frame may do.
+    """What the OidCommand frame may do, and how it is authenticated.
 
     ``relearn``: ``confirm`` (default: RELEARN acts only when a second RELEARN
-    frame with a new counter follows within ``confirm_s``), ``allow`` (one
+    frame with a new freshness value follows within ``confirm_s``), ``allow`` (one
     frame acts) or ``disabled`` (only ``online-id relearn`` on the service's
-    own state, never from the bus).
+    own state, never from the bus).  ``key_file``: the file holding the key
+    (hex) of authenticated mode (a relative name is looked up in
+    ``$CREDENTIALS_DIRECTORY``, systemd's ``LoadCredential=``); without it
+    commands are not authenticated (plain mode).  See ``docs/security.md``.
     """
 
     relearn: Literal["confirm", "allow", "disabled"] = "confirm"
     confirm_s: float = 1.0
+    key_file: str | None = None
 
 
 @dataclass(frozen=True)

@@ -165,4 +165,14 @@ class ExcitationOut:
     active: bool
 
 
-Publication = EstimateOut | QualityOut | StatusOut | AlertOut | ExcitationOut
+@dataclass(frozen=True)
+class FreshnessOut:
+    """The command freshness value: the last one accepted (the next command carries this + 1 .. + 64), and
+    whether commands must carry a MAC (see :mod:`online_id.commands`)."""
+
+    t_s: float
+    freshness: int
+    authenticated: bool
+
+
+Publication = EstimateOut | QualityOut | StatusOut | AlertOut | ExcitationOut | FreshnessOut

@@ -38,6 +38,7 @@ import time
 from pathlib import Path
 from typing import Callable, TextIO
 
+from online_id.commands import FRESHNESS_FILE, keep_freshness
 from online_id.config import Settings
 from online_id.errors import BusError
 from online_id.io.bus import CanBus
@@ -87,6 +88,8 @@ class Service:
         self.processing = ReactionTimes()  # the same output: from the loop receiving the frame to it sent
         self._last_state = None
         self._restore()
+        if self.state_file is not None:  # a command's freshness value outlives a restart (online_id.commands)
+            keep_freshness(self.runtime.commands, self.state_file.with_name(FRESHNESS_FILE), self.say)
         self._n_alerts = self.runtime.pipeline.alerts_total
         self.runtime.pipeline.warm_up()  # compiled code loaded before the bus opens, not on the first frames
         self.telemetry = None
@@ -244,6 +247,7 @@ class Service:
         rcvbuf = getattr(bus, "receive_buffer_bytes", None)
         self.say(f"listening on {s.bus.interface}:{s.bus.channel}"
                  + (f" (kernel receive buffer {rcvbuf} bytes)" if rcvbuf else ""))
+        self.say(self.runtime.commands.mode_text())  # authenticated or not
         self.say(request_short_slice())  # this thread preempts the worker and other work when a frame comes
         self.notifier.ready(f"listening on {s.bus.interface}:{s.bus.channel}")
         next_drops = time.monotonic() + 1.0
