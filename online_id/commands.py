@@ -36,7 +36,8 @@ and MAC.  Here, as AUTOSAR SecOC does it (see the DBC and ``docs/security.md``):
 Every command frame but a request gives one log line naming the frame (ID
 and data) and what was done; the service writes them to its log (the
 journal under systemd).  :attr:`CommandGate.refusals` counts the refused
-frames by reason.
+frames by reason; those refused for what they are (not for the policy) are
+bad frames too (``COMMAND_REFUSED`` in the pipeline's counters).
 """
 
 from __future__ import annotations
@@ -102,6 +103,7 @@ class CommandGate:
         self.refused = 0
         self.awaiting = 0
         self.refusals: Counter[str] = Counter()
+        self.faulty = False  # the last frame refused was a bad frame (not fresh, wrong MAC ...), not policy
 
     @property
     def authenticated(self) -> bool:
@@ -194,6 +196,7 @@ class CommandGate:
 
     def _refuse(self, reason: str, name: str, frame: str, why: str) -> bool:
         self.refused += 1
+        self.faulty = reason != "policy"
         self.refusals[reason] += 1
         self._say(name, frame, f"refused: {why}")
         return False

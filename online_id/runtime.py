@@ -119,7 +119,12 @@ class Runtime:
             if not self.commands.admit(res, arbitration_id, data):
                 if int(res.command) == 0:  # a request for the freshness value
                     return [self._freshness(t_s)]
-                result = AWAITING_CONFIRMATION if self.commands.awaiting > awaiting else REFUSED
+                if self.commands.awaiting > awaiting:
+                    result = AWAITING_CONFIRMATION
+                else:
+                    result = REFUSED
+                    if self.commands.faulty:  # stale, forged ...: a bad frame; the policy's refusals are not
+                        self.pipeline.on_fault(FrameFault.COMMAND_REFUSED)
                 return self._answer(t_s, int(res.command), result, res.freshness)
             done = self.pipeline.on_command(int(res.command), t_s)
             return done + self._answer(t_s, int(res.command), ACCEPTED, res.freshness)

@@ -81,7 +81,7 @@ def test_the_freshness_value_starts_above_the_clock_and_only_grows():
     assert rt.pipeline.commands == 1 and rt.commands.refusals["not fresh"] == 3
     rt.on_frame(T0 + 6, *_cmd(BenchCommand.ACK_ALERT, last + 60))  # a gap within the window is fine
     assert rt.pipeline.commands == 2 and _freshness(rt, T0 + 7)[0] == last + 60
-    assert rt.pipeline.counters.faults[FrameFault.COMMAND_REFUSED] == 0  # well-formed frames: policy, not faults
+    assert rt.pipeline.counters.faults[FrameFault.COMMAND_REFUSED] == 3  # bad frames, counted
 
 
 def test_one_relearn_frame_does_not_clear_the_baselines():
@@ -105,6 +105,7 @@ def test_relearn_disabled_by_config():
         rt.on_frame(T0 + 0.1 * k, *_cmd(BenchCommand.RELEARN_BASELINE, last + 1 + k))
     assert rt.pipeline.baseline.bands and rt.pipeline.commands == 0
     assert rt.commands.refused == 4 and rt.commands.refusals["policy"] == 4
+    assert rt.pipeline.counters.faults[FrameFault.COMMAND_REFUSED] == 0  # the policy's: no bad frames
     rt.on_frame(T0 + 2.0, *_cmd(BenchCommand.ACK_ALERT, last + 5))  # other commands still work
     assert rt.pipeline.commands == 1
 
