@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from online_id.config import Settings
+from online_id.config import Settings, settings_from_dict
 
 ROOT = Path(__file__).resolve().parent.parent
 README = ROOT / "README.md"
@@ -140,3 +140,14 @@ def test_the_quick_start_is_exactly_the_two_commands():
     assert commands == ["make demo", "make test"]
     makefile = (ROOT / "Makefile").read_text(encoding="utf-8")
     assert re.search(r"^demo:", makefile, re.M) and re.search(r"^test:", makefile, re.M)
+
+
+@pytest.mark.parametrize("page", ["README.md", "docs/config.md"])
+def test_the_configuration_examples_are_valid_configurations(page):
+    """The YAML examples a bench copies from the README and the reference load as they are."""
+    text = (ROOT / page).read_text(encoding="utf-8")
+    blocks = re.findall(r"```yaml\n(.*?)```", text, re.S)
+    assert blocks, f"{page} has no yaml example"
+    for block in blocks:
+        settings = settings_from_dict(yaml.safe_load(block), page)
+        assert settings != Settings(), f"a yaml example of {page} sets nothing"
