@@ -98,7 +98,7 @@ class FrameFault(IntEnum):
     TIME_BACKWARDS = 7  # timestamp older than the last sample of that role
     BAD_TIME = 8  # timestamp NaN, infinite, or far ahead of the stream clock and not confirmed
     BAD_CRC = 9  # input CRC (where the mapping has one) does not match the payload
-    COMMAND_REFUSED = 10  # command frame with a bad CRC, or a repeated or stale counter
+    COMMAND_REFUSED = 10  # command frame with a bad CRC, a freshness value that is not new, or a wrong MAC
 
 
 @dataclass(frozen=True)
