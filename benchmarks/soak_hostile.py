@@ -205,8 +205,10 @@ def main() -> int:
         }
         # a fault may be counted once more or less where it meets a clock step being confirmed
         # (frames that disagree cannot all be told right: see tests/test_hardening_soak.py)
+        # and a random payload in range may cost the sender's next frame as a DUPLICATE (its counter decides)
+        slack = {name: steps + 1 + (events.unpredicted if name == "DUPLICATE" else 0) for name in faults}
         row["ok"] = bool(
-            all(abs(n - m) <= steps + 1 for n, m in faults.values())
+            all(-slack[name] <= m - n <= slack[name] for name, (n, m) in faults.items())
             and gate.accepted == events.accepted and gate.awaiting == events.awaiting
             and (args.mode == "plain" or events.forged_acted == 0)
             and row["time_jumps_counted"] == steps

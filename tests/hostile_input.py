@@ -94,6 +94,7 @@ class HostileEvents:
         self.awaiting = 0  # first RELEARN frames it must hold for their confirmation
         self.forged_acted = 0  # forged pairs that acted (plain mode only)
         self.replayed_frames = 0  # captured frames sent again
+        self.unpredicted = 0  # random payloads in range: the assembler's counter check tells (DUPLICATE or not)
         self._oracle = InputDecoder(db)  # a decoder of its own, to tell what a random payload must give
         self._scenario = 0
         self._foreign = [i for i in range(0x800) if i not in (*INPUT_IDS, COMMAND_ID)]
@@ -167,7 +168,10 @@ class HostileEvents:
                 self.expect[res] += 1
             self.tried[f"random_payload: {res.name}"] += 1
         elif isinstance(res, list):
-            self.tried["random_payload: in range, taken as data"] += 1  # no input CRC mapped to tell
+            # no input CRC mapped to tell: its alive counter does (a COUNTER_JUMP, and the sender's next frame
+            # then repeats the counter the corrupt one took: a DUPLICATE), or rarely it is data
+            self.tried["random_payload: in range, judged by its counter"] += 1
+            self.unpredicted += 1
         elif res.command != BenchCommand.NONE:
             self.expect[FrameFault.COMMAND_REFUSED] += 1  # a CRC passed by chance: stale, or no MAC
             self.tried["random_payload: a command by chance"] += 1

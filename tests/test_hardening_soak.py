@@ -70,8 +70,10 @@ def test_mixed_hostile_input_keeps_the_service_publishing_and_right(tmp_path, mo
     assert all(tried.get(f"command: {k}", 0) >= 3 for k in ("legit", "forged", "replayed", "stale"))
     for fault, n in expect.items():
         # one genuine frame may be counted too where an outlier meets a clock step being confirmed (frames that
-        # disagree cannot all be told right); an in-range random payload may repeat a counter
-        assert n <= c.faults[fault] <= n + len(steps), (fault, n, c.faults[fault])
+        # disagree cannot all be told right); a random payload in range may cost the sender's next frame as a
+        # DUPLICATE (the corrupt counter took its slot)
+        slack = len(steps) + (events.unpredicted if fault == FrameFault.DUPLICATE else 0)
+        assert n <= c.faults[fault] <= n + slack, (fault, n, c.faults[fault])
     assert c.time_jumps == len(steps)
     assert gate.accepted == events.accepted and gate.awaiting == events.awaiting
     if mode == "authenticated":
