@@ -142,6 +142,12 @@ class Runtime:
     def _freshness(self, t_s: float) -> FreshnessOut:
         return FreshnessOut(t_s, self.commands.current(t_s), self.commands.authenticated)
 
+    @property
+    def stream_clock(self) -> float:
+        """The stream time of the newest input the pipeline took (NaN before one): what the service's loop
+        ticks from; a frame judged bad (a time far ahead held or refused, a bad frame) never moves it."""
+        return self.pipeline.assembler.now_s
+
     def tick_worker(self) -> list[OutFrame]:
         """No stream clock yet: only adopt finished slow work."""
         self.pipeline.poll_worker()

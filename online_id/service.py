@@ -3,8 +3,11 @@
 ``run_service(settings)`` opens the bus, restores the saved state, and loops:
 receive a frame (with a short timeout), run it through the :class:`Runtime`,
 send what it publishes, and between frames advance the stream clock so that
-silence is detected.  SIGTERM and SIGINT end the loop cleanly: the excitation
-request is withdrawn, the state is saved, the bus closed, exit status 0.
+silence is detected (from the time of the last frame the pipeline took,
+never from a frame judged bad).  SIGTERM and SIGINT end the loop cleanly: the
+excitation request is withdrawn, the state is saved, the bus closed, exit
+status 0; 1 when that last save failed (the state on disk is then older than
+the service's), so that systemd sees it.
 
 Nothing slow runs in the receive loop: the window refits, multi-start
 checks and physical fits go to a worker process at the lowest CPU priority
@@ -110,11 +113,11 @@ class Service:
             pipeline.worker = self.runtime.pipeline.worker  # the restored pipeline's slow work goes where ours did
             self.runtime.pipeline = pipeline
 
-    def save(self, final: bool = False) -> None:
+    def save(self, final: bool = False) -> bool:
         """Save the state: in the worker process while running (the write and fsync take tens of ms),
-        here and now at the end (``final``)."""
+        here and now at the end (``final``); False when a save here failed (said)."""
         if self.state_file is None:
-            return
+            return True
         state = self.runtime.pipeline.get_state()  # a snapshot (about 0.5 ms)
         worker = self.runtime.pipeline.worker
         if final or not worker.asynchronous:
@@ -122,8 +125,10 @@ class Service:
                 save_state(self.state_file, state)
             except OSError as err:
                 self.say(f"cannot save state to {self.state_file}: {err}")
+                return False
         elif not worker.busy("state"):
             worker.submit("state", save_state, (self.state_file, state), self._saved)
+        return True
 
     def _saved(self, _result, error: str | None) -> None:
         if error is not None:
@@ -266,10 +271,13 @@ class Service:
                     t_recv = wall()
                     now = monotonic()
                     if frame is not None:
-                        self.last_frame_wall = now
-                        self.last_frame_ts = frame.t_s
+                        before = runtime.stream_clock
                         pubs = runtime.publications(frame.t_s, frame.arbitration_id, frame.data,
                                                     frame.is_extended, frame.is_error)
+                        clock = runtime.stream_clock
+                        if clock != before and clock == clock:  # this frame moved it (and it is not NaN)
+                            # the loop's clock follows the frames the pipeline took, never a bad one's time
+                            self.last_frame_ts, self.last_frame_wall = clock, now
                         if pubs:
                             # a publication's first frame is its OidEstimate: encoded and sent before the
                             # others are encoded
@@ -284,7 +292,7 @@ class Service:
                     elif draining_until is not None:
                         break
                     elif self.last_frame_ts is not None:
-                        # the stream's clock: the last frame's timestamp plus the wall time since it came
+                        # the stream's clock: the last good frame's time plus the wall time since it came
                         # (frame timestamps may be kernel time, a replayed log's or a simulator's)
                         out = runtime.tick(self.last_frame_ts + now - self.last_frame_wall)
                     else:
@@ -335,7 +343,7 @@ class Service:
             bus.close()
             self.runtime.pipeline.worker.close()
             self._close_telemetry()
-        self.save(final=True)
+        saved = self.save(final=True)
         c = self.runtime.pipeline.counters
         self.say(f"stopped: {self.runtime.frames_in} frames in, {self.runtime.frames_out} frames out, "
                  f"{c.samples} samples, {c.bad_frames} bad frames, {c.missing_frames} missing frames, "
@@ -344,6 +352,9 @@ class Service:
                  f"{self.reaction.summary()}"
                  + (f" (the loop's own work on the frame: {self.processing.summary('processing')})"
                     if self.processing.n else ""))
+        if not saved:  # systemd sees it: the state on disk is older than the service's
+            self.say(f"exit status 1: the last save of the state failed ({self.state_file})")
+            return 1
         return 0
 
 
