@@ -218,6 +218,11 @@ class Service:
             self.say(f"state {text}")
             self.notifier.status(text)
 
+    def _commands_text(self) -> str:
+        gate = self.runtime.commands
+        why = ", ".join(f"{n} {reason}" for reason, n in sorted(gate.refusals.items()))
+        return f"{gate.accepted} commands accepted, {gate.refused} refused" + (f" ({why})" if why else "")
+
     def _close_telemetry(self) -> None:
         if self.telemetry is not None:
             self.telemetry.close(self.runtime.pipeline.state.name)
@@ -348,7 +353,8 @@ class Service:
         self.say(f"stopped: {self.runtime.frames_in} frames in, {self.runtime.frames_out} frames out, "
                  f"{c.samples} samples, {c.bad_frames} bad frames, {c.missing_frames} missing frames, "
                  f"{self.runtime.pipeline.dropped_frames} dropped by the kernel, "
-                 f"{c.faults[FrameFault.UNKNOWN_ID]} foreign frames, state {self.runtime.pipeline.state.name}; "
+                 f"{c.faults[FrameFault.UNKNOWN_ID]} foreign frames, {self._commands_text()}, "
+                 f"state {self.runtime.pipeline.state.name}; "
                  f"{self.reaction.summary()}"
                  + (f" (the loop's own work on the frame: {self.processing.summary('processing')})"
                     if self.processing.n else ""))

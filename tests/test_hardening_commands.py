@@ -238,6 +238,17 @@ def test_the_service_says_at_start_whether_commands_are_authenticated(tmp_path, 
     assert "commands are authenticated (HMAC-SHA256" in line and "kept in the state directory" in line
 
 
+def test_the_service_reports_the_commands_when_it_stops():
+    log = io.StringIO()
+    svc = Service(Settings(), log=log, worker=InlineWorker(),
+                  bus_factory=lambda: CanBus("virtual", f"stop-{os.getpid()}"))
+    last, _ = _freshness(svc.runtime, T0)
+    for _ in range(2):  # the second is a replay
+        svc.runtime.on_frame(T0 + 1, *_cmd(BenchCommand.ACK_ALERT, last + 1))
+    assert svc.run(max_s=0.2) == 0
+    assert "1 commands accepted, 1 refused (1 not fresh)" in log.getvalue().splitlines()[-1]
+
+
 @pytest.mark.parametrize("text,needle", [("zz" * 16, "as hex digits"), ("ab" * 8 + "a", "as hex digits"),
                                          ("ab" * 15, "a key of 15 bytes")])
 def test_a_bad_key_file_is_one_line(tmp_path, text, needle):
