@@ -152,3 +152,24 @@ def test_a_seed_draws_the_same_case_and_kinds_cycle():
     assert [draw_case(s, quick=True)["kind"] for s in range(900, 909)] == [
         "clean", "rotation_order", "cylinder_family", "fixed_frequency", "structural_resonance",
         "unmeasured_inertia", "backlash", "coulomb_friction", "sensor_delay"]
+
+
+@pytest.mark.slow
+def test_the_runner_end_to_end_on_one_bench(tmp_path):
+    """One quick clean bench through the whole runner: files, the CLI as a child process, strict scoring; the
+    outcome is the diagnosis's, the structure is the runner's."""
+    from online_id.evaluation.chain import run_family
+
+    lines = []
+    records, summary = run_family([108], tmp_path, quick=True, jobs=1, report=lines.append)
+    (rec,) = records
+    case = tmp_path / "case-108"
+    assert {"truth.json", "bench.yaml", "diagnosis.json", "diagnosis.stderr", "score.json"} <= {
+        p.name for p in case.iterdir()}
+    assert not (case / "bench.csv").exists()  # data are redrawn from the seed, not kept
+    assert rec["failure"] in (None, "json-nan", "json", "crash", "input", "cli", "timeout")
+    assert rec["kind_right"] == (rec["failure"] is None and rec["named"] == "none")
+    assert len(lines) == 1 and "seed 108 clean (bench)" in lines[0]
+    assert (tmp_path / "table.md").read_text().startswith("| truth kind")
+    assert (tmp_path / "confusion.png").stat().st_size > 1000
+    assert json.loads((tmp_path / "results.json").read_text())["cases"][0]["seed"] == 108

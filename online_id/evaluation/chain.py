@@ -74,6 +74,9 @@ def run_case(seed: int, quick: bool, out: Path, timeout_s: float = DEFAULT_TIMEO
 
 def _line(done: int, total: int, rec: dict, elapsed: float) -> str:
     mark = "right" if rec["kind_right"] else ("FAILED " + rec["failure"] if rec["failure"] else "wrong")
+    lenient = rec.get("if_nan_were_null")
+    if lenient:
+        mark += f" [with NaN read as null: {lenient['named']}, {'right' if lenient['kind_right'] else 'wrong'}]"
     label = rec["kind"] + (f"/{rec['variant']}" if rec["variant"] else "")
     eta = elapsed / done * (total - done)
     return (f"[{done}/{total}] seed {rec['seed']} {label} ({rec['layout']}) -> {rec['named']}: {mark}  "
