@@ -115,3 +115,14 @@ def test_wilson_intervals_and_the_summary_above_the_smallest_decile():
     assert rows == ["clean", "backlash"] and cols[0] == "none" and cols[-1] == "error"
     assert counts[1][cols.index("coulomb_friction")] == 1
     assert "| backlash | 3 (2) | 67 %" in table_markdown(s)
+
+
+def test_the_command_refuses_bad_settings_in_one_line(tmp_path, capsys):
+    from online_id.cli import main
+
+    assert main(["evaluate-diagnose-chain", "--program", str(tmp_path / "nothing"), "--out", str(tmp_path)]) == 2
+    assert capsys.readouterr().err.strip() == f"error: --program {tmp_path / 'nothing'}: no such file"
+    assert main(["evaluate-diagnose-chain", "--cases", "0", "--out", str(tmp_path)]) == 2
+    assert main(["evaluate-diagnose-chain", "--seed", "108", "--cases", "1", "--layout", "rig", "--quick",
+                 "--out", str(tmp_path)]) == 2  # seed 108 draws a bench
+    assert "no rig case among seeds 108..108" in capsys.readouterr().err

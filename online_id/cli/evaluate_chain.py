@@ -28,6 +28,10 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--timeout", type=float, default=1800.0, metavar="S", help="seconds per diagnosis (default 1800)")
     p.add_argument("--keep-data", action="store_true", help="keep the data files of every case (default: only "
                    "truth, config, the tool's output and the score; the data are redrawn from the seed)")
+    p.add_argument("--layout", choices=("bench", "rig"), help="run only the seeds of SEED..SEED+N-1 whose case "
+                   "is of this layout")
+    p.add_argument("--program", metavar="PATH", help="the online-id executable to judge (default: this "
+                   "installation's, as `python -m online_id`), e.g. another checkout's .venv/bin/online-id")
     p.add_argument("--out", metavar="DIR", default="chain-eval", help="output directory (default chain-eval)")
     p.set_defaults(func=run)
 
@@ -38,11 +42,23 @@ def run(args: argparse.Namespace) -> int:
     if args.cases < 1 or args.jobs < 1 or args.timeout <= 0 or args.seed < 0:
         raise ConfigError("--cases and --jobs must be >= 1, --timeout > 0, --seed >= 0")
     seeds = list(range(args.seed, args.seed + args.cases))
+    if args.layout:
+        from online_id.evaluation.chain_cases import draw_case
+
+        seeds = [s for s in seeds if draw_case(s, args.quick)["layout"] == args.layout]
+        if not seeds:
+            raise ConfigError(f"no {args.layout} case among seeds {args.seed}..{args.seed + args.cases - 1}")
+    program = None
+    if args.program:
+        if not Path(args.program).is_file():
+            raise ConfigError(f"--program {args.program}: no such file")
+        program = [str(Path(args.program).resolve())]
     out = Path(args.out)
-    print(f"chain family: seeds {seeds[0]}-{seeds[-1]}{' (quick)' if args.quick else ''}, {args.jobs} jobs, "
-          f"output in {out}/", file=sys.stderr, flush=True)
+    print(f"chain family: {len(seeds)} cases of seeds {args.seed}-{args.seed + args.cases - 1}"
+          f"{' (quick)' if args.quick else ''}{', ' + args.layout + ' only' if args.layout else ''}, "
+          f"{args.jobs} jobs, output in {out}/", file=sys.stderr, flush=True)
     _records, summary = run_family(seeds, out, quick=args.quick, jobs=args.jobs, timeout_s=args.timeout,
-                                   keep_data=args.keep_data)
+                                   keep_data=args.keep_data, program=program)
     print((out / "table.md").read_text(encoding="utf-8"))
     print(f"results: {out / 'results.json'}, {out / 'table.md'}, {out / 'confusion.png'}")
     return 0

@@ -25,12 +25,18 @@ from online_id.evaluation.chain_score import confusion_png, score_case, summaris
 DEFAULT_TIMEOUT_S = 1800.0
 
 
-def diagnose_as_user(argv: list[str], cwd: Path, timeout_s: float) -> tuple[int | None, str, str]:
-    """Run ``online-id`` with ``argv`` in ``cwd`` as a child process; (exit status or None on timeout, stdout,
-    stderr)."""
+def default_program() -> list[str]:
+    """The ``online-id`` of this installation: this interpreter's ``-m online_id``."""
+    return [sys.executable, "-m", "online_id"]
+
+
+def diagnose_as_user(argv: list[str], cwd: Path, timeout_s: float,
+                     program: list[str] | None = None) -> tuple[int | None, str, str]:
+    """Run ``online-id`` (``program``, default :func:`default_program`) with ``argv`` in ``cwd`` as a child
+    process; (exit status or None on timeout, stdout, stderr)."""
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
     try:
-        res = subprocess.run([sys.executable, "-m", "online_id", *argv], cwd=cwd, capture_output=True, text=True,
+        res = subprocess.run([*(program or default_program()), *argv], cwd=cwd, capture_output=True, text=True,
                              timeout=timeout_s, env=env)
     except subprocess.TimeoutExpired as err:
         out = err.stdout.decode() if isinstance(err.stdout, bytes) else (err.stdout or "")
@@ -52,13 +58,14 @@ def prepare_case(seed: int, quick: bool, directory: Path) -> tuple[dict, list[st
     return json.loads((directory / "truth.json").read_text(encoding="utf-8")), argv
 
 
-def run_case(seed: int, quick: bool, out: Path, timeout_s: float = DEFAULT_TIMEOUT_S, keep_data: bool = False) -> dict:
+def run_case(seed: int, quick: bool, out: Path, timeout_s: float = DEFAULT_TIMEOUT_S, keep_data: bool = False,
+             program: list[str] | None = None) -> dict:
     """Prepare, diagnose and score one case (see module notes); never raises for a failing diagnosis."""
     t0 = time.monotonic()
     directory = out / f"case-{seed}"
     truth, argv = prepare_case(seed, quick, directory)
     t1 = time.monotonic()
-    rc, stdout, stderr = diagnose_as_user(argv, directory, timeout_s)
+    rc, stdout, stderr = diagnose_as_user(argv, directory, timeout_s, program)
     t2 = time.monotonic()
     (directory / "diagnosis.json").write_text(stdout, encoding="utf-8")
     (directory / "diagnosis.stderr").write_text(stderr, encoding="utf-8")
@@ -84,8 +91,10 @@ def _line(done: int, total: int, rec: dict, elapsed: float) -> str:
 
 
 def run_family(seeds: list[int], out: Path, quick: bool = False, jobs: int = 2, timeout_s: float = DEFAULT_TIMEOUT_S,
-               keep_data: bool = False, report: Callable[[str], None] | None = None) -> tuple[list[dict], dict]:
-    """Run the cases of ``seeds`` on ``jobs`` processes, write the results into ``out``; (records, summary)."""
+               keep_data: bool = False, report: Callable[[str], None] | None = None,
+               program: list[str] | None = None) -> tuple[list[dict], dict]:
+    """Run the cases of ``seeds`` on ``jobs`` processes, write the results into ``out``; (records, summary).
+    ``program``: the ``online-id`` to judge (default: this installation's)."""
     out.mkdir(parents=True, exist_ok=True)
     report = report or (lambda s: print(s, file=sys.stderr, flush=True))
     sink = out / "results.jsonl"
@@ -93,7 +102,7 @@ def run_family(seeds: list[int], out: Path, quick: bool = False, jobs: int = 2, 
     records: list[dict] = []
     t0 = time.monotonic()
     with ProcessPoolExecutor(max_workers=jobs) as pool:
-        futures = {pool.submit(run_case, s, quick, out, timeout_s, keep_data): s for s in seeds}
+        futures = {pool.submit(run_case, s, quick, out, timeout_s, keep_data, program): s for s in seeds}
         for fut in as_completed(futures):
             seed = futures[fut]
             try:
@@ -109,7 +118,8 @@ def run_family(seeds: list[int], out: Path, quick: bool = False, jobs: int = 2, 
             report(_line(len(records), len(seeds), rec, time.monotonic() - t0))
     records.sort(key=lambda r: r["seed"])
     summary = summarise(records)
-    (out / "results.json").write_text(json.dumps({"seeds": [min(seeds), max(seeds)], "quick": quick,
+    (out / "results.json").write_text(json.dumps({"seeds": seeds, "quick": quick,
+                                                  "program": program or default_program(),
                                                   "summary": summary, "cases": records}, indent=1) + "\n",
                                       encoding="utf-8")
     (out / "table.md").write_text(table_markdown(summary), encoding="utf-8")
