@@ -24,7 +24,6 @@ AWAITING_MERGE = {
     "docs/testing.md",
     "docs/benchmarks.md",
     "docs/archive.md",
-    "docs/security.md",
     "docs/measured-rigs.md",
 }
 
