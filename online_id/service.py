@@ -221,7 +221,7 @@ class Service:
     def _commands_text(self) -> str:
         gate = self.runtime.commands
         why = ", ".join(f"{n} {reason}" for reason, n in sorted(gate.refusals.items()))
-        return f"{gate.accepted} commands accepted, {gate.refused} refused" + (f" ({why})" if why else "")
+        return f"{gate.accepted} commands accepted, {gate.refused} rejected" + (f" ({why})" if why else "")
 
     def _close_telemetry(self) -> None:
         if self.telemetry is not None:

@@ -246,7 +246,7 @@ def test_the_service_reports_the_commands_when_it_stops():
     for _ in range(2):  # the second is a replay
         svc.runtime.on_frame(T0 + 1, *_cmd(BenchCommand.ACK_ALERT, last + 1))
     assert svc.run(max_s=0.2) == 0
-    assert "1 commands accepted, 1 refused (1 not fresh)" in log.getvalue().splitlines()[-1]
+    assert "1 commands accepted, 1 rejected (1 not fresh)" in log.getvalue().splitlines()[-1]
 
 
 @pytest.mark.parametrize("text,needle", [("zz" * 16, "as hex digits"), ("ab" * 8 + "a", "as hex digits"),
