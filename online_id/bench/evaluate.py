@@ -140,18 +140,27 @@ class RunResult:
         return dataclasses.asdict(self)
 
 
-def random_plant(rng: np.random.Generator) -> dict[str, Any]:
-    """Scenario fields of a random bench (see module notes)."""
+def random_driveline(rng: np.random.Generator, f0_hz: tuple[float, float] = (16.0, 34.0),
+                     zeta: tuple[float, float] = (0.03, 0.08)) -> tuple[dict[str, Any], float]:
+    """Scenario fields ``J1, J2, c_s, d_s, n_cyl, noise`` of a random two-mass driveline (inertias 0.5-1.2 and
+    0.2-0.6 kg m^2, resonance and damping ratio uniform in ``f0_hz`` and ``zeta``, 4 or 6 cylinders,
+    measurement noise), and its resonance [Hz] as drawn."""
     J1 = rng.uniform(0.5, 1.2)
     J2 = rng.uniform(0.2, 0.6)
-    f0 = rng.uniform(16.0, 34.0)
-    zeta = rng.uniform(0.03, 0.08)
+    f0 = rng.uniform(*f0_hz)
+    z = rng.uniform(*zeta)
     J = J1 * J2 / (J1 + J2)
     c_s = (2.0 * math.pi * f0) ** 2 * J
-    d_s = 2.0 * zeta * math.sqrt(c_s * J)
+    d_s = 2.0 * z * math.sqrt(c_s * J)
     n_cyl = int(rng.choice([4, 6]))
     noise = Noise(dyno_speed_rpm=rng.uniform(0.02, 0.1), engine_speed_rpm=rng.uniform(0.05, 0.2),
                   torque_nm=rng.uniform(0.1, 0.5))
+    return {"J1": J1, "J2": J2, "c_s": c_s, "d_s": d_s, "n_cyl": n_cyl, "noise": noise}, f0
+
+
+def random_plant(rng: np.random.Generator) -> dict[str, Any]:
+    """Scenario fields of a random bench (see module notes)."""
+    plant, f0 = random_driveline(rng)
     friction = Friction(b0=rng.uniform(3.0, 8.0), b1=rng.uniform(0.01, 0.03), b2=2e-5,
                         drift=rng.uniform(-0.4, 0.2), drift_tau_s=rng.uniform(300.0, 1800.0))
     fx: dict[str, Any] = {}
@@ -169,8 +178,8 @@ def random_plant(rng: np.random.Generator) -> dict[str, Any]:
         fx["structural_resonance"] = StructuralResonance(freq_hz=rng.uniform(2.5, 4.0) * f0, zeta=0.02,
                                                          amplitude_nm=rng.uniform(0.2, 1.0))
     return {
-        "J1": J1, "J2": J2, "c_s": c_s, "d_s": d_s, "n_cyl": n_cyl, "noise": noise, "friction": friction,
-        "effects": Effects(**fx), "prbs": PrbsSettings(amplitude_nm=rng.uniform(30.0, 50.0), period_s=1.0),
+        **plant, "friction": friction, "effects": Effects(**fx),
+        "prbs": PrbsSettings(amplitude_nm=rng.uniform(30.0, 50.0), period_s=1.0),
     }
 
 
