@@ -104,9 +104,14 @@ def _held(rows: list[dict[str, Any]]) -> tuple[dict[tuple, int], dict[str, tuple
 
 def run(paths: Sequence[str], out: str | Path, mode: str, settings: Settings, client: Any, *,
         rules: MetaRules | None = None, segment_s: float | None = None, quiet: bool = False,
-        say: Callable[[str], None] | None = None) -> RunSummary:
+        say: Callable[[str], None] | None = None, flush_s: float = 5.0,
+        on_task: Callable[[Outcome], None] | None = None) -> RunSummary:
     """Identify (``mode`` "identify") or also diagnose ("diagnose") the recordings ``paths`` into the
-    table ``out`` on ``client``'s cluster (see module notes)."""
+    table ``out`` on ``client``'s cluster (see module notes).
+
+    ``flush_s``: how often the rows that came in are written to the table (0: at once).  ``on_task`` is
+    called after each task's rows are queued for the table.
+    """
     if mode not in rec.MODES:
         raise ValueError(f"mode: expected one of {rec.MODES}, got {mode!r}")
     say = say or (lambda text: None)
@@ -115,7 +120,7 @@ def run(paths: Sequence[str], out: str | Path, mode: str, settings: Settings, cl
         segment_s = None  # a diagnosis reads the whole recording
     files = expand(paths)
     summary = RunSummary(recordings=len(files))
-    with ResultStore(out, about(mode, settings, segment_s)) as store:
+    with ResultStore(out, about(mode, settings, segment_s), flush_s=flush_s) as store:
         complete, by_hash = _held(store.rows())
         todo = []
         for f in files:
@@ -183,6 +188,8 @@ def run(paths: Sequence[str], out: str | Path, mode: str, settings: Settings, cl
                 summary.messages.append(f"{job.probe.path}: {rows[0]['error']}")
             elif rows and rows[0]["status"] == "ok":
                 summary.ok += 1
+            if on_task is not None:
+                on_task(o)
 
         summary.outcomes = map_tasks(client, rec.process, jobs, label=f"archive {mode}", on_done=done, quiet=quiet)
         summary.rows = len(store.compact())

@@ -21,12 +21,14 @@ from __future__ import annotations
 
 import datetime as dt
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from online_id.analysis.poles import DRIVELINE, pole_std
-from online_id.estimation.identification import IdentificationResult
+
+if TYPE_CHECKING:  # the table is read (trend) without loading the estimation
+    from online_id.estimation.identification import IdentificationResult
 
 OK = "ok"
 NO_DRIVELINE = "no_driveline"
@@ -109,7 +111,7 @@ def _num(x: Any) -> float | None:
     return float(x) if x is not None and np.isfinite(x) else None
 
 
-def identification_rows(base: dict[str, Any], result: IdentificationResult,
+def identification_rows(base: dict[str, Any], result: "IdentificationResult",
                         load_nm: list[float]) -> list[dict[str, Any]]:
     """One row per operating point of ``result`` (``base``: the recording's columns; ``load_nm``: the mean
     dyno torque of each point)."""

@@ -64,6 +64,9 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
             q.add_argument("--segment-minutes", type=float, default=60.0, metavar="MIN",
                            help="cut recordings longer than 1.5 times this into parts of about this length, one "
                                 "task each (default 60; 0: never)")
+        q.add_argument("--flush-seconds", type=float, default=5.0, metavar="S",
+                       help="write the rows that came in to the table every S seconds (default 5; 0: as each "
+                            "task completes); a run that is killed loses at most these")
         q.add_argument("--quiet", action="store_true", help="no progress line")
         q.set_defaults(func=run_batch, mode=mode)
     s = sub.add_parser("simulate", help="write a simulated archive (MDF 4 with test-centre metadata)",
@@ -110,7 +113,7 @@ def run_batch(args: argparse.Namespace) -> int:
     with _client(args) as client:
         summary = batch.run(files, args.out, args.mode, s, client, rules=rules,
                             segment_s=60.0 * segment if segment else None, quiet=args.quiet,
-                            say=lambda text: print(text, file=sys.stderr))
+                            say=lambda text: print(text, file=sys.stderr), flush_s=max(args.flush_seconds, 0.0))
     for line in summary.messages[:20]:
         print(f"  {line}", file=sys.stderr)
     if len(summary.messages) > 20:
