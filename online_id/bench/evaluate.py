@@ -415,6 +415,7 @@ def summarize(results: list[RunResult]) -> dict[str, Any]:
         "fault_free": {
             "hours": hours, "runs": len(free), "false_alarms": n_false, "false_fault_alarms": n_false_fault,
             "false_alarms_per_hour": n_false / hours if hours else None,
+            **rate_per_1000h(n_false, hours),
             "valid_fraction": float(np.mean([r.valid_fraction for r in free])) if free else None,
             "f0_error_pct_p50_abs": float(np.median(np.abs(errs))) if errs.size else None,
             "f0_error_pct_p99_abs": float(np.quantile(np.abs(errs), 0.99)) if errs.size else None,
@@ -460,6 +461,27 @@ def summarize(results: list[RunResult]) -> dict[str, Any]:
                                       "p90": float(np.quantile(back, 0.9)), "max": float(max(back))}
                                      if back else None)
     return out
+
+
+def rate_per_1000h(events: int, hours: float, level: float = 0.95) -> dict[str, Any]:
+    """False alarms per 1,000 hours with its exact (Garwood) Poisson interval at ``level``.
+
+    Notes
+    -----
+    For :math:`n` events in :math:`T` hours the interval of the rate is
+    :math:`[\chi^2_{2n}(\alpha/2) / 2T,\ \chi^2_{2n+2}(1-\alpha/2) / 2T]`
+    (the lower end 0 for :math:`n = 0`): with no false alarm in 3,000 hours the
+    upper end is 1.23 per 1,000 hours.
+    """
+    if not hours > 0:
+        return {"false_alarms_per_1000h": None, "false_alarms_per_1000h_ci": None}
+    from scipy.stats import chi2
+
+    a = 1.0 - level
+    lo = 0.0 if events == 0 else float(chi2.ppf(a / 2.0, 2 * events)) / 2.0
+    hi = float(chi2.ppf(1.0 - a / 2.0, 2 * events + 2)) / 2.0
+    k = 1000.0 / hours
+    return {"false_alarms_per_1000h": events * k, "false_alarms_per_1000h_ci": [lo * k, hi * k]}
 
 
 def _withheld(rs: list[RunResult], name: str) -> dict[str, int] | None:
