@@ -299,3 +299,34 @@ def test_the_service_and_the_offline_commands_run_without_dask(tmp_path):
     assert errs[0].startswith("error: this command runs on Dask, which is not installed")
     assert "pip install 'online-id[archive]'" in errs[0]
     assert errs[1].startswith("error: the results table needs pyarrow") and len(errs) == 2
+
+
+@pytest.mark.slow
+def test_a_long_recording_is_cut_into_segments_each_a_task(archive, tmp_path):
+    """The windows of :func:`segments`, and one window identified as its own task (in this process)."""
+    from online_id.archive import recording as rec
+
+    assert rec.segments((0.0, 80.0), 60.0) == [None]  # up to 1.5 segments: whole
+    assert rec.segments((0.0, 100.0), 60.0) == [(0.0, 50.0), (50.0, 100.0)]
+    assert rec.segments((0.0, 100.0), None) == [None]
+    assert rec.segments((10.0, 190.0), 60.0) == [(10.0, 70.0), (70.0, 130.0), (130.0, 190.0)]
+    import dataclasses
+
+    from online_id.bench.scenario import BenchScenario, OperatingPoint
+    from online_id.bench.simulate import simulate_bench
+    from online_id.io.mdf_header import write_recording
+
+    sc = dataclasses.replace(BenchScenario(), seed=5, operating_points=tuple(
+        OperatingPoint(s, 12.0) for s in (1200.0, 2000.0, 1500.0, 2400.0)))  # 4 points, 57 s
+    cols = simulate_bench(sc).columns()
+    path = str(tmp_path / "long.mf4")
+    write_recording(path, cols["time_s"], {k: (cols[k], u) for k, u in (("dyno_speed_rpm", "rpm"), (
+        "engine_speed_rpm", "rpm"), ("dyno_torque_nm", "Nm"))}, start_time=dt.datetime.now(dt.timezone.utc))
+    p = rec.probe(rec.ProbeJob(path, MetaRules(), settings(archive), segment_s=25.0))
+    assert p.error is None and len(p.sha256) == 64 and p.span_s[1] > 50.0
+    windows = rec.segments(p.span_s, 25.0)
+    assert len(windows) == 2
+    rows = rec.process(rec.Job(p, "identify", settings(archive), 1, 2, windows[1]))
+    assert {(r["segment"], r["segments"], r["segment_t0_s"]) for r in rows} == {(1, 2, windows[1][0])}
+    assert all(windows[1][0] <= r["t_start_s"] < r["t_end_s"] <= windows[1][1] + 1e-3 for r in rows)
+    assert {r["status"] for r in rows} == {"ok"} and len(rows) == 2, rows[0]["error"]

@@ -152,12 +152,9 @@ def cluster(scheduler: str | None = None, workers: int = 2, *, quiet: bool = Fal
         return
     if workers < 1:
         raise ConfigError(f"--workers: expected a number >= 1, got {workers!r}")
-    try:
-        import bokeh  # noqa: F401  (the dashboard needs it; without it the cluster runs without one)
-
-        dashboard: str | None = "127.0.0.1:0"
-    except ImportError:
-        dashboard = None
+    # a free port: another cluster on the machine may hold the default 8787 (without bokeh the scheduler
+    # still serves its HTTP endpoints there, without the dashboard's pages)
+    dashboard = "127.0.0.1:0"
     env = {k: "1" for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
     local = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
                          dashboard_address=dashboard, memory_limit=memory_limit, env=env,
@@ -172,6 +169,10 @@ def cluster(scheduler: str | None = None, workers: int = 2, *, quiet: bool = Fal
 
 def dashboard_note(client: Any) -> str | None:
     """"dashboard: http://..." when the cluster serves one, else None."""
+    try:
+        import bokeh  # noqa: F401  (the dashboard's pages need it)
+    except ImportError:
+        return None
     try:
         link = client.dashboard_link
     except Exception:  # noqa: BLE001 - no dashboard (bokeh missing, or the scheduler runs without)

@@ -464,7 +464,7 @@ def summarize(results: list[RunResult]) -> dict[str, Any]:
 
 
 def rate_per_1000h(events: int, hours: float, level: float = 0.95) -> dict[str, Any]:
-    """False alarms per 1,000 hours with its exact (Garwood) Poisson interval at ``level``.
+    r"""False alarms per 1,000 hours with its exact (Garwood) Poisson interval at ``level``.
 
     Notes
     -----
