@@ -289,7 +289,6 @@ def test_the_service_and_the_offline_commands_run_without_dask(tmp_path):
         "from online_id.cli import main\n"
         "rc1 = main(['archive', 'identify', sys.argv[1], '--out', sys.argv[2]])\n"
         "rc2 = main(['trend', sys.argv[2], '--out', sys.argv[2]])\n"
-        "rc3 = main(['evaluate', '--help']) if False else 0\n"
         "print('RC', rc1, rc2, [m for m in sys.modules if m.split('.')[0] in ('dask', 'distributed', 'pyarrow')])\n"
     )
     res = subprocess.run([sys.executable, "-c", code, str(tmp_path), str(tmp_path / "out")], capture_output=True,
@@ -330,3 +329,23 @@ def test_a_long_recording_is_cut_into_segments_each_a_task(archive, tmp_path):
     assert {(r["segment"], r["segments"], r["segment_t0_s"]) for r in rows} == {(1, 2, windows[1][0])}
     assert all(windows[1][0] <= r["t_start_s"] < r["t_end_s"] <= windows[1][1] + 1e-3 for r in rows)
     assert {r["status"] for r in rows} == {"ok"} and len(rows) == 2, rows[0]["error"]
+
+
+@pytest.mark.slow
+def test_archive_diagnose_adds_the_effects_of_online_id_diagnose(archive, reference, tmp_path, capsys):
+    from online_id.cli.diagnose import bench_series
+    from online_id.diagnose.bench_diagnosis import diagnose_bench
+
+    path = recordings(archive)[0]
+    rc = main(["archive", "diagnose", path, "--out", str(tmp_path / "d"), "--workers", "1", "--quiet",
+               "--config", str(archive / "config.yaml")])
+    assert rc == 0 and "1 tasks run (1 identified, 0 failed, 0 lost)" in capsys.readouterr().out
+    rows = read_rows(tmp_path / "d")
+    ident = [r for r in read_rows(reference[0]) if r["path"] == path]
+    assert [r["f0_hz"] for r in rows] == [r["f0_hz"] for r in ident]  # the same identification
+    doc = diagnose_bench(bench_series(Path(path), settings(archive)), na=6, nb=6, max_effects=3).as_dict()
+    assert {r["diagnosis"] for r in rows} == {doc["result"]}
+    kinds = [e["kind"] for e in doc["effects"]]
+    assert all(r["mode"] == "diagnose" for r in rows)
+    assert (rows[0]["effects"] or "") .count("(") == len(kinds)
+    assert all(k in (rows[0]["effects"] or "") for k in kinds)

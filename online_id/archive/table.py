@@ -146,11 +146,15 @@ def identification_rows(base: dict[str, Any], result: "IdentificationResult",
 
 def effects_text(effects: list[dict[str, Any]]) -> str | None:
     """``kind(param=value, ...)`` of each effect (as in ``diagnose --json``'s ``effects``), joined by '; '."""
-    parts = []
-    for e in effects:
-        params = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
-                           for k, v in (e.get("params") or {}).items())
-        parts.append(f"{e['kind']}({params})")
+    def text(v: Any) -> str:
+        if isinstance(v, float):
+            return f"{v:.4g}"
+        if isinstance(v, dict):
+            return "{" + ", ".join(f"{k}: {text(x)}" for k, x in v.items()) + "}"
+        return str(v)
+
+    parts = [f"{e['kind']}(" + ", ".join(f"{k}={text(v)}" for k, v in (e.get("params") or {}).items()) + ")"
+             for e in effects]
     return "; ".join(parts) or None
 
 
