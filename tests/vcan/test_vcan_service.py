@@ -8,6 +8,7 @@ command frames, candump records what the service publishes, and
 from __future__ import annotations
 
 import dataclasses
+import os
 import re
 import signal
 import subprocess
@@ -22,7 +23,7 @@ from online_id.io.canlog import write_log
 from online_id.io.dbc import default_dbc_path, encode_inputs, load_dbc
 from online_id.io.dbc_output import OutputEncoder
 
-TIMEOUT_S = 240
+TIMEOUT_S = 240 * float(os.environ.get("VM_RUN_SLOW", "1"))  # stretched where the CPU is emulated
 CANDUMP_LINE = re.compile(r"^\((?P<t>[\d.]+)\)\s+\S+\s+(?P<id>[0-9A-Fa-f]+)#(?P<data>[0-9A-Fa-f]*)")
 
 
