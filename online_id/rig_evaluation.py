@@ -2,8 +2,9 @@
 
 Each case simulates a rig (:mod:`online_id.bench.rig`: 2-3 gear stages,
 two recorders on drifting clocks, encoder angles, jitter), puts the records
-through the same path as ``online-id diagnose --second-file`` (resampling,
-clock alignment, shafts from angles, decimation) and diagnoses the motor
+through the same path as ``online-id diagnose --second-file``
+(:func:`online_id.layouts.assemble`: resampling, clocks estimated where they
+plainly differ, shafts from angles, torsion, decimation) and diagnoses the motor
 speed from the torque demand.  True effects: a rotation-order disturbance on
 each shaft in turn, at an order that is identifiable (no faster shaft turns
 at an integer fraction of it, see :func:`identifiable_orders`); clean rigs
@@ -21,11 +22,10 @@ from pathlib import Path
 import numpy as np
 
 from online_id.bench.rig import OrderDisturbance, RigSpec, random_rig, simulate_rig
-from online_id.diagnose import diagnose
+from online_id.diagnose import DiagnoseData, diagnose
 from online_id.diagnose.align import resample_uniform
-from online_id.diagnose.records import RecordSpec, build_data
 from online_id.diagnose.residual_tests import RIG_LINE_RATIO, RIG_SPLIT_RATIO
-from online_id.diagnose.shafts import ShaftSource
+from online_id.layouts import Column, Layout, ShaftColumn, assemble
 
 SAMPLE_RATE_HZ = 200.0
 SIM_HORIZON_S = 0.1  # the load loop's set point is unmeasured: longer simulations judge it, not the model
@@ -66,11 +66,22 @@ def rig_spec(seed: int, shaft: int | None, magnitude: float) -> RigSpec:
     return replace(spec, disturbance=dist)
 
 
-def record_spec(spec: RigSpec) -> RecordSpec:
-    """The options a user would give ``online-id diagnose`` for this rig (angles, no ratios)."""
-    shafts = tuple(ShaftSource(n, "angle", f"{n}_angle_rad") for n in spec.names)
-    return RecordSpec("torque_demand_nm", f"{spec.names[0]}_angle_rad", shafts,
-                      differentiate_output=True, sample_rate_hz=SAMPLE_RATE_HZ)
+def rig_layout(spec: RigSpec, clock: str = "auto") -> Layout:
+    """The layout a user would give ``online-id diagnose`` for this rig's two files (angles, no ratios,
+    the clocks estimated where they plainly differ): what :func:`online_id.layouts.assemble` reads."""
+    shafts = tuple(ShaftColumn(n, "angle", Column(0 if i == 0 else 1, f"{n}_angle_{spec.angle_suffix}"),
+                               1.0 / spec.angle_scale, spec.angle_suffix) for i, n in enumerate(spec.names))
+    return Layout(Column(0, "torque_demand_nm"), shafts[0].column, shafts, differentiate_output=True,
+                  clock=clock, sample_rate_hz=SAMPLE_RATE_HZ)
+
+
+def rig_data(spec: RigSpec, seed: int, clock: str = "auto") -> DiagnoseData:
+    """Simulate the rig and read its two records as ``online-id diagnose --second-file`` does."""
+    rec = simulate_rig(spec, seed)
+    drive, sensor = dict(rec.drive), dict(rec.sensor)
+    r1 = resample_uniform(drive.pop("time_s"), drive, "drive", "time_s")
+    r2 = resample_uniform(sensor.pop("time_s"), sensor, "sensor", "time_s")
+    return assemble([r1, r2], rig_layout(spec, clock), ["drive", "sensor"])
 
 
 def run_case(seed: int, shaft: int | None, magnitude: float, na: int | None = None, nb: int | None = None,
@@ -80,10 +91,7 @@ def run_case(seed: int, shaft: int | None, magnitude: float, na: int | None = No
     spec = rig_spec(seed, shaft, magnitude)
     if plateau_s is not None:
         spec = replace(spec, plateau_s=float(plateau_s))
-    rec = simulate_rig(spec, seed)
-    r1 = resample_uniform(rec.drive.pop("time_s"), rec.drive, "drive", "time_s")
-    r2 = resample_uniform(rec.sensor.pop("time_s"), rec.sensor, "sensor", "time_s")
-    data = build_data(r1, r2, record_spec(spec), f"rig seed {seed}")
+    data = rig_data(spec, seed)
     d = diagnose(data, na=na, nb=nb, nc=nc, nk=1, max_effects=max_effects, sim_horizon_s=SIM_HORIZON_S)
     clock = data.notes["clock"]
     truth = spec.disturbance
@@ -101,6 +109,7 @@ def run_case(seed: int, shaft: int | None, magnitude: float, na: int | None = No
            "fit_before": d.error_before.fit_pct, "fit_after": d.error_after.fit_pct,
            "offset_true_s": spec.clock_offset_s, "offset_est_s": clock["offset_s"],
            "drift_true_ppm": spec.clock_drift_ppm, "drift_est_ppm": clock["drift_ppm"],
+           "clock_mode": clock["mode"], "torsion": data.notes["layout"]["torsion"],
            "max_line_ratio": rig_test.curve.get("max_ratio", 0.0) if rig_test else None,
            "max_split_ratio": rig_test.curve.get("max_split_ratio", 0.0) if rig_test else None,
            "baseline": [d.baseline.na, d.baseline.nb + d.baseline.delay, d.baseline.nc],
