@@ -180,7 +180,7 @@ def assemble(records: list[Resampled], layout: Layout, sources: list[str],
     signals = [_record_signals(r, i, layout, sources[i], warnings, names) for i, r in enumerate(records)]
     if len(records) == 1:
         merged, fs = signals[0], records[0].fs_hz
-        base = 0
+        base, t0 = 0, float(records[0].time_s[0])
     else:
         (x1, on1), (x2, on2) = (_align_signal(r, i, layout, signals[i]) for i, r in enumerate(records))
         r1, r2 = records
@@ -190,16 +190,16 @@ def assemble(records: list[Resampled], layout: Layout, sources: list[str],
         base = 1 if r2.fs_hz > 1.001 * r1.fs_hz else 0  # the slower record is interpolated, never decimated
         recs = [replace(r, columns=s) for r, s in zip(records, signals)]
         if base == 0:
-            _, cut, moved = on_grid(recs[0], recs[1], clock.fit.to_clock2(recs[0].time_s), source)
+            t, cut, moved = on_grid(recs[0], recs[1], clock.fit.to_clock2(recs[0].time_s), source)
         else:
-            _, cut, moved = on_grid(recs[1], recs[0], clock.fit.to_clock1(recs[1].time_s), source)
-        merged, fs = {**cut, **moved}, records[base].fs_hz
+            t, cut, moved = on_grid(recs[1], recs[0], clock.fit.to_clock1(recs[1].time_s), source)
+        merged, fs, t0 = {**cut, **moved}, records[base].fs_hz, float(t[0])
         notes["clock"] = clock.as_dict(f"{on1} / {on2}" if clock.mode == "estimated" else "")
     speeds = tuple(ShaftSource(s.shaft, "speed", f"w:{s.shaft}") for s in layout.shafts)
     spec = RecordSpec(names["input"], names["output"], speeds + tuple(layout.geared),
                       sample_rate_hz=layout.sample_rate_hz)
     rec = Resampled(np.arange(len(merged[names["input"]])) / fs, merged, fs, 0.0, 0.0, False)
-    notes["layout"] = _layout_note(layout, sources, base, fs)
+    notes["layout"] = _layout_note(layout, sources, base, fs, t0, merged)
     data = build_data(rec, None, spec, source, notes)
     torsion, how = _torsion(merged, layout, data, source, warnings)
     if torsion is not None:
@@ -242,12 +242,14 @@ def _torsion(merged: dict, layout: Layout, data: DiagnoseData, source: str,
     return phi, f"twist ({rho:.6g} {a} - {b}) [rad of {b}]"
 
 
-def _layout_note(layout: Layout, sources: list[str], base: int, fs: float) -> dict:
+def _layout_note(layout: Layout, sources: list[str], base: int, fs: float, t0: float, merged: dict) -> dict:
+    """Where each signal came from and in which unit; ``t0_s``: the first sample on the time base's clock."""
     def where(c: Column) -> str:
         return f"{c.name} ({sources[c.record]})"
 
-    return {"time_base": sources[base], "fs_hz": fs, "input": where(layout.input), "output": where(layout.output)
-            + (", differentiated" if layout.differentiate_output else ""),
+    return {"time_base": sources[base], "fs_hz": fs, "t0_s": t0, "input": where(layout.input),
+            "output": where(layout.output) + (", differentiated" if layout.differentiate_output else ""),
             "shafts": {s.shaft: {"column": where(s.column), "kind": s.kind,
-                                 "unit": s.unit + ("" if s.unit_given else " (assumed: no unit given)")}
+                                 "unit": s.unit + ("" if s.unit_given else " (assumed: no unit given)"),
+                                 "mean_rpm": float(np.mean(merged[f"w:{s.shaft}"])) * 30.0 / np.pi}
                        for s in layout.shafts}}

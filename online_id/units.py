@@ -53,6 +53,19 @@ def is_angle_unit(unit: str) -> bool:
     return u in ANGLE_UNITS or bool(_COUNTS.match(u))
 
 
+def unit_hint(speed_rad_s: float, unit: str, kind: str) -> str:
+    """The unit that would make a speed of ``speed_rad_s`` read in ``unit`` physical, as advice."""
+    if kind == "angle":
+        raw = speed_rad_s / angle_factor(unit)  # the column's own rate of change, units per second
+        if raw * ANGLE_UNITS["deg"] <= MAX_PLAUSIBLE_RAD_S:
+            return "likely in degrees (--angle-unit deg)"
+        return "likely encoder counts (--angle-unit countsN, N counts per revolution)"
+    raw = speed_rad_s / speed_factor(unit)
+    if raw * SPEED_UNITS["rpm"] <= MAX_PLAUSIBLE_RAD_S:
+        return "likely in rpm (--speed-unit rpm)"
+    return "check its unit (--speed-unit)"
+
+
 def implausible_speed(speed_rad_s: np.ndarray, column: str, unit: str, kind: str) -> str | None:
     """A one-line warning when the speed of ``column`` read in ``unit`` is beyond any rig, else ``None``.
 
@@ -63,14 +76,5 @@ def implausible_speed(speed_rad_s: np.ndarray, column: str, unit: str, kind: str
     w = float(np.median(np.abs(np.asarray(speed_rad_s, dtype=float))))
     if not w > MAX_PLAUSIBLE_RAD_S:
         return None
-    if kind == "angle":
-        raw = w / angle_factor(unit)  # the column's own rate of change, units per second
-        likely = [u for u in ("deg",) if raw * ANGLE_UNITS[u] <= MAX_PLAUSIBLE_RAD_S]
-        hint = ("likely in degrees (deg)" if likely else "likely encoder counts (countsN, N per revolution)")
-        hint += f"; give its unit as {column}:SHAFT:UNIT or --angle-unit UNIT"
-    else:
-        raw = w / speed_factor(unit)
-        likely = [u for u in ("rpm",) if raw * SPEED_UNITS[u] <= MAX_PLAUSIBLE_RAD_S]
-        hint = ("likely in rpm (--speed-unit rpm)" if likely else "check its unit (--speed-unit)")
     return (f"column {column!r} read in {unit} turns at {w:.4g} rad/s ({w * 30.0 / np.pi:.4g} rpm) for half "
-            f"the record, beyond any rig: {hint}")
+            f"the record, beyond any rig: {unit_hint(w, unit, kind)}")

@@ -279,6 +279,7 @@ class RigRecording:
     spec: RigSpec
     truth_time_s: np.ndarray
     truth_speed_rad_s: np.ndarray  # (n_sim, N) on the simulation grid
+    truth_angle_rad: np.ndarray | None = None  # (n_sim, N) on the simulation grid
 
 
 def simulate_rig(spec: RigSpec, seed: int = 0) -> RigRecording:
@@ -339,7 +340,7 @@ def simulate_rig(spec: RigSpec, seed: int = 0) -> RigRecording:
     if spec.layout == "shafts":
         for i in range(1, n):
             sensor[f"{spec.names[i]}_angle_{spec.angle_suffix}"] = sample(t2_true, theta[:, i])
-        return RigRecording(drive, sensor, spec, t, xs[:, n:2 * n])
+        return RigRecording(drive, sensor, spec, t, xs[:, n:2 * n], theta)
     # loggers: encoders at both ends of every compliant shaft and the shaft torques
     omega = xs[:, n:2 * n]
     for k, angle in enumerate(encoder_angles(spec, theta), 1):
@@ -347,7 +348,7 @@ def simulate_rig(spec: RigSpec, seed: int = 0) -> RigRecording:
     for i, (r, c, d) in enumerate(zip(spec.ratios, spec.stiffness_nm_rad, spec.damping_nms_rad)):
         tau = c * (theta[:, i] / r - theta[:, i + 1]) + d * (omega[:, i] / r - omega[:, i + 1])
         sensor[f"shaft{i + 1}_torque_nm"] = np.interp(t2_true, t, tau) + noise * rng.standard_normal(t2_true.size)
-    return RigRecording(drive, sensor, spec, t, omega)
+    return RigRecording(drive, sensor, spec, t, omega, theta)
 
 
 def encoder_angles(spec: RigSpec, theta: np.ndarray) -> list[np.ndarray]:

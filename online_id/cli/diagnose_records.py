@@ -219,6 +219,11 @@ def read_records(args: argparse.Namespace) -> DiagnoseData:
     if assumed:
         print(f"note: angle column{'s' if len(assumed) > 1 else ''} {', '.join(assumed)} taken as radians "
               "(no unit given: --angle-unit UNIT or NAME:SHAFT:UNIT)", file=sys.stderr)
+    lay = data.notes["layout"]
+    if lay["shafts"]:
+        print("note: shafts (mean speed): " + ", ".join(f"{n} {v['mean_rpm']:.6g} rpm from {v['column']} in {v['unit']}"
+                                                      for n, v in lay["shafts"].items())
+              + f"; torsion: {lay['torsion']}", file=sys.stderr)
     for text in data.notes["warnings"]:
         print(f"warning: {text}", file=sys.stderr)
     return data

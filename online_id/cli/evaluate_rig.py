@@ -14,7 +14,7 @@ from pathlib import Path
 
 from dataclasses import replace
 
-from online_id.bench.rig import LAYOUTS
+from online_id.bench.rig import LAYOUTS, RigRecording, RigSpec
 from online_id.errors import ConfigError
 from online_id.io.outfile import check_output
 from online_id.io.table_csv import write_csv_columns
@@ -54,6 +54,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    "counts) (default: rad for shafts, deg for loggers)")
     s.add_argument("--speeds", type=int, choices=(1, 3), default=1,
                    help="loggers: one motor speed for 60 s, or three plateaus of 30 s (default 1)")
+    s.add_argument("--plateau-s", type=float, metavar="S", help="length of each speed plateau (default 30; "
+                   "loggers with one speed 60)")
     s.add_argument("--order-shaft", type=int, metavar="I", help="shafts: disturbed shaft (0 = motor); none = clean")
     s.add_argument("--magnitude", type=float, default=0.3)
     s.add_argument("--out", metavar="DIR", required=True)
@@ -76,14 +78,28 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _angle_unit(unit: str, counts_per_rev: int) -> tuple[float, str, str]:
-    """Scale (units per radian), column suffix and unit name of the written angles."""
+def written_angles(spec: RigSpec, unit: str) -> tuple[RigSpec, str]:
+    """``spec`` writing its encoder angles in ``unit`` (deg, rad, rev, countsN, or counts: the encoder's
+    own), and the unit's full name."""
     from online_id.units import angle_factor
 
-    if unit.strip().lower() == "counts":
-        unit = f"counts{counts_per_rev}"
+    unit = unit.strip().lower()
+    if unit == "counts":
+        unit = f"counts{spec.counts_per_rev}"
     scale = 1.0 / angle_factor(unit, "--angle-unit")
-    return scale, "counts" if unit.startswith("counts") else unit, unit
+    return replace(spec, angle_scale=scale, angle_suffix="counts" if unit.startswith("counts") else unit), unit
+
+
+def write_rig(out: Path, rec: RigRecording) -> tuple[Path, Path]:
+    """The two records as ``out/drive.csv`` and ``out/sensor.csv`` (times to the ns, counts whole)."""
+    counts = rec.spec.angle_suffix == "counts"
+    fmt = {n: "%.9f" if n == "time_s" else ("%.7f" if "torque" in n else ("%.0f" if counts else "%.10g"))
+           for n in (*rec.drive, *rec.sensor)}
+    out.mkdir(parents=True, exist_ok=True)
+    files = out / "drive.csv", out / "sensor.csv"
+    write_csv_columns(files[0], rec.drive, fmt)
+    write_csv_columns(files[1], rec.sensor, fmt)
+    return files
 
 
 def run_simulate(args: argparse.Namespace) -> int:
@@ -98,16 +114,12 @@ def run_simulate(args: argparse.Namespace) -> int:
         spec = loggers_rig(np.random.default_rng(args.seed), speeds=(1.0,) if args.speeds == 1 else (0.9, 1.0, 1.1))
     else:
         spec = rig_spec(args.seed, args.order_shaft, args.magnitude)
-    scale, suffix, unit = _angle_unit(args.angle_unit or ("deg" if args.layout == "loggers" else "rad"),
-                                      spec.counts_per_rev)
-    spec = replace(spec, angle_scale=scale, angle_suffix=suffix)
-    out.mkdir(parents=True, exist_ok=True)
-    rec = simulate_rig(spec, args.seed)
-    angle_fmt = "%.0f" if suffix == "counts" else "%.10g"
-    fmt = {n: "%.9f" if n == "time_s" else ("%.7f" if "torque" in n else angle_fmt)
-           for n in (*rec.drive, *rec.sensor)}  # us, encoder counts
-    write_csv_columns(out / "drive.csv", rec.drive, fmt)
-    write_csv_columns(out / "sensor.csv", rec.sensor, fmt)
+    if args.plateau_s is not None:
+        if not args.plateau_s > 2.0:
+            raise ConfigError(f"--plateau-s must be > 2, got {args.plateau_s}")
+        spec = replace(spec, plateau_s=args.plateau_s)
+    spec, unit = written_angles(spec, args.angle_unit or ("deg" if args.layout == "loggers" else "rad"))
+    write_rig(out, simulate_rig(spec, args.seed))
     d = spec.disturbance
     truth = {"layout": spec.layout, "names": list(spec.names), "ratios": list(spec.ratios),
              "angle_unit": unit, "counts_per_rev": spec.counts_per_rev,
