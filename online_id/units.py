@@ -57,9 +57,10 @@ def unit_hint(speed_rad_s: float, unit: str, kind: str) -> str:
     """The unit that would make a speed of ``speed_rad_s`` read in ``unit`` physical, as advice."""
     if kind == "angle":
         raw = speed_rad_s / angle_factor(unit)  # the column's own rate of change, units per second
+        counts = "encoder counts (--angle-unit countsN, N counts per revolution)"
         if raw * ANGLE_UNITS["deg"] <= MAX_PLAUSIBLE_RAD_S:
-            return "likely in degrees (--angle-unit deg)"
-        return "likely encoder counts (--angle-unit countsN, N counts per revolution)"
+            return f"likely in degrees (--angle-unit deg) or {counts}"
+        return f"likely {counts}"
     raw = speed_rad_s / speed_factor(unit)
     if raw * SPEED_UNITS["rpm"] <= MAX_PLAUSIBLE_RAD_S:
         return "likely in rpm (--speed-unit rpm)"
