@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
@@ -48,18 +49,20 @@ def identifiable_orders(spec: RigSpec, shaft: int) -> list[int]:
     return out
 
 
-def rig_spec(seed: int, shaft: int | None, magnitude: float) -> RigSpec:
+def rig_spec(seed: int, shaft: int | None, magnitude: float, order: int | None = None) -> RigSpec:
     """The randomised rig of one case; ``shaft=None`` is a clean rig.
 
     ``magnitude`` scales the disturbance torque against the PRBS torque
-    reflected to that shaft (``torque_prbs * prod(ratios up to it)``).
+    reflected to that shaft (``torque_prbs * prod(ratios up to it)``);
+    ``order`` overrides the order drawn (the rest of the case is unchanged).
     """
     rng = np.random.default_rng(seed)
     spec = random_rig(rng)
     if shaft is None:
         return spec
     shaft = min(shaft, spec.n_shafts - 1)
-    order = int(rng.choice(identifiable_orders(spec, shaft)))
+    drawn = int(rng.choice(identifiable_orders(spec, shaft)))
+    order = drawn if order is None else int(order)
     reflect = 1.0 / spec.speed_factors()[shaft]
     dist = OrderDisturbance(shaft, float(order), magnitude * spec.torque_prbs_nm * reflect,
                             float(rng.uniform(0, 2 * np.pi)))
@@ -85,10 +88,11 @@ def rig_data(spec: RigSpec, seed: int, clock: str = "auto") -> DiagnoseData:
 
 
 def run_case(seed: int, shaft: int | None, magnitude: float, na: int | None = None, nb: int | None = None,
-             nc: int = NC, max_effects: int = 2, plateau_s: float | None = None) -> dict:
-    """Simulate, assemble, diagnose and score one case (``plateau_s`` shortens the plateaus, for tests)."""
+             nc: int = NC, max_effects: int = 2, plateau_s: float | None = None, order: int | None = None) -> dict:
+    """Simulate, assemble, diagnose and score one case (``plateau_s`` shortens the plateaus and ``order``
+    sets the disturbance's order, for tests)."""
     t0 = time.perf_counter()
-    spec = rig_spec(seed, shaft, magnitude)
+    spec = rig_spec(seed, shaft, magnitude, order)
     if plateau_s is not None:
         spec = replace(spec, plateau_s=float(plateau_s))
     data = rig_data(spec, seed)
@@ -132,15 +136,28 @@ def _task(args: tuple) -> dict:
     return run_case(*args)
 
 
-def _run_all(tasks: list[tuple], jobs: int) -> list[dict]:
-    """``_task`` of every task, in order, on ``jobs`` processes (in this one when ``jobs`` is 1)."""
+def _run_all(tasks: list[tuple], jobs: int, progress: Callable[[int, int, dict], None] | None = None) -> list[dict]:
+    """``_task`` of every task, in order, on ``jobs`` processes (in this one when ``jobs`` is 1);
+    ``progress(done, total, case)`` after each."""
+    out: list[dict] = []
+
+    def done(r: dict) -> None:
+        out.append(r)
+        if progress is not None:
+            progress(len(out), len(tasks), r)
+
     if jobs > 1:
         with ProcessPoolExecutor(jobs) as pool:
-            return list(pool.map(_task, tasks))
-    return [_task(t) for t in tasks]
+            for r in pool.map(_task, tasks):
+                done(r)
+    else:
+        for t in tasks:
+            done(_task(t))
+    return out
 
 
-def evaluate(cases: int, seed: int, magnitude: float, jobs: int = 1, out: Path | None = None) -> dict:
+def evaluate(cases: int, seed: int, magnitude: float, jobs: int = 1, out: Path | None = None,
+             progress: Callable[[int, int, dict], None] | None = None) -> dict:
     """``cases`` clean rigs and ``cases`` rigs per disturbed shaft position (motor, second, last)."""
     tasks = []
     for i in range(cases):
@@ -148,7 +165,7 @@ def evaluate(cases: int, seed: int, magnitude: float, jobs: int = 1, out: Path |
         tasks.append((s, None, magnitude))
         for shaft in range(rig_spec(s, None, magnitude).n_shafts):
             tasks.append((s, shaft, magnitude))
-    rows = [r for r in _run_all(tasks, jobs) if r["true_kind"] == "clean" or r["true_shaft"] is not None]
+    rows = [r for r in _run_all(tasks, jobs, progress) if r["true_kind"] == "clean" or r["true_shaft"] is not None]
     # shaft index 3 on a 3-shaft rig is the load again: keep each (seed, shaft) once
     seen, uniq = set(), []
     for r in rows:
@@ -164,14 +181,15 @@ def evaluate(cases: int, seed: int, magnitude: float, jobs: int = 1, out: Path |
     return summary
 
 
-def calibrate(cases: int, seed: int, jobs: int = 1, out: Path | None = None) -> dict:
+def calibrate(cases: int, seed: int, jobs: int = 1, out: Path | None = None,
+              progress: Callable[[int, int, dict], None] | None = None) -> dict:
     """Largest line ratio on the order grid of the baseline residual of ``cases`` clean rigs.
 
     The rig line test (:data:`online_id.diagnose.residual_tests.RIG_LINE_RATIO`) is set above the
     95th percentile of these maxima (no effect is fitted: ``max_effects=0``).  Use seeds apart from the
     evaluation's.
     """
-    rows = _run_all([(seed + i, None, 0.0, None, None, NC, 0) for i in range(cases)], jobs)
+    rows = _run_all([(seed + i, None, 0.0, None, None, NC, 0) for i in range(cases)], jobs, progress)
     r = np.array([x["max_line_ratio"] for x in rows if x["max_line_ratio"] is not None], dtype=float)
     r2 = np.array([x["max_split_ratio"] for x in rows if x["max_split_ratio"] is not None], dtype=float)
 

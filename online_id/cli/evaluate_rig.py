@@ -17,6 +17,7 @@ from dataclasses import replace
 from online_id.bench.rig import LAYOUTS, RigRecording, RigSpec
 from online_id.errors import ConfigError
 from online_id.io.outfile import check_output
+from online_id.progress import Progress, add_quiet_option
 from online_id.io.table_csv import write_csv_columns
 from online_id.cli import command_help
 
@@ -36,6 +37,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    help="clean rigs only, baseline only: the largest order-grid line ratio per rig (sets the "
                    "line threshold; use seeds apart from the evaluation's); writes rig-calibration.json")
     p.add_argument("--out", metavar="DIR", required=True, help="write rig-evaluation.json here")
+    add_quiet_option(p)
     p.set_defaults(func=run)
     s = subparsers.add_parser("simulate-rig", help=command_help("simulate-rig"),
                               description="Simulate a rig and write it as two files, DIR/drive.csv and "
@@ -69,10 +71,14 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--cases and --jobs must be >= 1, got {args.cases} and {args.jobs}")
     check_output(args.out, "out", directory=True)
     t0 = time.perf_counter()
-    if args.calibrate:
-        summary = calibrate(args.cases, args.seed, args.jobs, Path(args.out))
-    else:
-        summary = evaluate(args.cases, args.seed, args.magnitude, args.jobs, Path(args.out))
+    with Progress("evaluate-diagnose-rig", quiet=args.quiet) as bar:
+        def progress(i: int, n: int, r: dict) -> None:
+            bar.count(i, n, f"{i}/{n} cases (seed {r['seed']}, {r['true_shaft'] or 'clean'})")
+
+        if args.calibrate:
+            summary = calibrate(args.cases, args.seed, args.jobs, Path(args.out), progress)
+        else:
+            summary = evaluate(args.cases, args.seed, args.magnitude, args.jobs, Path(args.out), progress)
     summary["wall_s"] = time.perf_counter() - t0
     print(json.dumps(summary, indent=1, default=float))
     return 0
