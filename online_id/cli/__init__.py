@@ -38,6 +38,9 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "relearn": ("command", "forget the learned baselines and learn them anew (after a planned shaft change)"),
     "fleet": ("fleet", "table of the benches publishing to an MQTT broker (needs the [mqtt] extra)"),
     "monitor": ("monitor", "watch the service's output frames and health live, decoded with the DBC"),
+    "archive": ("archive", "identify or diagnose an archive of recordings on a Dask cluster into one table "
+                           "(needs the [archive] extra)"),
+    "trend": ("trend", "resonance and damping per bench against the date: baseline, drift per month, alerts"),
 }
 """Subcommand -> (module in ``online_id.cli``, one-line help).  A module is imported only when its command
 runs: ``online-id --help`` and a command that reads a CSV do not load python-can, cantools, asammdf or
