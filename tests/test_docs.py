@@ -23,7 +23,6 @@ MAX_README_LINES = 350
 AWAITING_MERGE = {
     "docs/benchmarks.md",
     "docs/archive.md",
-    "docs/security.md",
     "docs/measured-rigs.md",
 }
 
