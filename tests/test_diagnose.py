@@ -138,7 +138,7 @@ def test_ced_absolute_value_sensor(capsys):
     assert doc["effects"] == []
     wiener = [c for c in doc["candidates"] if c["kind"] == "absolute_value_sensor"][0]
     assert wiener["significant"] and wiener["fit_pct"] > doc["error_before"]["fit_pct"] + 50
-    assert wiener["rms"] > doc["error_before"]["rms"]
+    assert wiener["rms"] > doc["error_before"]["one_step"]["rms"]
 
 
 def test_bad_variable_names_file_and_variable(capsys):

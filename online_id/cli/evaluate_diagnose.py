@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 from online_id.errors import ConfigError
+from online_id.io.jsonout import dumps
 from online_id.cli import command_help
 
 
@@ -47,7 +48,7 @@ def _progress(label: str, sink: Path):
 
     def report(i: int, n: int, r: dict) -> None:
         with sink.open("a", encoding="utf-8") as fh:  # finished cases survive an interrupted run
-            fh.write(json.dumps(r, default=float) + "\n")
+            fh.write(dumps(r) + "\n")
         el = time.monotonic() - t0
         print(f"\r{label}: {i}/{n} cases, {el:.0f} s, eta {el / i * (n - i):.0f} s  ({r['case']})   ",
               end="", file=sys.stderr, flush=True)
@@ -89,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
                                                                   Path(args.out) / "calibration.jsonl"))
         thresholds = ev.calibrate_paths(calibration)
         Path(args.out).mkdir(parents=True, exist_ok=True)
-        (Path(args.out) / "thresholds.json").write_text(json.dumps(thresholds, indent=1) + "\n",
+        (Path(args.out) / "thresholds.json").write_text(dumps(thresholds, indent=1) + "\n",
                                                         encoding="utf-8")
     jobs = [(k, args.seed + i) for i in range(n_test) for k in KINDS]
     results = (ev.run_cases(jobs, args.jobs, _progress("test benches", Path(args.out) / "cases.jsonl"))

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
 
 from online_id.benchlog import read_bench
 from online_id.config import Settings, load_config
 from online_id.estimation.identification import IdentificationResult, identify
 from online_id.errors import ConfigError, EstimationError
+from online_id.io.jsonout import dumps
 from online_id.io.outfile import check_output
 from online_id.progress import Progress, add_quiet_option, progress_for
 from online_id.report import figures_text, fmt, identification_document, identification_table
@@ -141,8 +141,7 @@ def run_recursive(args: argparse.Namespace, s: Settings) -> int:
         raise EstimationError(f"{args.path}: the streaming estimator gave no estimate in "
                               f"{result['counters']['samples']} samples (final state {result['state']}: {why})")
     if args.json:
-        json.dump(result, sys.stdout, indent=2)
-        sys.stdout.write("\n")
+        sys.stdout.write(dumps(result, indent=2) + "\n")
         return 0
     d = result["driveline"]
     print(f"online-id identify --recursive {args.path}: {result['counters']['samples']} samples, "
@@ -173,8 +172,7 @@ def run(args: argparse.Namespace) -> int:
     if args.plot:
         doc["figures"] = plot_figures(args, s, result)
     if args.json:
-        json.dump(doc, sys.stdout, indent=2)
-        sys.stdout.write("\n")
+        sys.stdout.write(dumps(doc, indent=2) + "\n")
     else:
         print(f"online-id identify {args.path}")
         print(identification_table(result, pulses_per_rev=s.identification.pulses_per_rev))

@@ -75,11 +75,23 @@ class EffectStep:
     error_after: ErrorFigures
     basis: str = "one_step"
 
-    def as_dict(self) -> dict:
+    def as_dict(self, base: ErrorFigures | None = None) -> dict:
+        base = base or self.error_before
         return {"kind": self.kind, "params": self.params,
                 "explained_variance": self.explained_variance, "basis": self.basis,
-                "t_stat": self.t_stat,
-                "error_before": self.error_before.as_dict(), "error_after": self.error_after.as_dict()}
+                "t_stat": self.t_stat, "accepted_on": {"channels": ["one_step"], "before": self.error_before.rms,
+                                                       "after": self.error_after.rms},
+                "error_before": error_doc(self.error_before, base), "error_after": error_doc(self.error_after, base)}
+
+
+def error_doc(fig: ErrorFigures, base: ErrorFigures) -> dict:
+    """A model's held-out error as reported: ``rms`` is the summary, the held-out one-step RMS relative to
+    the baseline's (1 for the baseline; the one channel of a record with one output), beside the
+    one-step RMS in the output's unit and the simulation fit."""
+    return {"rms": fig.rms / base.rms if base.rms > 0 else 1.0,
+            "summary": "held-out one-step RMS relative to the baseline's",
+            "one_step": {"rms": fig.rms, "relative": fig.rms / base.rms if base.rms > 0 else 1.0},
+            "fit_pct": fig.fit_pct}
 
 
 @dataclass(frozen=True)
@@ -135,9 +147,9 @@ class Diagnosis:
             "recording": dict(self.data.notes),
             "shaft_rates": dict(self.data.shaft_rates),
             "warnings": list(self.warnings),
-            "effects": [e.as_dict() for e in self.effects],
-            "error_before": self.error_before.as_dict(),
-            "error_after": self.error_after.as_dict(),
+            "effects": [e.as_dict(self.error_before) for e in self.effects],
+            "error_before": error_doc(self.error_before, self.error_before),
+            "error_after": error_doc(self.error_after, self.error_before),
             "tests_before": [_test_dict(t) for t in self.tests_before],
             "tests_after": [_test_dict(t) for t in self.tests_after],
             "candidates": [c.__dict__ for c in self.candidates],
