@@ -146,6 +146,25 @@ def order_of(f_hz: float, speed_rpm: float, *, max_order: float = 12.0, tol_pct:
     return None
 
 
+def rotation_line(f_hz: float, zeta: float, rates_hz: dict[str, float], *, line_zeta: float = LINE_ZETA,
+                  step: float = 0.5, max_order: float = 40.0, tol_pct: float = 2.5,
+                  tol_hz: float = 0.4) -> tuple[str, float] | None:
+    """``(shaft, order)`` when a pole pair is a rotation line: damped no more than ``line_zeta`` and at a
+    multiple (``step``: half orders) of a shaft's rotation rate [Hz] (within ``tol_pct`` or ``tol_hz``);
+    the smallest order over the shafts.  ``None`` otherwise."""
+    if not (np.isfinite(f_hz) and np.isfinite(zeta) and abs(zeta) <= line_zeta):
+        return None
+    best = None
+    for shaft, r in rates_hz.items():
+        if not r > 0:
+            continue
+        k = round(f_hz / r / step) * step
+        if 0 < k <= max_order and abs(f_hz - k * r) <= max(tol_hz, tol_pct / 100.0 * k * r):
+            if best is None or k < best[1]:
+                best = (shaft, float(k))
+    return best
+
+
 @dataclass(frozen=True)
 class ModeSummary:
     """The invariant driveline mode found across operating points."""
