@@ -145,3 +145,30 @@ def test_refine_refits_the_chosen_order_on_more_seconds():
     check(truth, result)
     for p in result.points:
         assert p.fit.n == round(60.0 / p.dt) - result.orders.max_lag  # refitted on 60 s
+
+
+@pytest.mark.parametrize("seed, zeta, amp_nm, rpm", [(1, 0.3, 20.0, 3200.0), (2, 0.15, 40.0, 3000.0)])
+def test_a_once_per_revolution_line_above_the_resonance_is_set_aside(seed, zeta, amp_nm, rpm):
+    """One speed at three operating points (windows of one run) and a strong order-1 torque above the
+    resonance: the model holds it as a near-undamped pole pair at 1x the speed; identify never calls it
+    the driveline or another mode, and a warning says what it set aside."""
+    from online_id.bench.scenario import Effects, OrderTorque
+
+    J1, J2, f0 = 0.8, 0.35, 20.0
+    jr = J1 * J2 / (J1 + J2)
+    w0 = 2 * np.pi * f0
+    sc = BenchScenario(J1=J1, J2=J2, c_s=w0**2 * jr, d_s=2 * zeta * w0 * jr, compression_nm=0.0, seed=seed,
+                       operating_points=tuple(OperatingPoint(rpm, 20.0) for _ in range(3)),
+                       effects=Effects(order_torque=OrderTorque("engine", 1.0, amp_nm, 0.3)))
+    rec = simulate_bench(sc)
+    windows = tuple((20.0 * i + 1.0, 20.0 * i + 19.0) for i in range(3))
+    result = identify(rec.to_data("sim"), IdentificationSettings(operating_points=windows))
+    assert result.driveline is not None and result.driveline.f0_hz == pytest.approx(f0, rel=0.01)
+    line_hz = rpm / 60.0
+    for point in result.points:
+        for q in point.poles:
+            if abs(q.f_hz - line_hz) < 0.01 * line_hz:
+                assert q.cls == SPEED_DEPENDENT and q.order == 1.0
+    assert result.sorting.invariant_modes == []
+    assert any("order 1 of the rotation" in w and "not the driveline" in w for w in result.warnings)
+    assert result.as_dict()["rotation_lines"][0]["order"] == 1.0

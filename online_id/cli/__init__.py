@@ -28,7 +28,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "evaluate-diagnose": ("evaluate_diagnose", "measure the diagnosis on randomised benches (confusion matrix)"),
     "evaluate-diagnose-rig": ("evaluate_rig",
                               "diagnose randomised multi-shaft rigs (order on each shaft, clean)"),
-    "simulate-rig": ("evaluate_rig", "write a randomised multi-shaft rig as two CSV files"),
+    "simulate-rig": ("evaluate_rig", "write a multi-shaft rig as two CSV files (randomised, or as two loggers "
+                                     "of a measured rig)"),
     "convert": ("convert", "convert a bench CSV or MDF 4 signal recording into a CAN log of input frames, or a "
                            "CAN log into bench signals"),
     "ack": ("command", "acknowledge the latched alerts (they clear and detection restarts)"),

@@ -10,7 +10,6 @@ or a MATLAB ``.mat`` file (``--input-var U --output-var Y [--time-var T | --fs H
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -28,6 +27,7 @@ from online_id.diagnose.effects import shaft_angle
 from online_id.cli.diagnose_records import add_arguments as add_record_arguments, read_records
 from online_id.diagnose.records import data_path, decimate_alike, path_note
 from online_id.errors import ConfigError, InputDataError
+from online_id.io.jsonout import dumps
 from online_id.io.mdf import is_mdf
 from online_id.io.outfile import check_output
 from online_id.io.table_csv import read_csv_header
@@ -260,8 +260,9 @@ def text_report(d: Diagnosis) -> str:
              f"{d.data.input_name} -> {d.data.output_name} at {d.data.fs_hz:g} Hz, "
              f"{len(d.data)} samples, estimation {d.n_est}, held out {len(d.data) - d.n_est}", "",
              summary_table(d), "",
-             f"error before: RMS {d.error_before.rms:.4g}, fit {d.error_before.fit_pct:.1f} %",
-             f"error after:  RMS {d.error_after.rms:.4g}, fit {d.error_after.fit_pct:.1f} %",
+             f"error before: RMS {d.error_before.rms:.4g}, fit {d.error_before.fit_pct:.1f} % (held out)",
+             f"error after:  RMS {d.error_after.rms:.4g}, fit {d.error_after.fit_pct:.1f} % "
+             f"(summary: {d.error_after.rms / d.error_before.rms:.4g} of the baseline's one-step RMS)",
              f"stopped: {d.stop_reason}"]
     lines += recording_lines(d) + ["", "Residual tests (held-out part), before -> after:"]
     after = {t.name: t for t in d.tests_after}
@@ -284,8 +285,8 @@ def recording_lines(d: Diagnosis) -> list[str]:
                        f"(max {1e6 * f['jitter_max_s']:.1f} us)" + (", resampled" if f["resampled"] else ""))
     if "clock" in notes:
         c = notes["clock"]
-        out.append(f"clock of the second file: offset {c['offset_s']:+.4f} s, drift {c['drift_ppm']:+.1f} ppm "
-                   f"(misfit {c['misfit']:.3f}, on {c['aligned_on']})")
+        out.append(c.get("text") or f"clock of the second file: offset {c['offset_s']:+.4f} s, drift "
+                   f"{c['drift_ppm']:+.1f} ppm (misfit {c['misfit']:.3f}, on {c['aligned_on']})")
     if d.data.shaft_rates:
         out.append("shafts (rate relative to the first): "
                    + ", ".join(f"{n} {r:.4g}" for n, r in d.data.shaft_rates.items()))
@@ -307,7 +308,7 @@ def write_report(d: Diagnosis, out: Path) -> list[Path]:
     files = [out / "summary.md", out / "diagnosis.json"]
     files[0].write_text("# Diagnosis\n\n```\n" + text_report(d) + "\n```\n\n" + summary_table(d) + "\n",
                         encoding="utf-8")
-    files[1].write_text(json.dumps(d.as_dict(), indent=2, default=float) + "\n", encoding="utf-8")
+    files[1].write_text(dumps(d.as_dict(), indent=2) + "\n", encoding="utf-8")
     files += plot_residuals(d, out)
     return files
 
@@ -364,8 +365,7 @@ def run(args: argparse.Namespace) -> int:
         result, text, writer = run_diagnosis(args), text_report, write_report
     files = writer(result, Path(args.report)) if args.report else []
     if args.json:
-        json.dump(result.as_dict(), sys.stdout, indent=2, default=float)
-        sys.stdout.write("\n")
+        sys.stdout.write(dumps(result.as_dict(), indent=2) + "\n")
     else:
         print(text(result))
         for f in files:

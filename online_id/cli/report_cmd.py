@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from online_id.io.jsonout import plain
 from online_id.cli.replay import replay
 from online_id.config import Settings, load_config
 from online_id.monitoring.baseline import Baseline
@@ -330,17 +331,7 @@ def _looks_like_json(path: Path) -> bool:
 # --- outputs ----------------------------------------------------------------------------------------
 
 
-def _plain(obj: Any) -> Any:
-    """``obj`` with numpy scalars as Python numbers and non-finite floats as None (strict JSON)."""
-    if isinstance(obj, dict):
-        return {str(k): _plain(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_plain(v) for v in obj]
-    if isinstance(obj, (np.floating, float)):
-        return _fin(obj)
-    if isinstance(obj, (np.integer, np.bool_)):
-        return obj.item()
-    return obj
+_plain = plain  # strict JSON (non-finite floats as null)
 
 
 def _stats(x: np.ndarray) -> dict | None:

@@ -45,7 +45,7 @@ from scipy.optimize import minimize_scalar
 from online_id.diagnose import bench_effects as bx
 from online_id.diagnose import bench_transfer as bt
 from online_id.diagnose.bench_data import RPM_PER_RAD_S, BenchSeries
-from online_id.diagnose.bench_model import BALANCE, EQS, BenchFit, Spec, batch_mean_t, fit_plateau, fit_spec
+from online_id.diagnose.bench_model import ALL_EQS, BALANCE, EQS, BenchFit, Spec, batch_mean_t, fit_plateau, fit_spec
 
 T_CRIT = 2.86
 COHERENCE_MODE = 0.7  # coherence contrast with the excitation at a line: a mode (else a disturbance)
@@ -93,21 +93,89 @@ class BenchCandidate:
     gain: float
     t_stat: float
     spec: Spec = field(repr=False, compare=False)
-    sim_gain: float = float("nan")
+    judged_on: tuple[str, ...] = ()  # the channels whose held-out error the gain is the share removed of
 
     def as_dict(self) -> dict:
         return {"kind": self.kind, "params": self.params, "gain": self.gain, "t_stat": self.t_stat,
-                "sim_gain": self.sim_gain}
+                "judged_on": list(self.judged_on)}
+
+
+# the held-out figures of a model: the one-step error of both speed equations, the torque balance's error
+# and the speed transfer's misfit
+CHANNELS = ("dyno", "engine", BALANCE, "transfer")
+CHANNEL_TEXT = {"dyno": "dyno speed equation", "engine": "engine speed equation", BALANCE: "torque balance",
+                "transfer": "engine/dyno speed transfer"}
+
+
+@dataclass(frozen=True)
+class Channels:
+    """Held-out error of one model per channel (:data:`CHANNELS`).
+
+    ``mse``: the mean squared held-out one-step error of both speed equations [(rad/s)^2] and of the
+    torque balance [Nm^2], and the speed transfer's held-out relative misfit (fitted on the estimation
+    segments, :func:`~online_id.diagnose.bench_transfer.heldout_misfit`).  Channels in rpm, Nm and a
+    ratio are pooled relative to the baseline's: the *summary* is
+    ``sqrt(mean_c(mse_c / mse_c(baseline)))``, 1 for the baseline.
+    """
+
+    mse: dict
+
+    def relative(self, base: "Channels") -> dict[str, float]:
+        return {c: self.mse[c] / base.mse[c] if base.mse[c] > 0 else 1.0 for c in CHANNELS}
+
+    def summary(self, base: "Channels") -> float:
+        return float(np.sqrt(np.mean(list(self.relative(base).values()))))
 
 
 @dataclass
 class BenchStep:
-    """An accepted effect and the held-out error before and after it."""
+    """An accepted effect and the held-out figures before and after it (channels and summary)."""
 
     candidate: BenchCandidate
     ratio: float
-    rms_before: dict
-    rms_after: dict
+    before: Channels
+    after: Channels
+    summary_before: float
+    summary_after: float
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def rms_after(self) -> dict:
+        """Held-out RMS per equation after the step: the speed equations in rpm, the torque balance in Nm."""
+        return {eq: float(np.sqrt(self.after.mse[eq])) * (1.0 if eq == BALANCE else RPM_PER_RAD_S) for eq in ALL_EQS}
+
+    def accepted_on(self, base: Channels) -> tuple[float, float]:
+        """The held-out figure the step was accepted on, before and after: the RMS of its channels'
+        errors relative to the baseline's."""
+        return _pooled(self.before, self.candidate.judged_on, base), _pooled(self.after, self.candidate.judged_on, base)
+
+    def as_dict(self, base: Channels) -> dict:
+        fb, fa = self.accepted_on(base)
+        return {**self.candidate.as_dict(), "score": self.ratio,
+                "accepted_on": {"channels": list(self.candidate.judged_on), "before": fb, "after": fa},
+                "error_before": error_doc(self.before, base), "error_after": error_doc(self.after, base),
+                "notes": list(self.notes)}
+
+
+def _pooled(ch: Channels, names: tuple[str, ...], base: Channels) -> float:
+    """RMS of the channels ``names`` relative to ``base``."""
+    rel = ch.relative(base)
+    return float(np.sqrt(np.mean([rel[c] for c in names]))) if names else 1.0
+
+
+def error_doc(ch: Channels, base: Channels) -> dict:
+    """The held-out error of a model as reported: ``rms`` is the summary over every channel relative to
+    the baseline (1 for the baseline), and per channel its RMS in its unit and relative to the baseline."""
+    rel = ch.relative(base)
+    out: dict = {"rms": ch.summary(base), "summary": "RMS over the channels of the held-out error relative "
+                 "to the baseline's (speed equations, torque balance, speed transfer)"}
+    for c in CHANNELS:
+        if c == "transfer":
+            out[c] = {"misfit": ch.mse[c], "relative": rel[c]}
+        else:
+            unit, k = ("nm", 1.0) if c == BALANCE else ("rpm", RPM_PER_RAD_S)
+            out[c] = {f"rms_{unit}": float(np.sqrt(ch.mse[c])) * k, "relative": float(np.sqrt(rel[c]))}
+    return out
 
 
 @dataclass
@@ -121,33 +189,49 @@ class BenchDiagnosis:
     candidates: list[list[BenchCandidate]]
     thresholds: dict
     stop_reason: str
+    base_channels: Channels | None = None
+    final_channels: Channels | None = None
+    refused: list[dict] = field(default_factory=list)
+    transfer_cache: dict = field(default_factory=dict, repr=False)
+
+    def summary_with(self, c: BenchCandidate) -> float:
+        """The summary of the held-out error (relative to the baseline) with candidate ``c`` of step 1 added."""
+        return channels_of(fit_spec(self.series, c.spec), self.transfer_cache).summary(self.base_channels)
 
     @property
     def effects(self) -> list[BenchCandidate]:
         return [s.candidate for s in self.steps]
 
     def errors(self, fit: BenchFit) -> dict:
-        """Held-out RMS per equation, overall and per plateau: one-step [rpm], torque balance [Nm].
-
-        ``rms`` is the dyno equation's in rad/s (the dyno-speed one-step error
-        the generic path reports).
-        """
+        """Held-out RMS per equation, overall and per plateau: one-step [rpm], torque balance [Nm]."""
         out: dict = {}
         for eq in fit.eqs:
             unit, k = ("nm", 1.0) if eq == BALANCE else ("rpm", RPM_PER_RAD_S)
             out[eq] = {f"rms_{unit}": float(np.sqrt(fit.mse(eq)) * k),
                        f"per_plateau_{unit}": [x * k for x in fit.eqs[eq].plateau_rms(fit.plateaus)]}
-        out["rms"] = float(np.sqrt(fit.mse("dyno")))
+        return out
+
+    def error_figures(self, final: bool) -> dict:
+        """``error_before`` / ``error_after`` of the report: the summary ``rms`` over every channel relative
+        to the baseline, each channel's figure, and per plateau."""
+        fit, ch = (self.final, self.final_channels) if final else (self.baseline, self.base_channels)
+        out = error_doc(ch, self.base_channels)
+        for eq, doc in self.errors(fit).items():
+            out[eq].update(doc)
         return out
 
     def balance_notes(self) -> dict:
-        """Inertias per plateau from the torque balance and how often the shaft torque reverses."""
+        """Inertias per plateau from the torque balance (of the baseline and of the final model) and how
+        often the shaft torque reverses; a warning where an inertia is not positive."""
         if BALANCE not in self.baseline.eqs:
             return {}
         rev = bx.shaft_torque_reversed(self.baseline)
-        return {"inertias_kgm2": [{"J1": a, "J2": b} for a, b in bx.balance_inertias(self.baseline)],
-                "shaft_torque_reversed_pct": rev,
-                "backlash_testable": bool(max(rev) >= REVERSAL_MIN_PCT)}
+        out = {"inertias_kgm2": [{"J1": a, "J2": b} for a, b in bx.balance_inertias(self.baseline)],
+               "shaft_torque_reversed_pct": rev, "backlash_testable": bool(max(rev) >= REVERSAL_MIN_PCT)}
+        if self.steps and BALANCE in self.final.eqs:
+            out["inertias_after_kgm2"] = [{"J1": a, "J2": b} for a, b in bx.balance_inertias(self.final)]
+        out["warnings"] = inertia_warnings(out.get("inertias_after_kgm2", out["inertias_kgm2"]))
+        return out
 
     def as_dict(self) -> dict:
         s = self.series
@@ -158,13 +242,27 @@ class BenchDiagnosis:
                           "declared_orders": q.declared}
                          for p, q in zip(s.plateaus, self.baseline.plateaus)],
             "baseline": {"na": self.baseline.spec.na, "nb": self.baseline.spec.nb},
-            "effects": [{**st.candidate.as_dict(), "score": st.ratio} for st in self.steps],
+            "effects": [st.as_dict(self.base_channels) for st in self.steps],
             "result": (self.steps[0].candidate.kind if self.steps else "no significant effect"),
-            "error_before": self.errors(self.baseline), "error_after": self.errors(self.final),
+            "error_before": self.error_figures(False), "error_after": self.error_figures(True),
+            "refused": list(self.refused),
             "torque_balance": self.balance_notes(),
             "candidates": [[c.as_dict() for c in step] for step in self.candidates],
             "thresholds": self.thresholds, "stop_reason": self.stop_reason,
         }
+
+
+def inertia_warnings(inertias: list[dict]) -> list[str]:
+    """A warning for each inertia the torque balance gives as zero or negative on some plateau."""
+    out = []
+    for name in ("J1", "J2"):
+        bad = [i + 1 for i, x in enumerate(inertias) if not x[name] > 0]
+        if bad:
+            out.append(f"the torque balance gives {name} <= 0 on plateau {', '.join(map(str, bad))} "
+                       f"({', '.join(f'{inertias[i - 1][name]:.3g}' for i in bad)} kg m^2): not physical; the "
+                       "torque and the speeds are not on one time base (an uncorrected sensor delay) or the "
+                       "torque does not act on the measured masses alone")
+    return out
 
 
 def _gain(new: BenchFit, ref: BenchFit, eqs: tuple[str, ...]) -> tuple[float, float]:
@@ -255,7 +353,7 @@ def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
         shaft = s1 if not (g2 > SIDE_UNDETERMINED * g1 > 0) else "undetermined"
         out.append(BenchCandidate("rotation_order_disturbance",
                                   {"order": k, "shaft": shaft, "gains": {s: v[0] for s, v in sides.items()}},
-                                  g1, t1, sides[s1][2]))
+                                  g1, t1, sides[s1][2], (s1,)))
     report("fixed-frequency lines")
     # lines fixed in Hz in the torque balance: an external torque shows there whatever the shaft
     # it enters, and nothing in the balance predicts it from the speeds' past
@@ -280,15 +378,15 @@ def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
         out.append(BenchCandidate("fixed_frequency_disturbance",
                                   {"freq_hz": f, "coherence_contrast": contrast, "coherence": level,
                                    "line_strength": strength},
-                                  g_f, t_f, fixed.spec))
+                                  g_f, t_f, fixed.spec, (BALANCE,)))
     report("backlash")
     term, new, g, t = backlash_fit(series, spec)
     out.append(BenchCandidate("backlash", {**term.params(), "shaft_torque_reversed_pct": bx.shaft_torque_reversed(bal)},
-                              g, t, new.spec))
+                              g, t, new.spec, EQS))
     report("coulomb friction")
     new = fit_spec(series, spec.with_term(bx.CoulombTerm(spec.nb)), only=EQS)
     g, t = _gain(new, base, EQS)
-    out.append(BenchCandidate("coulomb_friction", {}, g, t, new.spec))
+    out.append(BenchCandidate("coulomb_friction", {}, g, t, new.spec, EQS))
     report("speed transfer: delay and additional mode")
     tr = bt.transfer_effects(base.plateaus, MAX_DELAY_S)
     td, tm = tr["delay"], tr["mode"]
@@ -301,7 +399,7 @@ def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
     out.append(BenchCandidate("sensor_delay", {"signal": f"{signal}_speed", "delay_s": abs(td["tau_s"]),
                                                "heldout_gain": td["heldout_gain"], "onestep_gain": onestep,
                                                "jackknife_s": td["jackknife_s"]},
-                              1000.0 * abs(td["tau_s"]), td["t"], trial))
+                              1000.0 * abs(td["tau_s"]), td["t"], trial, ("transfer",)))
     modes = list(spec.modes)
     modes[EQS.index("engine")] += 1
     mode_spec = replace(spec, modes=tuple(modes))
@@ -310,20 +408,28 @@ def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
     out.append(BenchCandidate("additional_mode", {"freq_hz": tm["freq_hz"], "shaft": "engine",
                                                   "heldout_gain": tm["heldout_gain"], "onestep_gain": onestep,
                                                   "in_band": tm["in_band"]},
-                              tm["heldout_gain"], tm["t"], mode_spec))
+                              tm["heldout_gain"], tm["t"], mode_spec, ("transfer",)))
     return out
 
 
 def diagnose_bench(series: BenchSeries, *, na: int = 6, nb: int = 6, max_effects: int = 2,
                    thresholds: dict | None = None,
                    progress: Callable[[float, str], None] | None = None) -> BenchDiagnosis:
-    """Find, in order, the effects a bench record holds beyond the declared model."""
+    """Find, in order, the effects a bench record holds beyond the declared model.
+
+    A candidate is taken when its score reaches the threshold of its kind, it is significant, and the
+    summary of the held-out error over every channel (:class:`Channels`) falls with it; of those, the
+    one with the largest score over threshold.  One that passes the first two but not the third is
+    listed as refused with the channels that rose.
+    """
     thr = default_thresholds(series) if thresholds is None else dict(thresholds)
     report = progress or (lambda f, m: None)
     spec = Spec(na, nb)
     report(0.0, "baseline")
     base = fit_spec(series, spec)
-    cur, steps, all_cands = base, [], []
+    transfer: dict = {}
+    base_ch = channels_of(base, transfer)
+    cur, cur_ch, steps, all_cands, refused = base, base_ch, [], [], []
     stop = f"max_effects={max_effects} reached"
     for step in range(max_effects):
         cands = evaluate_candidates(series, cur.spec, cur,
@@ -332,18 +438,68 @@ def diagnose_bench(series: BenchSeries, *, na: int = 6, nb: int = 6, max_effects
                  for s in steps}
         cands = [c for c in cands if (c.kind, c.params.get("signal"), c.params.get("order")) not in taken]
         all_cands.append(cands)
-        ok = [c for c in cands if is_accepted(c.kind, c.gain, c.t_stat, thr)]
-        if not ok:
-            stop = "no significant effect" if step == 0 else "no further candidate is significant"
+        ok = sorted((c for c in cands if is_accepted(c.kind, c.gain, c.t_stat, thr)),
+                    key=lambda c: -c.gain / thr[c.kind])
+        chosen = None
+        for c in ok:
+            new = fit_spec(series, c.spec)
+            new_ch = channels_of(new, transfer)
+            s0, s1 = cur_ch.summary(base_ch), new_ch.summary(base_ch)
+            if s1 < s0:
+                chosen = (c, new, new_ch)
+                break
+            refused.append({"step": step + 1, "kind": c.kind, "params": c.params, "summary_before": s0,
+                            "summary_after": s1, "why": "the summary of the held-out error over every "
+                            "channel does not fall: " + rise_text(cur_ch, new_ch)})
+        if chosen is None:
+            stop = ("no significant effect" if step == 0 else "no further candidate is significant") if not ok \
+                else "no significant candidate lowers the summary of the held-out error"
             break
-        best = max(ok, key=lambda c: c.gain / thr[c.kind])
-        new = fit_spec(series, best.spec)
-        steps.append(BenchStep(best, best.gain / thr[best.kind], _rms(cur), _rms(new)))
-        cur = new
+        best, new, new_ch = chosen
+        steps.append(BenchStep(best, best.gain / thr[best.kind], cur_ch, new_ch, cur_ch.summary(base_ch),
+                               new_ch.summary(base_ch), rise_notes(best, cur_ch, new_ch)))
+        cur, cur_ch = new, new_ch
     report(1.0, "done")
-    return BenchDiagnosis(series, base, cur, steps, all_cands, thr, stop)
+    return BenchDiagnosis(series, base, cur, steps, all_cands, thr, stop, base_ch, cur_ch, refused, transfer)
 
 
-def _rms(fit: BenchFit) -> dict:
-    """Held-out RMS per equation: the speed equations in rpm, the torque balance in Nm."""
-    return {eq: float(np.sqrt(fit.mse(eq)) * (1.0 if eq == BALANCE else RPM_PER_RAD_S)) for eq in fit.eqs}
+def channels_of(fit: BenchFit, transfer_cache: dict | None = None) -> Channels:
+    """The held-out figures of a fitted spec (every equation fitted); the transfer's misfit depends only on
+    the speed shifts and the modes, and is kept in ``transfer_cache`` under them."""
+    spec = fit.spec
+    key = (spec.shift_dyno, spec.shift_engine, spec.modes)
+    cache = {} if transfer_cache is None else transfer_cache
+    if key not in cache:
+        cache[key] = bt.heldout_misfit(fit.plateaus, spec.modes[EQS.index("engine")] > 0)
+    return Channels({**{eq: fit.mse(eq) for eq in ALL_EQS}, "transfer": cache[key]})
+
+
+def rise_text(before: Channels, after: Channels) -> str:
+    """Which channels rose and by how much (relative RMS)."""
+    rel = after.relative(before)
+    return ", ".join(f"{CHANNEL_TEXT[c]} {100 * (np.sqrt(r) - 1):+.1f} %" for c, r in rel.items()) or "-"
+
+
+RISE_NOTE = 1e-4  # a channel whose held-out RMS rises by more than this fraction gets a note
+
+
+def rise_notes(c: BenchCandidate, before: Channels, after: Channels) -> list[str]:
+    """Why a channel's held-out error rises with a step accepted on other channels."""
+    out = []
+    for ch, r in after.relative(before).items():
+        rise = np.sqrt(r) - 1.0
+        if rise <= RISE_NOTE:
+            continue
+        if ch in c.judged_on:  # not for a single figure (judged channels fall together on average)
+            why = (f"judged with {', '.join(CHANNEL_TEXT[x] for x in c.judged_on if x != ch)} on their mean; "
+                   "the term helps the other more")
+        elif c.kind == "additional_mode" and ch == "engine":
+            why = "its four more lags are fitted on the estimation blocks; the mode shows in the transfer"
+        elif c.kind == "sensor_delay":
+            why = ("the late speed, advanced, is aligned with the torque; the equation fits the aligned "
+                   "signals a little worse than the measured ones on the held-out blocks")
+        else:
+            why = (f"the term's columns in it are fitted on the estimation blocks and do not carry over to the "
+                   f"held-out ones; the step was accepted on the {' and '.join(CHANNEL_TEXT[x] for x in c.judged_on)}")
+        out.append(f"{CHANNEL_TEXT[ch]} rises {100 * rise:.2f} % (held out): {why}")
+    return out

@@ -103,6 +103,7 @@ class PlateauSignals:
     fs_hz: float
     declared: list = field(default_factory=list)
     demand: np.ndarray | None = None  # recorded torque demand (PRBS) on the series grid
+    own: dict = field(default_factory=dict)  # speed equation -> (its output, the other speed) in its time base
     cache: dict = field(default_factory=dict)  # (eq, na, nb) -> base regressors
     residual: dict = field(default_factory=dict)  # eq -> baseline residual on the full plateau span
 
@@ -152,11 +153,30 @@ def causal_highpass(x: np.ndarray, n: int) -> np.ndarray:
     return x - (c[k] - c[lo]) / (k - lo)
 
 
+def own_time_base(raw1: np.ndarray, raw2: np.ndarray, shift1: float, shift2: float) -> dict[str, tuple]:
+    """Each speed equation's output and other speed in the output's own time base.
+
+    A sensor delay is corrected by advancing the late speed (``shift`` samples).  An equation keeps its
+    own output and the torque as measured and advances the other speed only when that one is the later
+    (by the difference): the measured torque and an earlier speed already lead a late output, and the
+    lags reach back over the delay, so advancing the late output in its own equation would take away the
+    lead it has on them and raise its one-step error while the balance and the other equation fall.
+    """
+    return {"dyno": (raw1, shifted(raw2, max(shift2 - shift1, 0.0))),
+            "engine": (raw2, shifted(raw1, max(shift1 - shift2, 0.0)))}
+
+
 def plateau_signals(series: BenchSeries, spec: Spec) -> list[PlateauSignals]:
-    """Per-plateau signal views with the spec's speed shifts and block masks."""
+    """Per-plateau signal views with the spec's speed shifts and block masks.
+
+    ``y1``, ``y2`` are both speeds with the shifts applied (aligned with the torque: the torque balance,
+    the twist and the speed transfer use them); each speed equation takes its output and the other
+    speed from :func:`own_time_base`.
+    """
     fs = series.fs_hz
     y1 = shifted(series.dyno, spec.shift_dyno)
     y2 = shifted(series.engine, spec.shift_engine)
+    own = own_time_base(series.dyno, series.engine, spec.shift_dyno, spec.shift_engine)
     block, hold = int(round(BLOCK_S * fs)), int(round(HOLDOUT_S * fs))
     out = []
     for i, p in enumerate(series.plateaus):
@@ -171,7 +191,7 @@ def plateau_signals(series: BenchSeries, spec: Spec) -> list[PlateauSignals]:
         out.append(PlateauSignals(i, rows, ~val, val, series.torque, y1, y2, series.theta_dyno,
                                   series.theta_engine, np.arange(series.dyno.size) / fs, tw,
                                   float(np.mean(series.engine[span])) / (2 * np.pi), fs,
-                                  demand=series.demand))
+                                  demand=series.demand, own=own))
         out[-1].declared = declared_orders(series, out[-1].rev_hz)
     return out
 
@@ -224,9 +244,11 @@ def _build_base(p: PlateauSignals, eq: str, na: int, nb: int) -> list[np.ndarray
     elif eq == "dyno":
         # the torque from lag 1: at lag 0 it holds the speed controller's reaction to the
         # measured dyno speed (feedback), which a one-step predictor must not use
-        cols = [p.lagged(p.y1, lags_a), p.lagged(p.u, lags_b + 1), p.lagged(p.y2, lags_b)]
+        y1, y2 = p.own[eq]
+        cols = [p.lagged(y1, lags_a), p.lagged(p.u, lags_b + 1), p.lagged(y2, lags_b)]
     else:
-        cols = [p.lagged(p.y2, lags_a), p.lagged(p.y1, lags_b)]
+        y2, y1 = p.own[eq]
+        cols = [p.lagged(y2, lags_a), p.lagged(y1, lags_b)]
     if p.declared:
         cols.append(order_columns(p.theta2[p.rows], p.declared))
     cols.append(np.ones((p.rows.size, 1)))
@@ -259,8 +281,8 @@ def design(p: PlateauSignals, spec: Spec, eq: str, extra: list[np.ndarray] = ())
 
 
 def output(p: PlateauSignals, eq: str) -> np.ndarray:
-    """What equation ``eq`` explains on the rows of plateau ``p``: a speed, or the torque (balance)."""
-    return {"dyno": p.y1, "engine": p.y2, BALANCE: p.u}[eq][p.rows]
+    """What equation ``eq`` explains on the rows of plateau ``p``: a speed (as measured), or the torque."""
+    return (p.u if eq == BALANCE else p.own[eq][0])[p.rows]
 
 
 def fit_plateau(p: PlateauSignals, spec: Spec, eq: str, extra: list[np.ndarray] = (),

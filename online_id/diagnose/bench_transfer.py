@@ -214,7 +214,7 @@ def _mode_model(x: np.ndarray) -> RatioModel:
 
 
 def fit_ratio_mode(f: np.ndarray, T: np.ndarray, w: np.ndarray, two: RatioModel, max_s: float,
-                   start: np.ndarray | None = None) -> tuple[RatioModel, np.ndarray]:
+                   start: np.ndarray | None = None, tau: float | None = None) -> tuple[RatioModel, np.ndarray]:
     """The two-mass model with one more inertia on the engine side (an additional mode).
 
     Nonlinear least squares of the relative error over the physical
@@ -222,11 +222,17 @@ def fit_ratio_mode(f: np.ndarray, T: np.ndarray, w: np.ndarray, two: RatioModel,
     and a grid of antiresonances ``sqrt(alpha)`` (30 Hz to the band's end,
     ``mu = 0.1``); the starts with the least misfit are refined and the best
     end point is kept.  With ``start`` (parameters of an earlier fit) only
-    that start is refined.  Returns the model and its parameters.
+    that start is refined.  ``tau`` holds the delay (``None``: fitted, within
+    ``+-max_s``).  Returns the model and its parameters.
     """
     sw = np.sqrt(w)
+    free = tau is None
+
+    def full(x: np.ndarray) -> np.ndarray:
+        return x if free else np.append(x[:5], tau)
 
     def resid(x: np.ndarray) -> np.ndarray:
+        x = full(x)
         tc = T * np.exp(2j * np.pi * f * x[5])
         with np.errstate(all="ignore"):
             d = (tc - _mode_model(x).response(f)) / np.maximum(np.abs(tc), 1e-300) * sw
@@ -234,21 +240,40 @@ def fit_ratio_mode(f: np.ndarray, T: np.ndarray, w: np.ndarray, two: RatioModel,
         return np.concatenate((d.real, d.imag))
 
     a0, b0 = max(two.num[0], 1e-6), max(two.num[1], 1e-6)
+    tau0 = two.tau_s if free else tau
     starts = []
     for fa in np.geomspace(30.0, f[-1], N_STARTS if start is None else 0):
         al = (2 * np.pi * fa / W_REF) ** 2
-        x0 = np.array([np.log(a0), np.log(b0), np.log(al), np.log(0.08 * np.sqrt(al)), np.log(0.1), two.tau_s])
+        x0 = np.array([np.log(a0), np.log(b0), np.log(al), np.log(0.08 * np.sqrt(al)), np.log(0.1), tau0])
+        x0 = x0 if free else x0[:5]
         starts.append((float(np.sum(resid(x0) ** 2)), x0))
     best = None
     if start is not None:
-        starts = [(0.0, np.asarray(start, dtype=float))]
+        x0 = np.asarray(start, dtype=float)
+        starts = [(0.0, x0 if free else x0[:5])]
     for _, x0 in sorted(starts, key=lambda c: c[0])[:N_REFINED]:
         r = least_squares(resid, x0, method="lm", max_nfev=MAX_NFEV)
         if np.all(np.isfinite(r.x)) and (best is None or 2 * r.cost < best[0]):
             best = (2 * r.cost, r.x)
-    x = best[1].copy()
+    x = full(best[1]).copy()
     x[5] = float(np.clip(x[5], -max_s, max_s))
     return _mode_model(x), x
+
+
+def heldout_misfit(ps: list[PlateauSignals], mode: bool) -> float:
+    """Held-out misfit of the speed transfer of a model: fitted on the estimation segments, judged on the
+    held-out ones, with no delay beyond the shifts the plateaus' speeds already carry.
+
+    ``mode``: with one more inertia on the engine side (:func:`fit_ratio_mode`), else the two-mass
+    model.  The transfer figure of a diagnosis step (a sensor delay or an additional mode changes it).
+    """
+    fs = ps[0].fs_hz
+    fe, Te, we = pooled_ratio([segment_spectra(p, "est") for p in ps], fs)
+    fv, Tv, wv = pooled_ratio([segment_spectra(p, "val") for p in ps], fs)
+    model = fit_ratio(fe, Te, we, 0.0)
+    if mode:
+        model, _ = fit_ratio_mode(fe, Te, we, model, 0.0, tau=0.0)
+    return model.misfit(fv, Tv, wv)
 
 
 def fit_ratio_delay(f: np.ndarray, T: np.ndarray, w: np.ndarray, max_s: float) -> tuple[float, float, float]:

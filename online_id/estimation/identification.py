@@ -118,6 +118,8 @@ class IdentificationResult:
                 "sample_rate_hz": self.fs_hz,
             },
             "invariant_modes": [{"f_hz": m.f0_hz, "zeta": m.zeta} for m in self.sorting.invariant_modes],
+            "rotation_lines": [{"order": x.order, "f_hz": x.f_hz, "zeta": x.zeta, "n_points": x.n_points,
+                                "declared": x.declared} for x in self.sorting.lines],
             "warnings": list(self.warnings),
         }
 
@@ -347,6 +349,7 @@ def identify(
     )
     for p, row in zip(points, sorting.poles):
         p.poles = row
+    warnings += [line.text() for line in sorting.lines if not line.declared]
 
     driveline = None
     if sorting.driveline is None:
