@@ -46,7 +46,9 @@ IDENTIFY_UNITS = {
     "zeta_std": "1", "zeta_a": "1", "J1": "kg m^2", "J2": "kg m^2", "c_s": "Nm/rad", "d_s": "Nm s/rad",
     "engine_speed_rpm": "rpm", "t_start_s": "s", "t_end_s": "s", "fit_window_s": "s", "compare_window_s": "s",
     "fpe": "(rad/s)^2", "validation_V": "(rad/s)^2", "order": "1/rev (engine order)", "z_re": "1", "z_im": "1",
-    "fit_simulation_pct": "%", "fit_one_step_pct": "%", "coherence_at_f0": "1",
+    "fit_simulation_pct": "%", "fit_one_step_pct": "%", "coherence_at_f0": "1", "held_out_s": "s", "window_s": "s",
+    "autocorrelation": "1", "cross_correlation": "1", "autocorrelation_bound": "1", "cross_correlation_bound": "1",
+    "lags": "samples at sample_rate_hz", "cross_lags": "samples at sample_rate_hz", "confidence": "1",
 }
 NEAR_NYQUIST = 0.4  # poles above this fraction of the sample rate sit where the anti-alias filter left no signal
 ORDER_MAX_ZETA = 0.02  # an engine-order line is an (almost) undamped oscillator
@@ -93,9 +95,16 @@ def pole_notes(result: IdentificationResult, pulses_per_rev: float | None = None
     return out
 
 
-def identification_document(result: IdentificationResult, pulses_per_rev: float | None = None) -> dict:
-    """``result.as_dict()`` with a note on every pole (see :func:`pole_notes`) and a ``units`` map."""
+def identification_document(result: IdentificationResult, pulses_per_rev: float | None = None,
+                            resid: bool = False) -> dict:
+    """``result.as_dict()`` with a note on every pole (see :func:`pole_notes`) and a ``units`` map.
+
+    With ``resid``, every operating point gets its residual tests (``"resid"``).
+    """
     doc = result.as_dict()
+    if resid:
+        for point, p in zip(doc["operating_points"], result.points):
+            point["resid"] = p.resid.as_dict() if p.resid is not None else None
     for point, notes in zip(doc["operating_points"], pole_notes(result, pulses_per_rev)):
         for pole, note in zip(point["poles"], notes):
             pole["spurious"] = note.startswith("spurious")
@@ -110,17 +119,46 @@ def figures_text(doc: dict) -> list[str]:
     fig = doc.get("figures")
     if not fig:
         return []
-    head = "Model against the data (compare: held-out part of each plateau, or its fit window where it has none)"
-    lines = ["", head] if fig["points"] else [""]
-    for c in fig["points"]:
-        lines.append(f"  {c['engine_speed_rpm']:6.0f} rpm  simulation fit {fmt(c['fit_simulation_pct'], '6.1f')} %  "
-                     f"one-step fit {fmt(c['fit_one_step_pct'], '6.1f')} %  coherence at f0 "
-                     f"{fmt(c['coherence_at_f0'], '.2f')}" + ("" if c["held_out"] else "  (fit window)"))
+    lines = [""]
+    if fig["points"]:
+        lines.append("Coherence of torque and dyno speed at the driveline frequency (Bode figures): "
+                     + ", ".join(f"{c['engine_speed_rpm']:.0f} rpm {fmt(c['coherence_at_f0'], '.2f')}"
+                                 for c in fig["points"]))
     return lines + [f"wrote {f}" for f in fig["files"]]
 
 
+def validation_text(result: IdentificationResult, resid: bool = False) -> list[str]:
+    """The held-out fit per operating point (MATLAB ``compare``) and, with ``resid``, the residual tests."""
+    checks = [(p, p.check) for p in result.points if p.check is not None]
+    if not checks:
+        return ["Validation: no operating point long enough to compare the model with"]
+    fitted = all(c.held_out for _, c in checks)
+    lines = ["Validation (MATLAB compare, NRMSE fit %; " + ("on data held out of every fit)" if fitted else
+             "held-out data where a point has any, else its fit window, marked)")]
+    for p, c in checks:
+        t0 = p.plateau.t_start_s
+        span = f"{t0 + c.span[0] * p.dt:.1f}-{t0 + c.span[1] * p.dt:.1f} s"
+        where = f"held out {span:<15}" if c.held_out else f"FIT WINDOW {span} (no data left)"
+        lines.append(f"  {p.speed_rpm:6.0f} rpm  {where}  simulation fit {fmt(c.fit_sim_pct, '6.1f')} %  "
+                     f"one-step fit {fmt(c.fit_pred_pct, '6.1f')} %")
+    if resid:
+        rs = [(p, p.resid) for p in result.points if p.resid is not None]
+        if rs:
+            r0 = rs[0][1]
+            lines += ["", f"Residual tests (MATLAB resid: one-step residual on the same samples, "
+                      f"{100 * r0.confidence:.0f} % bounds, lags in samples of {1e3 * result.points[0].dt:.3g} ms)"]
+        for p, r in rs:
+            lines.append(f"  {p.speed_rpm:6.0f} rpm  autocorrelation {r.auto_outside:2d}/{r.lags.size - 1} lags "
+                         f"outside +-{r.auto_bound:.3f}   cross-correlation with the torque {r.cross_outside:2d}/"
+                         f"{r.cross_lags.size} outside +-{r.cross_bound:.3f}   ("
+                         + ("white" if r.auto_outside <= max(1, int(0.01 * (r.lags.size - 1))) else "not white")
+                         + ", " + ("independent of the input" if r.cross_outside <= max(1, int(0.01 * r.cross_lags.size))
+                                   else "correlated with the input") + ")")
+    return lines
+
+
 def identification_table(result: IdentificationResult, *, show_real: bool = False, show_spurious: bool = False,
-                         pulses_per_rev: float | None = None) -> str:
+                         pulses_per_rev: float | None = None, resid: bool = False) -> str:
     """Poles per operating point with their class, then the driveline result.
 
     Poles that are certainly spurious (negative damping, near Nyquist) are
@@ -162,6 +200,7 @@ def identification_table(result: IdentificationResult, *, show_real: bool = Fals
         hidden_total += n_hidden
         lines.append("")
     lines.append(driveline_text(result))
+    lines += [""] + validation_text(result, resid)
     if hidden_total:
         lines.append("(spurious poles: listed with a note in --json)")
     for w in result.warnings:

@@ -12,7 +12,7 @@ import pytest
 
 from online_id.bench.scenario import BenchScenario, OperatingPoint
 from online_id.bench.simulate import simulate_bench
-from online_id.estimation.identification import best_window, identify
+from online_id.estimation.identification import GUARD, best_window, identify
 from online_id.analysis.poles import DRIVELINE, SPEED_DEPENDENT
 from online_id.estimation.settings import IdentificationSettings, InertiaSettings
 
@@ -66,7 +66,9 @@ def check(truth, result):
     ppr = truth["pulses_per_rev"]
     for point in result.points:
         line = ppr * point.speed_rpm / 60.0
-        comp = [q for q in point.poles if abs(q.f_hz - line) < 0.02 * line]
+        # the compression pair: lightly damped (sort_poles' max_order_zeta); a well-damped pole that happens to lie
+        # within 2 % of the line is no oscillator at it
+        comp = [q for q in point.poles if abs(q.f_hz - line) < 0.02 * line and abs(q.zeta) < 0.2]
         assert comp, f"no pole on the compression line at {point.speed_rpm:.0f} rpm"
         assert all(q.cls == SPEED_DEPENDENT and q.order == ppr for q in comp)
         assert sum(q.cls == DRIVELINE for q in point.poles) == 1
@@ -141,10 +143,22 @@ def test_window_fit_agrees_with_the_whole_plateau_fit():
 
 
 def test_refine_refits_the_chosen_order_on_more_seconds():
-    truth, result = run_case(FIXED[0][:5] + ((1000, 2000),), seed=9, duration_s=70.0, fit_s=20.0, refine_s=60.0)
+    truth, result = run_case(FIXED[0][:5] + ((1000, 2000),), seed=9, duration_s=70.0, fit_s=20.0, refine_s=60.0,
+                             holdout=0.0)
     check(truth, result)
     for p in result.points:
         assert p.fit.n == round(60.0 / p.dt) - result.orders.max_lag  # refitted on 60 s
+
+
+def test_refine_stops_short_of_the_held_out_piece():
+    truth, result = run_case(FIXED[0][:5] + ((1000, 2000),), seed=9, duration_s=70.0, fit_s=20.0, refine_s=60.0)
+    check(truth, result)
+    for p in result.points:
+        size = round((p.plateau.stop - p.plateau.start) / round(p.dt * 1000.0))
+        h0, h1 = p.held_out
+        free = (h0 if h0 > 0 else size - h1) - GUARD  # the plateau less the held-out piece and the guard
+        assert (h1 - h0) >= 0.25 * size - GUARD
+        assert p.fit.n == min(round(60.0 / p.dt), free) - result.orders.max_lag
 
 
 @pytest.mark.parametrize("seed, zeta, amp_nm, rpm", [(1, 0.3, 20.0, 3200.0), (2, 0.15, 40.0, 3000.0)])

@@ -382,6 +382,26 @@ def modal_residue(a: np.ndarray, b: np.ndarray, z: complex) -> float:
     return float(abs(num / den)) if den != 0 else float("inf")
 
 
+def pole_gradient(a: np.ndarray, z: complex, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Gradients of a pole's frequency [Hz] and damping with respect to ``a[1:]`` (see :func:`pole_std`).
+
+    Infinite where the derivative does not exist (``z = 0``, a multiple root).
+    """
+    a = np.asarray(a, dtype=float)
+    n = a.size - 1
+    if n < 1 or z == 0:
+        return np.full(max(n, 0), np.inf), np.full(max(n, 0), np.inf)
+    dA = np.polyval(np.polyder(a), z)  # z^n + a1 z^(n-1) + ... : same order as np.polyval expects
+    if dA == 0:
+        return np.full(n, np.inf), np.full(n, np.inf)
+    powers = z ** np.arange(n - 1, -1, -1)  # z^(n-k) for k = 1..n
+    G = -powers / dA / (z * dt)  # d s / d a_k
+    s = np.log(z) / dt
+    x, y = s.real, s.imag
+    r = abs(s)
+    return (x * G.real + y * G.imag) / (2 * np.pi * r), (-(y**2) * G.real + x * y * G.imag) / r**3
+
+
 def pole_std(a: np.ndarray, z: complex, cov_a: np.ndarray, dt: float) -> tuple[float, float]:
     """Standard deviations of a pole's frequency [Hz] and damping from the covariance of ``a``.
 
@@ -394,21 +414,9 @@ def pole_std(a: np.ndarray, z: complex, cov_a: np.ndarray, dt: float) -> tuple[f
     :math:`\\partial \\zeta/\\partial(x, y) = (-y^2, xy)/r^3`.  First-order
     propagation: :math:`\\sigma_f^2 = g_f^T \\Sigma_a g_f`.
     """
-    a = np.asarray(a, dtype=float)
-    n = a.size - 1
-    if n < 1 or z == 0:
+    g_f, g_z = pole_gradient(a, z, dt)
+    if g_f.size == 0 or not (np.all(np.isfinite(g_f)) and np.all(np.isfinite(g_z))):
         return float("inf"), float("inf")
-    coeffs = a  # z^n + a1 z^(n-1) + ... : same order as np.polyval expects
-    dA = np.polyval(np.polyder(coeffs), z)
-    if dA == 0:
-        return float("inf"), float("inf")
-    powers = z ** np.arange(n - 1, -1, -1)  # z^(n-k) for k = 1..n
-    G = -powers / dA / (z * dt)  # d s / d a_k
-    s = np.log(z) / dt
-    x, y = s.real, s.imag
-    r = abs(s)
-    g_f = (x * G.real + y * G.imag) / (2 * np.pi * r)
-    g_z = (-(y**2) * G.real + x * y * G.imag) / r**3
     var_f = float(g_f @ cov_a @ g_f)
     var_z = float(g_z @ cov_a @ g_z)
     return float(np.sqrt(max(var_f, 0.0))), float(np.sqrt(max(var_z, 0.0)))

@@ -8,7 +8,7 @@ import sys
 
 from online_id.benchlog import read_bench
 from online_id.config import Settings, load_config
-from online_id.estimation.identification import IdentificationResult, identify
+from online_id.estimation.identification import HOLDOUT, IdentificationResult, identify
 from online_id.errors import ConfigError, EstimationError
 from online_id.io.jsonout import dumps
 from online_id.io.outfile import check_output
@@ -37,7 +37,20 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--plot", metavar="FILE.png|DIR",
                    help="FILE.png: pole frequency and damping against engine speed; DIR: that figure (poles.png), "
                         "a Bode plot of the model over the measured response per operating point "
-                        "(bode_K_RPMrpm.png) and the simulated against the measured output (compare.png)")
+                        "(bode_K_RPMrpm.png), the simulated against the measured held-out output (compare.png), "
+                        "step and impulse responses (responses.png) and, with --resid, the residual tests (resid.png)")
+    p.add_argument("--resid", action="store_true",
+                   help="residual tests per operating point as MATLAB's resid: autocorrelation of the one-step "
+                        "residual on the held-out data and its cross-correlation with the torque, with 99 %% bounds")
+    p.add_argument("--validate", metavar="FILE",
+                   help="also compare the models with another recording of the bench (same columns and units): "
+                        "each of its operating points against the model of the nearest engine speed")
+    p.add_argument("--mat", metavar="FILE.mat",
+                   help="write the models per operating point (A, B, C, sample time, delay, units) as a MATLAB "
+                        "file that idpoly takes (docs/sysid.md: the variable layout)")
+    p.add_argument("--out-mf4", metavar="FILE.mf4",
+                   help="write the results as MDF 4 channels on the recording's time base (models' simulated and "
+                        "predicted dyno speed, residual, per-point estimates and fits, driveline parameters)")
     add_quiet_option(p)
     p.add_argument("--recursive", action="store_true",
                    help="run the service's streaming estimator (RELS with forgetting) over the file instead "
@@ -68,6 +81,10 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    help="fit the order grid on the best-excited S seconds of each operating point and hold "
                         "out the rest for validation (default 40); 0 fits whole plateaus, whose cost grows "
                         "with the recording")
+    m.add_argument("--holdout", type=float, metavar="FRACTION", default=HOLDOUT,
+                   help=f"fraction of each operating point held out of every fit, in one piece, to validate the "
+                        f"model on (default {HOLDOUT:g}); 0: the fit window may take the whole point (then the "
+                        "model is compared with its own fit window, and says so)")
     m.add_argument("--refine-seconds", type=float, metavar="S", default=0.0,
                    help="refit the chosen order on up to S seconds around the fit window (default 0: off)")
     p.set_defaults(func=run)
@@ -125,14 +142,17 @@ def _note(text: str) -> None:
 
 
 def run_identification(path: str, s: Settings, label: str = "identify", *, fit_s: float | None = 40.0,
-                       refine_s: float | None = None, quiet: bool = False) -> IdentificationResult:
-    """Read ``path`` and identify, with progress on a terminal (``fit_s``, ``refine_s``: see :func:`identify`)."""
+                       refine_s: float | None = None, quiet: bool = False,
+                       holdout: float = HOLDOUT) -> IdentificationResult:
+    """Read ``path`` and identify, with progress on a terminal (``fit_s``, ``refine_s``, ``holdout``: see
+    :func:`identify`)."""
     with Progress(label, quiet=quiet) as progress:
         progress(0.0, f"reading {path}")
         data = read_bench(path, s, _note)
         for text in speed_warnings(data, s.columns, s.units):
             _note(f"warning: {text}")
-        return identify(data, s.identification, s.inertias, progress=progress, fit_s=fit_s, refine_s=refine_s)
+        return identify(data, s.identification, s.inertias, progress=progress, fit_s=fit_s, refine_s=refine_s,
+                        holdout=holdout)
 
 
 def _seconds(value: float, flag: str) -> float | None:
@@ -172,26 +192,79 @@ def plot_figures(args: argparse.Namespace, s: Settings, result: IdentificationRe
     from online_id.plots.identification import write_plots
 
     return write_plots(result, args.plot, lambda: read_bench(args.path, s, lambda _note: None),
-                       title=f"online-id identify {args.path}", pulses_per_rev=s.identification.pulses_per_rev)
+                       title=f"online-id identify {args.path}", pulses_per_rev=s.identification.pulses_per_rev,
+                       resid=args.resid)
+
+
+def run_validation(args: argparse.Namespace, s: Settings, result: IdentificationResult) -> list[dict]:
+    """``--validate FILE``: the models against each operating point of another recording."""
+    from online_id.estimation.identification import validate_on
+
+    data = read_bench(args.validate, s, _note)
+    return validate_on(result, data, s.identification)
+
+
+def validation_lines(rows: list[dict], path: str) -> list[str]:
+    lines = ["", f"Validation on {path} (MATLAB compare, NRMSE fit %; every sample new to the models)"]
+    for r in rows:
+        if r.get("fit_simulation_pct") is None:
+            lines.append(f"  {r['engine_speed_rpm']:6.0f} rpm  {r['t_start_s']:.1f}-{r['t_end_s']:.1f} s  {r['note']}")
+            continue
+        lines.append(f"  {r['engine_speed_rpm']:6.0f} rpm  {r['t_start_s']:.1f}-{r['t_end_s']:.1f} s  model of "
+                     f"{r['model_speed_rpm']:.0f} rpm  simulation fit {fmt(r['fit_simulation_pct'], '6.1f')} %  "
+                     f"one-step fit {fmt(r['fit_one_step_pct'], '6.1f')} %")
+    return lines
 
 
 def run(args: argparse.Namespace) -> int:
     s = settings_from_args(args)
     if args.plot:
         check_output(args.plot, "plot", directory=not args.plot.lower().endswith(".png"))  # before the work
+    for flag, value in (("--mat", args.mat), ("--out-mf4", args.out_mf4)):
+        if value:
+            check_output(value, flag.lstrip("-"))
     if args.recursive:
         return run_recursive(args, s)
+    if not 0.0 <= args.holdout < 1.0:
+        raise ConfigError(f"--holdout: expected a fraction 0 <= F < 1, got {args.holdout!r}")
     result = run_identification(args.path, s, fit_s=_seconds(args.fit_seconds, "--fit-seconds"),
                                 refine_s=_seconds(args.refine_seconds, "--refine-seconds"),
-                                quiet=args.json or args.quiet)
-    doc = identification_document(result, s.identification.pulses_per_rev)
+                                quiet=args.json or args.quiet, holdout=args.holdout)
+    doc = identification_document(result, s.identification.pulses_per_rev, resid=args.resid)
+    if args.validate:
+        doc["validation_file"] = {"path": args.validate, "points": run_validation(args, s, result)}
     if args.plot:
         doc["figures"] = plot_figures(args, s, result)
+    written = []
+    if args.mat:
+        from online_id.io.model_mat import write_models_mat
+
+        drive = doc["driveline"] or {}
+        flat = {k: v for k, v in drive.items() if isinstance(v, (int, float)) or v is None}
+        flat |= {f"{k}_std": v for k, v in (drive.get("std") or {}).items()}
+        write_models_mat(args.mat, [p["model"] for p in doc["operating_points"] if p.get("model")], flat)
+        written.append(args.mat)
+    if args.out_mf4:
+        write_identify_mf4(args, s, result)
+        written.append(args.out_mf4)
     if args.json:
         sys.stdout.write(dumps(doc, indent=2) + "\n")
     else:
         print(f"online-id identify {args.path}")
-        print(identification_table(result, pulses_per_rev=s.identification.pulses_per_rev))
+        print(identification_table(result, pulses_per_rev=s.identification.pulses_per_rev, resid=args.resid))
+        if args.validate:
+            for line in validation_lines(doc["validation_file"]["points"], args.validate):
+                print(line)
         for line in figures_text(doc):
             print(line)
+        for path in written:
+            print(f"wrote {path}")
     return 0
+
+
+def write_identify_mf4(args: argparse.Namespace, s: Settings, result: IdentificationResult) -> None:
+    """``--out-mf4``: the identification's results as MDF 4 channels beside the recording's (see docs/sysid.md)."""
+    from online_id.io.mdf_results import write_identify_results
+
+    data = read_bench(args.path, s, lambda _note: None)
+    write_identify_results(args.out_mf4, result, data)
