@@ -46,6 +46,8 @@ IDENTIFY_UNITS = {
     "zeta_std": "1", "zeta_a": "1", "J1": "kg m^2", "J2": "kg m^2", "c_s": "Nm/rad", "d_s": "Nm s/rad",
     "engine_speed_rpm": "rpm", "t_start_s": "s", "t_end_s": "s", "fit_window_s": "s", "compare_window_s": "s",
     "fpe": "(rad/s)^2", "validation_V": "(rad/s)^2", "order": "1/rev (engine order)", "z_re": "1", "z_im": "1",
+    "std": "unit of the parameter", "ci95": "unit of the parameter", "sample_time_s": "s", "noise_variance": "(rad/s)^2",
+    "input_offset": "Nm", "output_offset": "rad/s", "input_delay_samples": "samples",
     "fit_simulation_pct": "%", "fit_one_step_pct": "%", "coherence_at_f0": "1", "held_out_s": "s", "window_s": "s",
     "autocorrelation": "1", "cross_correlation": "1", "autocorrelation_bound": "1", "cross_correlation_bound": "1",
     "lags": "samples at sample_rate_hz", "cross_lags": "samples at sample_rate_hz", "confidence": "1",
@@ -213,15 +215,27 @@ def driveline_text(result: IdentificationResult) -> str:
     mode = result.sorting.driveline
     if d is None or mode is None:
         return "Driveline: not found (no invariant lightly damped pole pair)"
+    std = result.uncertainty.std if result.uncertainty is not None else {}
+
+    def pm(key: str, spec: str) -> str:
+        """``+- std  [95 % interval]`` of a parameter, or why there is none."""
+        v, sd = getattr(d, key), std.get(key)
+        if v is None:
+            return ""
+        if sd is None:
+            return "  (given)" if key in ("J1", "J2") and d.source != "identified gain and anti-resonance" else ""
+        return f" +- {format(sd, spec)}  [{format(v - 1.96 * sd, spec)}, {format(v + 1.96 * sd, spec)}]"
+
     out = [
-        "Driveline",
-        f"  resonance        f0   = {d.f0_hz:8.3f} Hz   (std {mode.f0_std_hz:.3f} Hz over {mode.n_points} points)",
-        f"  damping ratio    zeta = {d.zeta:8.4f}      (std {mode.zeta_std:.4f})",
+        "Driveline (+- one standard deviation from the fits' covariance, [95 % interval])",
+        f"  resonance        f0   = {d.f0_hz:8.3f} Hz{pm('f0_hz', '.3f')}   (spread over {mode.n_points} points "
+        f"{mode.f0_std_hz:.3f} Hz)",
+        f"  damping ratio    zeta = {d.zeta:8.4f}{pm('zeta', '.4f')}   (spread {mode.zeta_std:.4f})",
         f"  anti-resonance   fa   = {fmt(d.fa_hz, '8.3f')} Hz",
-        f"  dyno inertia     J1   = {fmt(d.J1, '8.4f')} kg m^2",
-        f"  engine inertia   J2   = {fmt(d.J2, '8.4f')} kg m^2",
-        f"  shaft stiffness  c_s  = {fmt(d.c_s, '8.1f')} Nm/rad",
-        f"  shaft damping    d_s  = {fmt(d.d_s, '8.3f')} Nms/rad",
+        f"  dyno inertia     J1   = {fmt(d.J1, '8.4f')} kg m^2{pm('J1', '.4f')}",
+        f"  engine inertia   J2   = {fmt(d.J2, '8.4f')} kg m^2{pm('J2', '.4f')}",
+        f"  shaft stiffness  c_s  = {fmt(d.c_s, '8.1f')} Nm/rad{pm('c_s', '.1f')}",
+        f"  shaft damping    d_s  = {fmt(d.d_s, '8.3f')} Nms/rad{pm('d_s', '.3f')}",
         f"  inertias from: {d.source}",
     ]
     return "\n".join(out)

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import sys
+
+import numpy as np
 
 from online_id.benchlog import read_bench
 from online_id.config import Settings, load_config
@@ -264,7 +267,63 @@ def run(args: argparse.Namespace) -> int:
 
 def write_identify_mf4(args: argparse.Namespace, s: Settings, result: IdentificationResult) -> None:
     """``--out-mf4``: the identification's results as MDF 4 channels beside the recording's (see docs/sysid.md)."""
-    from online_id.io.mdf_results import write_identify_results
+    from online_id.estimation.identification import compare_point, point_signals
+    from online_id.io.mdf_results import Channel, ChannelGroup, recording_time_base, write_results_mdf
 
     data = read_bench(args.path, s, lambda _note: None)
-    write_identify_results(args.out_mf4, result, data)
+    base = recording_time_base(args.path, float(data.time_s[0]))
+    rpm = 60.0 / (2.0 * math.pi)
+    t, cols = [], {k: [] for k in ("speed", "point", "f", "zeta", "sim", "pred", "held")}
+    tm, sim, pred, meas = [], [], [], []
+    for k, p in enumerate(result.points):
+        drive = next((q for q in p.poles if q.cls == "driveline"), None)
+        c = p.check
+        for when in (p.plateau.t_start_s, p.plateau.t_end_s):
+            t.append(when)
+            for key, v in (("speed", p.speed_rpm), ("point", k + 1), ("f", drive.f_hz if drive else math.nan),
+                           ("zeta", drive.zeta if drive else math.nan),
+                           ("sim", c.fit_sim_pct if c else math.nan), ("pred", c.fit_pred_pct if c else math.nan),
+                           ("held", int(bool(c and c.held_out)))):
+                cols[key].append(v)
+        if c is None:
+            continue
+        y, u = point_signals(data, p)
+        cmp = compare_point(p, y, u, c.span)
+        keep = slice(cmp.skip, None)
+        tm.append((p.plateau.t_start_s + (c.span[0] + np.arange(cmp.y.size)) * p.dt)[keep])
+        for out, v in ((sim, cmp.y_sim), (pred, cmp.y_pred), (meas, cmp.y)):
+            out.append(((v + p.offsets[0] - np.mean(cmp.y)) * rpm)[keep])
+    points = ChannelGroup("identify: operating points", base.rel(t), [
+        Channel("oid_id_engine_speed", cols["speed"], "rpm", "engine speed of the operating point"),
+        Channel("oid_id_point", cols["point"], "", "operating point number (1, 2, ...)"),
+        Channel("oid_id_f_driveline", cols["f"], "Hz", "driveline pole frequency of the point's model"),
+        Channel("oid_id_zeta_driveline", cols["zeta"], "", "driveline pole damping ratio of the point's model"),
+        Channel("oid_id_fit_simulation", cols["sim"], "%", "NRMSE fit of the simulated dyno speed (MATLAB compare)"),
+        Channel("oid_id_fit_one_step", cols["pred"], "%", "NRMSE fit of the one-step prediction"),
+        Channel("oid_id_held_out", cols["held"], "", "1: the fits are on data held out of every fit", {0: "fit window",
+                                                                                                      1: "held out"}),
+    ], "per operating point: the values hold from its start to its end")
+    model_t = np.concatenate(tm) if tm else np.zeros(0)
+    model = ChannelGroup("identify: model output", base.rel(model_t), [
+        Channel("oid_id_dyno_speed_simulated", np.concatenate(sim) if sim else [], "rpm",
+                "dyno speed simulated by the model from the measured torque (plateau mean added)"),
+        Channel("oid_id_dyno_speed_predicted", np.concatenate(pred) if pred else [], "rpm",
+                "one-step predicted dyno speed (plateau mean added)"),
+        Channel("oid_id_residual", (np.concatenate(meas) - np.concatenate(pred)) if meas else [], "rpm",
+                "one-step prediction error of the dyno speed"),
+    ], "on the samples each point's model was validated on, at the identification's rate")
+    d = result.driveline
+    std = result.uncertainty.std if result.uncertainty is not None else {}
+    t_all = [float(data.time_s[0]), float(data.time_s[-1])]
+    chans = []
+    for key, unit, what in (("f0_hz", "Hz", "resonance"), ("zeta", "", "damping ratio"), ("c_s", "Nm/rad", "stiffness"),
+                            ("d_s", "Nm s/rad", "shaft damping"), ("J1", "kg m^2", "dyno inertia"),
+                            ("J2", "kg m^2", "engine-side inertia")):
+        v = getattr(d, key) if d is not None else None
+        sd = std.get(key)
+        name = "oid_id_" + key.replace("_hz", "")
+        chans.append(Channel(name, [math.nan if v is None else v] * 2, unit, f"driveline {what}"))
+        chans.append(Channel(name + "_std", [math.nan if sd is None else sd] * 2, unit,
+                             f"standard deviation of the {what} (fit covariance, delta method)"))
+    drive = ChannelGroup("identify: driveline", base.rel(t_all), chans, "the driveline result over the recording")
+    write_results_mdf(args.out_mf4, [points, model, drive], base, comment=f"online-id identify {args.path}")

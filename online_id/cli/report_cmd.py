@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from online_id.io.jsonout import plain
-from online_id.cli.replay import replay
+from online_id.cli.replay import ResultsRuntime, replay
 from online_id.config import Settings, load_config
 from online_id.monitoring.baseline import Baseline
 from online_id.monitoring.cells import BandStats
@@ -82,6 +82,10 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("source", metavar="LOG_OR_STATE", help="CAN log (.log, .asc, .blf) or state file (.json)")
     p.add_argument("--out", metavar="DIR", required=True, help="directory for the figures and the summary")
     p.add_argument("--config", metavar="FILE", help="YAML configuration (DBC, mapping, model, detection)")
+    p.add_argument("--out-mf4", metavar="FILE.mf4",
+                   help="also write the results as MDF 4 channels with units on the recording's time base: of a log, "
+                        "the estimates, quality, state and alerts (as replay --out-mf4); of a state file, the alerts "
+                        "and the pole tracks' points")
     p.set_defaults(func=run)
 
 
@@ -104,9 +108,10 @@ class ReportData:
     final: dict
     learned_t_s: dict[tuple, float] | None = None  # per baseline cell (cell_key), when it was learned; None: unknown
     extra: dict = field(default_factory=dict)
+    runtime: RecordingRuntime | None = None  # the replay's (a CAN log), for --out-mf4
 
 
-class RecordingRuntime(Runtime):
+class RecordingRuntime(ResultsRuntime):
     """A :class:`~online_id.runtime.Runtime` that keeps what the pipeline publishes.
 
     Every publication passes :meth:`frames` on its way to the encoder; the
@@ -210,6 +215,7 @@ def from_log(path: Path, settings: Settings) -> ReportData:
         alerts=[dataclasses.replace(a, t_s=a.t_s - t0) for a in alerts],
         active_alarm=_alarm_dict(pipe.detector, t0), final=final,
         learned_t_s={k: v - t0 for k, v in runtime.learned_at.items()},
+        runtime=runtime,
         extra={"frames_in": runtime.frames_in, "frames_out": runtime.frames_out,
                "replay_s": round(time.monotonic() - t_wall, 3), "quality": result["quality"],
                "counters": result["counters"], "status_changes": result["status_changes"],
@@ -498,9 +504,39 @@ def write_report(data: ReportData, out: Path) -> list[Path]:
     return paths
 
 
+def write_results_mf4(data: ReportData, path: str) -> None:
+    """``--out-mf4``: a log's publications (as ``replay --out-mf4``), or a state's alerts and track points."""
+    from online_id.cli.replay import results_groups, write_results
+    from online_id.io.mdf_results import Channel, ChannelGroup, TimeBase, write_results_mdf
+
+    if data.runtime is not None:
+        write_results(path, str(data.source), data.runtime, list(data.runtime.pipeline.alerts))
+        return
+    base = TimeBase(datetime.fromtimestamp(data.t0_s, timezone.utc) if data.t0_s > EPOCH_S else None, 0.0)
+    alerts = [a for a in data.alerts]
+    groups = [g for g in results_groups([], base, alerts) if g.name == "online-id alert"]
+    pts = sorted((t, tr.id, tr.cls, n, f, z) for tr in data.tracks
+                 for t, n, f, z in zip(tr.t_s, tr.speed_rpm, tr.f_hz, tr.zeta))
+    classes = {0: "driveline", 1: "speed_dependent", 2: "unknown"}
+    code = {v: k for k, v in classes.items()}
+    groups.append(ChannelGroup("online-id pole tracks", np.array([p[0] for p in pts]), [
+        Channel("oid_track_id", [p[1] for p in pts], "", "pole track"),
+        Channel("oid_track_class", [code.get(p[2], 2) for p in pts], "", "class of the track", classes),
+        Channel("oid_track_speed", [p[3] for p in pts], "rpm", "engine speed at the point"),
+        Channel("oid_track_f", [p[4] for p in pts], "Hz", "pole frequency"),
+        Channel("oid_track_zeta", [p[5] for p in pts], "", "pole damping ratio"),
+    ], "the points of the pole tracks of the saved state"))
+    write_results_mdf(path, groups, base, comment=f"online-id results of {data.source.name}")
+
+
 def run(args: argparse.Namespace) -> int:
     check_output(args.out, "report", directory=True)  # before the work, not after it
+    if args.out_mf4:
+        check_output(args.out_mf4, "results file")
     data = load_source(Path(args.source), args.config)
     for path in write_report(data, Path(args.out)):
         print(f"wrote {path}")
+    if args.out_mf4:
+        write_results_mf4(data, args.out_mf4)
+        print(f"wrote {args.out_mf4}")
     return 0
