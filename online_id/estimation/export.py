@@ -35,12 +35,29 @@ KEYS = ("A", "B", "C", "sample_time_s", "input_delay_samples", "noise_variance")
 
 
 def point_model(point) -> dict:
-    """The model of one :class:`~online_id.estimation.identification.PointResult` as plain data (see notes)."""
+    """The model of one :class:`~online_id.estimation.identification.PointResult` as plain data (see notes).
+
+    ``A``, ``B``, ``C`` are the model as identified; ``A_sim``, ``B_sim`` the
+    model that ``compare`` simulates (the order-line pole-zero pairs the
+    torque does not drive removed, unstable poles reflected into the unit
+    circle with the same magnitude response): stable, for simulating the
+    torque-to-speed response elsewhere.
+    """
+    from online_id.analysis.poles import SPEED_DEPENDENT
+    from online_id.estimation.validation import cancel_pairs, stable_theta
+
     fit = point.fit
     y0, u0 = point.offsets
+    theta, _ = cancel_pairs(fit, [q.z for q in point.poles if q.cls == SPEED_DEPENDENT])
+    theta, n_reflected = stable_theta(theta, fit.orders)
+    a_sim, b_sim, _ = fit.orders.split(theta)
+    roots = np.roots(fit.A) if fit.A.size > 1 else np.zeros(0)
     return {
         "form": FORM,
         "A": [float(x) for x in fit.A], "B": [float(x) for x in fit.B], "C": [float(x) for x in fit.C],
+        "A_sim": [float(x) for x in np.trim_zeros(a_sim, "b")] or [1.0],
+        "B_sim": [float(x) for x in b_sim[:max(len(np.trim_zeros(b_sim, "b")), fit.orders.nk + 1)]],
+        "unstable_poles": int(np.count_nonzero(np.abs(roots) > 1.0)),
         "sample_time_s": float(point.dt), "input_delay_samples": int(fit.orders.nk),
         "noise_variance": float(fit.V),
         "input": INPUT[0], "input_unit": INPUT[1], "output": OUTPUT[0], "output_unit": OUTPUT[1],
@@ -70,10 +87,12 @@ def check_model(model: Mapping, where: str = "model") -> None:
         raise InputDataError(f"{where}: expected sample_time_s > 0, got {model['sample_time_s']!r}")
 
 
-def transfer_functions(model: Mapping):
+def transfer_functions(model: Mapping, simulation: bool = False):
     """``(G, H)``: python-control discrete transfer functions ``B/A`` (torque -> speed) and ``C/A`` (noise).
 
-    Needs python-control (``pip install online-id[control]``).
+    ``simulation``: ``G`` of the stable simulation model ``B_sim/A_sim``
+    instead (``H`` stays ``C/A``).  Needs python-control (``pip install
+    online-id[control]``).
     """
     try:
         import control
@@ -81,7 +100,8 @@ def transfer_functions(model: Mapping):
         raise InputDataError("python-control is not installed: pip install control (or online-id[control])") from err
     check_model(model)
     dt = float(model["sample_time_s"])
-    g = control.tf(*z_polynomials(model["B"], model["A"]), dt,
+    num, den = (model["B_sim"], model["A_sim"]) if simulation else (model["B"], model["A"])
+    g = control.tf(*z_polynomials(num, den), dt,
                    inputs=str(model.get("input", INPUT[0])), outputs=str(model.get("output", OUTPUT[0])))
     h = control.tf(*z_polynomials(model["C"], model["A"]), dt, inputs="e", outputs=str(model.get("output", OUTPUT[0])))
     return g, h

@@ -5,7 +5,10 @@ operating point, with the fields
 
 ============== =====================================================
 A, B, C        row vectors in increasing powers of q^-1 (A(1) = C(1) = 1;
-               B starts with ``nk`` zeros: the input delay)
+               B starts with ``nk`` zeros: the input delay), as identified
+ASim, BSim     the stable model ``compare`` simulates (order-line pole-zero
+               pairs removed, unstable poles reflected)
+UnstablePoles  how many poles of A lie outside the unit circle
 Ts             sample time [s]
 nk             input delay [samples] (already in B's leading zeros)
 NoiseVariance  variance of e [(rad/s)^2]
@@ -39,12 +42,13 @@ from online_id.errors import InputDataError
 
 # MATLAB field <- key of the exported model (online_id.estimation.export.point_model)
 FIELDS = {
-    "A": "A", "B": "B", "C": "C", "Ts": "sample_time_s", "nk": "input_delay_samples",
+    "A": "A", "B": "B", "C": "C", "ASim": "A_sim", "BSim": "B_sim", "UnstablePoles": "unstable_poles",
+    "Ts": "sample_time_s", "nk": "input_delay_samples",
     "NoiseVariance": "noise_variance", "InputName": "input", "InputUnit": "input_unit", "OutputName": "output",
     "OutputUnit": "output_unit", "InputOffset": "input_offset", "OutputOffset": "output_offset",
     "EngineSpeed": "engine_speed_rpm", "TStart": "t_start_s", "TEnd": "t_end_s",
 }
-VECTORS = ("A", "B", "C")
+VECTORS = ("A", "B", "C", "ASim", "BSim")
 
 
 def write_models_mat(path: str | Path, models: Sequence[Mapping], driveline: Mapping | None = None) -> None:
@@ -75,12 +79,13 @@ def write_models_mat(path: str | Path, models: Sequence[Mapping], driveline: Map
 def read_models_mat(path: str | Path) -> list[dict]:
     """The models of a file written by :func:`write_models_mat`, as dicts with the keys of the export."""
     from scipy.io import loadmat
+    from scipy.io.matlab import MatReadError
 
     try:
         doc = loadmat(str(path), squeeze_me=False, struct_as_record=True)
     except FileNotFoundError:
         raise InputDataError(f"{path}: cannot read: no such file") from None
-    except (OSError, ValueError, TypeError) as err:
+    except (OSError, ValueError, TypeError, MatReadError) as err:
         raise InputDataError(f"{path}: expected a MATLAB .mat file of online-id models, but it cannot be read "
                              f"({err})") from None
     if "models" not in doc:
@@ -103,7 +108,8 @@ def read_models_mat(path: str | Path) -> list[dict]:
                 m[key] = str(v.ravel()[0]) if v.size else ""
             else:
                 m[key] = float(v.ravel()[0]) if v.size else None
-        if "input_delay_samples" in m and m["input_delay_samples"] is not None:
-            m["input_delay_samples"] = int(m["input_delay_samples"])
+        for key in ("input_delay_samples", "unstable_poles"):
+            if m.get(key) is not None:
+                m[key] = int(m[key])
         out.append(m)
     return out
