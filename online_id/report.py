@@ -323,9 +323,30 @@ def plot_identification(result: IdentificationResult, path: str | Path, title: s
 SEVERITY_COLOR = {0: "tab:gray", 1: "tab:orange", 2: "tab:red"}
 TRACK_STYLE = {
     "driveline": dict(color="tab:red", label="driveline track"),
-    "speed_dependent": dict(color="tab:blue", label="speed-dependent track"),
+    "speed_dependent": dict(color="tab:blue", label="order-line track (moves with engine speed)"),
     "unknown": dict(color="0.55", label="unclassed track"),
+    "far": dict(color="0.55", label="other track (called driveline, far from the driveline estimate)"),
 }
+FAR_FROM_DRIVELINE = 0.10
+"""A track called driveline whose median frequency lies this far (relative) from the driveline's is drawn as another
+track: the driveline is one mode, and a track at several times its frequency is not it."""
+
+
+def driveline_reference_hz(estimates: "EstimateSeries | None", baselines: Sequence[BandStats]) -> float | None:
+    """The driveline frequency the tracks are judged against: the valid estimates' median, else the baselines'."""
+    if estimates is not None and len(estimates) and estimates.valid.any():
+        return float(np.median(estimates.f0_hz[estimates.valid]))
+    means = [b.mean_f for b in baselines if np.isfinite(b.mean_f)]
+    return float(np.median(means)) if means else None
+
+
+def display_class(tr: "TrackSeries", ref_hz: float | None) -> str:
+    """The class a track is drawn with: ``"far"`` for a driveline track far from ``ref_hz`` (see above)."""
+    if tr.cls == "driveline" and ref_hz is not None and tr.f_hz.size:
+        f = float(np.nanmedian(tr.f_hz))
+        if abs(f - ref_hz) > FAR_FROM_DRIVELINE * ref_hz:
+            return "far"
+    return tr.cls if tr.cls in TRACK_STYLE else "unknown"
 
 
 @dataclass(frozen=True)
@@ -353,6 +374,25 @@ class TrackSeries:
     speed_rpm: np.ndarray
     f_hz: np.ndarray
     zeta: np.ndarray
+
+
+@dataclass(frozen=True)
+class EngagedSeries:
+    """Engaged-flank readings of a shaft with backlash (:mod:`online_id.monitoring.engaged`), times from the origin.
+
+    ``alarm`` marks the readings that confirmed a change (raised an alarm);
+    ``ref_f0_hz``, ``ref_zeta``: the learned reference's median (None while it learns).
+    """
+
+    t_s: np.ndarray
+    f0_hz: np.ndarray
+    zeta: np.ndarray
+    alarm: np.ndarray  # bool
+    ref_f0_hz: float | None = None
+    ref_zeta: float | None = None
+
+    def __len__(self) -> int:
+        return int(self.t_s.shape[0])
 
 
 @dataclass(frozen=True)
@@ -429,25 +469,25 @@ def plot_versus_speed(path: str | Path, quantity: str, estimates: EstimateSeries
     def track_y(tr: TrackSeries) -> np.ndarray:
         return tr.f_hz if is_f else tr.zeta
 
+    ref_hz = driveline_reference_hz(estimates, baselines)
     if ax_all is not None:
         seen: set[str] = set()
         for tr in tracks:
-            st = TRACK_STYLE.get(tr.cls, TRACK_STYLE["unknown"])
+            cls = display_class(tr, ref_hz)
+            st = TRACK_STYLE[cls]
             ax_all.scatter(tr.speed_rpm, track_y(tr), s=4, color=st["color"], alpha=0.5, lw=0,
-                           label=st["label"] if tr.cls not in seen else None)
-            seen.add(tr.cls)
+                           label=st["label"] if cls not in seen else None)
+            seen.add(cls)
         speeds = np.concatenate([tr.speed_rpm for tr in tracks])
         speeds = speeds[np.isfinite(speeds)]
         orders = sorted({tr.order for tr in tracks if tr.order is not None and tr.cls == "speed_dependent"})
         if is_f and speeds.size:
             rpm = np.linspace(0.9 * speeds.min(), 1.1 * speeds.max(), 50)
             for k in orders:
-                ax_all.plot(rpm, k * rpm / 60.0, "--", color="tab:blue", lw=0.8, alpha=0.6)
-                ax_all.text(rpm[-1], k * rpm[-1] / 60.0, f" order {k:g}", fontsize=8, color="tab:blue",
-                            va="center", clip_on=True)
+                ax_all.plot(rpm, k * rpm / 60.0, "--", color="tab:blue", lw=0.8, alpha=0.6,
+                            label="engine order lines" if k == orders[0] else None)
         ax_all.set_ylabel(ylabel)
         ax_all.set_title("all tracked poles", fontsize=10)
-        ax_all.legend(loc="best", fontsize=8, markerscale=3)
         ax_all.grid(alpha=0.3)
 
     zoom_values: list[np.ndarray] = []
@@ -460,8 +500,9 @@ def plot_versus_speed(path: str | Path, quantity: str, estimates: EstimateSeries
         zoom_values.append(y[ok])
     have_est = estimates is not None and len(estimates) > 0
     for tr in tracks:  # the speed-dependent tracks; the driveline ones stand in for missing estimates
-        if tr.cls == "speed_dependent" or (tr.cls == "driveline" and not have_est):
-            st = TRACK_STYLE[tr.cls]
+        cls = display_class(tr, ref_hz)
+        if cls == "speed_dependent" or (cls == "driveline" and not have_est):
+            st = TRACK_STYLE[cls]
             ax.scatter(tr.speed_rpm, track_y(tr), s=5, color=st["color"], alpha=0.5, lw=0, marker="^",
                        label=None if tr.cls in seen_low else st["label"])
             seen_low.add(tr.cls)
@@ -489,6 +530,13 @@ def plot_versus_speed(path: str | Path, quantity: str, estimates: EstimateSeries
     ax.set_xlabel("engine speed [rpm]")
     if ax_all is not None:
         ax_all.set_xlim(ax.get_xlim())
+        if is_f:
+            top = ax_all.get_ylim()[1]
+            ax_all.set_ylim(0.0, top)
+            for k in sorted({tr.order for tr in tracks if tr.order is not None and tr.cls == "speed_dependent"}):
+                _label_line(ax_all, k, np.array(ax_all.get_xlim()), k * np.array(ax_all.get_xlim()) / 60.0,
+                            f"order {k:g}", "tab:blue")
+        ax_all.legend(loc="upper left", fontsize=8, markerscale=3)
         ax.set_title("driveline and baselines", fontsize=10)
     if ax.get_legend_handles_labels()[0]:
         ax.legend(loc="best", fontsize=8, markerscale=3)
@@ -532,6 +580,22 @@ def _band_of(baselines: Sequence[BandStats], speed_rpm: np.ndarray) -> list[Band
     return out
 
 
+NEAR_ALERT = 0.25
+"""Alerts within this fraction of the data's time span beyond its ends are drawn (the axis widens to them)."""
+
+
+def _data_span(estimates: EstimateSeries | None, tracks: Sequence[TrackSeries],
+               engaged: EngagedSeries | None) -> tuple[float, float] | None:
+    """First and last time of the estimates, driveline tracks and engaged readings (None without any)."""
+    parts = [estimates.t_s] if estimates is not None and len(estimates) else []
+    parts += [tr.t_s for tr in tracks if tr.cls == "driveline"] or [tr.t_s for tr in tracks]
+    if engaged is not None and len(engaged):
+        parts.append(engaged.t_s)
+    t = np.concatenate(parts) if parts else np.empty(0)
+    t = t[np.isfinite(t)]
+    return (float(t.min()), float(t.max())) if t.size else None
+
+
 def _alert_groups(alerts: Sequence[AlertMark], ax, min_gap: float = 0.025) -> list[list[AlertMark]]:
     """Alerts sorted by time, grouped where they lie closer than ``min_gap`` of the time axis (one label each)."""
     marks = sorted(alerts, key=lambda m: m.t_s)
@@ -551,7 +615,8 @@ def _alert_groups(alerts: Sequence[AlertMark], ax, min_gap: float = 0.025) -> li
 def plot_tracks_over_time(path: str | Path, estimates: EstimateSeries | None, tracks: Sequence[TrackSeries],
                           baselines: Sequence[BandStats], alerts: Sequence[AlertMark], time_label: str,
                           title: str = "", max_labels: int = 12,
-                          learned_t_s: Sequence[float] | None = None) -> None:
+                          learned_t_s: Sequence[float] | None = None,
+                          engaged: EngagedSeries | None = None) -> None:
     """f0 and zeta against time: estimates (or driveline tracks), baselines, alerts, invalid stretches.
 
     The baseline of the band holding the engine speed at each time (the
@@ -559,8 +624,12 @@ def plot_tracks_over_time(path: str | Path, estimates: EstimateSeries | None, tr
     a shaded +- 2 std, drawn from the time the band was learned when
     ``learned_t_s`` (per baseline) gives it; alerts are vertical lines
     (orange warning, red fault, grey info), alerts close in time share one
-    label, at most ``max_labels`` labels; stretches without a valid
-    estimate are greyed.
+    label, at most ``max_labels`` labels, each inside the axes; stretches
+    without a valid estimate are greyed.  The engaged-flank readings of a
+    shaft with backlash (``engaged``) are diamonds, those that raised an
+    alarm filled red.  The time axis spans the data; alerts before or after
+    it are counted in a note at that edge instead of stretching the axis
+    over an empty span.
     """
     plt = pyplot()
     fig, (ax_f, ax_z) = plt.subplots(2, 1, figsize=(10, 7), sharex=True)
@@ -576,7 +645,8 @@ def plot_tracks_over_time(path: str | Path, estimates: EstimateSeries | None, tr
         for k, (a, b) in enumerate(invalid_spans(estimates.t_s, ok)):
             for ax in (ax_f, ax_z):
                 ax.axvspan(a, b, color="0.88", zorder=0, lw=0, label="no valid estimate" if k == 0 else None)
-    for k, tr in enumerate(t for t in tracks if t.cls == "driveline"):
+    ref_hz = driveline_reference_hz(estimates, baselines)
+    for k, tr in enumerate(t for t in tracks if display_class(t, ref_hz) == "driveline"):
         lab = "driveline track" if k == 0 else None
         ax_f.plot(tr.t_s, tr.f_hz, ".", ms=1.5, color="tab:purple", alpha=0.4, label=lab, zorder=1)
         ax_z.plot(tr.t_s, tr.zeta, ".", ms=1.5, color="tab:purple", alpha=0.4, label=lab, zorder=1)
@@ -598,18 +668,50 @@ def plot_tracks_over_time(path: str | Path, estimates: EstimateSeries | None, tr
                         label="baseline +- 2 std")
     zoom_f += _baseline_values(baselines, "f0")
     zoom_z += _baseline_values(baselines, "zeta")
-    for a in alerts:
+    if engaged is not None and len(engaged):
+        for ax, y, ref, zoom in ((ax_f, engaged.f0_hz, engaged.ref_f0_hz, zoom_f),
+                                 (ax_z, engaged.zeta, engaged.ref_zeta, zoom_z)):
+            ok = ~engaged.alarm
+            ax.plot(engaged.t_s[ok], y[ok], "D", ms=4, mfc="none", mec="black", zorder=4,
+                    label="engaged-flank reading (backlash test)")
+            if engaged.alarm.any():
+                ax.plot(engaged.t_s[engaged.alarm], y[engaged.alarm], "D", ms=5, color="tab:red", mec="black",
+                        zorder=5, label="engaged-flank readings that raised an alarm")
+            if ref is not None:
+                ax.axhline(ref, color="black", lw=0.8, ls=":", label="engaged-flank reference (learned median)")
+            zoom.append(y)
+    span = _data_span(estimates, tracks, engaged)
+    if span is not None:  # alerts close to the data widen the axis; far ones would leave an empty span
+        reach = NEAR_ALERT * max(span[1] - span[0], 1.0)
+        near = [a.t_s for a in alerts if span[0] - reach <= a.t_s <= span[1] + reach]
+        span = (min([span[0]] + near), max([span[1]] + near))
+    inside = [a for a in alerts if span is None or span[0] <= a.t_s <= span[1]]
+    for a in inside:
         c = SEVERITY_COLOR.get(a.severity, "tab:gray")
         for ax in (ax_f, ax_z):
             ax.axvline(a.t_s, color=c, lw=1.2, alpha=0.9)
-    for k, group in enumerate(_alert_groups(alerts, ax_f)):
+    if span is not None:
+        pad = 0.02 * max(span[1] - span[0], 1.0)
+        ax_f.set_xlim(span[0] - pad, span[1] + pad)
+        before = [a for a in alerts if a.t_s < span[0]]
+        after = [a for a in alerts if a.t_s > span[1]]
+        for group, x, ha, word in ((before, 0.01, "left", "before"), (after, 0.99, "right", "after")):
+            if group:
+                worst = max(group, key=lambda m: m.severity)
+                ax_f.text(x, 0.02, f"{len(group)} alert(s) {word} the data shown (e.g. {worst.label} at "
+                          f"{worst.t_s:.1f} s)", transform=ax_f.transAxes, ha=ha, va="bottom", fontsize=7,
+                          color=SEVERITY_COLOR.get(worst.severity, "tab:gray"))
+    x_lo, x_hi = ax_f.get_xlim()
+    for k, group in enumerate(_alert_groups(inside, ax_f)):
         if k >= max_labels:
             break
         a = max(group, key=lambda m: m.severity)
         text = a.label + (f" (+{len(group) - 1} within {group[-1].t_s - group[0].t_s:.0f} s)" if len(group) > 1 else "")
+        near_left = (group[0].t_s - x_lo) < 0.04 * (x_hi - x_lo)  # a label left of the line would cross the axis
         ax_f.annotate(text, (group[0].t_s, 1.0), xycoords=("data", "axes fraction"), rotation=90, fontsize=7,
-                      color=SEVERITY_COLOR.get(a.severity, "tab:gray"), ha="right", va="top", xytext=(-2, -2),
-                      textcoords="offset points")
+                      color=SEVERITY_COLOR.get(a.severity, "tab:gray"), ha="left" if near_left else "right",
+                      va="top", xytext=(2 if near_left else -2, -2), textcoords="offset points",
+                      annotation_clip=True)
     for ax, zoom, floor in ((ax_f, zoom_f, 0.5), (ax_z, zoom_z, 0.01)):
         lim = _zoom(zoom, floor)
         if lim is not None:

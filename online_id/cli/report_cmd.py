@@ -43,6 +43,7 @@ from online_id.io.statefile import load_state
 from online_id.records import AlertKind, AlertOut, EstimateOut, Publication
 from online_id.report import (
     AlertMark,
+    EngagedSeries,
     EstimateSeries,
     TerminalProgress,
     TrackSeries,
@@ -109,6 +110,7 @@ class ReportData:
     learned_t_s: dict[tuple, float] | None = None  # per baseline cell (cell_key), when it was learned; None: unknown
     extra: dict = field(default_factory=dict)
     runtime: RecordingRuntime | None = None  # the replay's (a CAN log), for --out-mf4
+    engaged: EngagedSeries | None = None  # engaged-flank readings (shafts with backlash)
 
 
 class RecordingRuntime(ResultsRuntime):
@@ -131,6 +133,15 @@ class RecordingRuntime(ResultsRuntime):
         self.notices: list[AlertOut] = []
         self.learned_at: dict[tuple, float] = {}  # baseline cell -> stream time it was first learned
         self._awaiting: float | None = None  # a publication whose tracking has not run yet
+        self.engaged_readings: list = []  # the engaged flank's readings (shafts with backlash), as offered
+        engaged = self.pipeline.engaged
+        offer = engaged.offer
+
+        def keep_reading(reading, learn):
+            self.engaged_readings.append(reading)
+            return offer(reading, learn)
+
+        engaged.offer = keep_reading
 
     def frames(self, pubs: list[Publication]) -> list[OutFrame]:
         for pub in pubs:
@@ -215,12 +226,25 @@ def from_log(path: Path, settings: Settings) -> ReportData:
         alerts=[dataclasses.replace(a, t_s=a.t_s - t0) for a in alerts],
         active_alarm=_alarm_dict(pipe.detector, t0), final=final,
         learned_t_s={k: v - t0 for k, v in runtime.learned_at.items()},
-        runtime=runtime,
+        runtime=runtime, engaged=engaged_series(runtime.engaged_readings, pipe.engaged, t0),
         extra={"frames_in": runtime.frames_in, "frames_out": runtime.frames_out,
                "replay_s": round(time.monotonic() - t_wall, 3), "quality": result["quality"],
                "counters": result["counters"], "status_changes": result["status_changes"],
                "engaged_flank": pipe.engaged.summary()},
     )
+
+
+def engaged_series(readings: list, flank: EngagedFlank, t0: float) -> EngagedSeries | None:
+    """The engaged flank's readings, those inside a confirmed change marked (None without readings)."""
+    if not readings:
+        return None
+    t = np.array([r.t_s for r in readings], dtype=float)
+    alarm = np.zeros(t.size, dtype=bool)
+    for ch in flank.changes:
+        alarm |= (t >= ch.since_t_s) & (t <= ch.detected_t_s)
+    ref = flank.reference()
+    return EngagedSeries(t - t0, np.array([r.f0_hz for r in readings]), np.array([r.zeta for r in readings]), alarm,
+                         ref["f0_hz"] if ref else None, ref["zeta"] if ref else None)
 
 
 def final_estimate(result: dict, estimates: EstimateSeries) -> dict:
@@ -291,8 +315,9 @@ def from_state(path: Path) -> ReportData:
                  "source": f"driveline track {drive.id} (confidence {drive.confidence:.2f})"}
     final["why"] = ("a state file holds the pole tracks, not the service's last estimate nor its health state "
                     "(e.g. INPUT_TIMEOUT): whether the estimate was valid is not known; replay the log for that")
+    engaged_pts = engaged_series(list(engaged.learned), engaged, t0)
     return ReportData(
-        source=path, kind="state", t0_s=t0, estimates=None, tracks=tracks, baselines=baseline.bands,
+        source=path, kind="state", t0_s=t0, estimates=None, tracks=tracks, baselines=baseline.bands, engaged=engaged_pts,
         min_count=baseline.min_count, alerts=[dataclasses.replace(a, t_s=a.t_s - t0) for a in raw_alerts],
         active_alarm=_alarm_dict(detector, t0), final=final,
         extra={"state_version": state.get("version"), "tracks_reclassed": reclassed,
@@ -493,7 +518,8 @@ def write_report(data: ReportData, out: Path) -> list[Path]:
         learned = (None if data.learned_t_s is None else
                    [data.learned_t_s.get(cell_key(b), math.inf) for b in data.baselines])
         plot_tracks_over_time(paths[2], data.estimates, data.tracks, data.baselines, marks, label,
-                              title=f"driveline estimate over time, {name}", learned_t_s=learned)
+                              title=f"driveline estimate over time, {name}", learned_t_s=learned,
+                              engaged=data.engaged)
         doc = summary(data)
         paths.append(out / "report.json")
         paths[-1].write_text(json.dumps(_plain(doc), indent=2, allow_nan=False) + "\n", encoding="utf-8")
