@@ -29,6 +29,7 @@ import time
 from pathlib import Path
 
 from online_id.cli import command_help
+from online_id.cli.bus_options import add_bus_options, with_bus_options
 from online_id.config import load_config
 from online_id.errors import ConfigError, DbcError
 from online_id.io.bus import CanBus
@@ -42,8 +43,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
         text = command_help(name)
         p = subparsers.add_parser(name, help=text, description=f"Send the service a command frame: {text}.")
         p.add_argument("--config", metavar="FILE", help="the service's YAML configuration (bus, DBC, mapping)")
-        p.add_argument("--interface", help="override bus.interface")
-        p.add_argument("--channel", help="override bus.channel")
+        add_bus_options(p)
         p.add_argument("--wait", type=float, default=2.0, metavar="S",
                        help="wait up to S seconds for the service's answer on its status frame (default 2; 0: "
                             "send only)")
@@ -60,7 +60,7 @@ _last_counter: int | None = None  # the last alive counter this process sent (se
 
 
 def run(args: argparse.Namespace) -> int:
-    s = load_config(args.config)
+    s = with_bus_options(load_config(args.config), args)
     if getattr(args, "from_log", None):
         return relearn_from(args.from_log, args.state, s)
     if getattr(args, "state", None) is not None:
@@ -77,8 +77,7 @@ def run(args: argparse.Namespace) -> int:
     _last_counter = counter + repeats - 1
     frames = [encode_command(db, s.mapping.command_message, s.mapping.command_signal, command, counter + k,
                              crc=s.mapping.command_crc) for k in range(repeats)]
-    interface = args.interface or s.bus.interface
-    channel = args.channel or s.bus.channel
+    interface, channel = s.bus.interface, s.bus.channel
     with CanBus(interface, channel, s.bus.bitrate) as bus:
         for k, (ident, data) in enumerate(frames):
             if k:
