@@ -30,11 +30,6 @@ def _channel_cells(ch) -> str:
                        f"{np.sqrt(ch.mse['balance']):.4g}", f"{ch.mse['transfer']:.4g}"]) + " |"
 
 
-def _gain(c) -> float:
-    """The held-out gain of a candidate (a sensor delay's score is its size in ms; its gain is a parameter)."""
-    return float(c.params.get("heldout_gain", c.gain))
-
-
 def bench_text(b: BenchDiagnosis) -> str:
     """The report printed by ``online-id diagnose`` for a bench file."""
     s, path = b.series, b.series.path
@@ -87,10 +82,11 @@ def bench_text(b: BenchDiagnosis) -> str:
         if not notes["backlash_testable"]:
             lines.append("  the shaft torque hardly reverses on any plateau: a backlash may not be seen")
         lines += [f"warning: {w}" for w in notes["warnings"]]
-    lines += ["", "strongest candidates of step 1 (score, t; accepted when the score reaches the threshold and "
-              "t >= 2.86; a sensor delay's score is its size):"]
+    lines += ["", "strongest candidates of step 1 (score: the share of the held-out error of the figure it is "
+              "judged on that it removes; t; accepted when the score reaches the threshold, t >= 2.86 and the "
+              "summary falls):"]
     for c in sorted(b.candidates[0], key=lambda c: -c.gain / b.thresholds[c.kind])[:6] if b.candidates else []:
-        unit, k = ("ms", 1.0) if c.kind == "sensor_delay" else ("%", 100.0)
+        unit, k = "%", 100.0
         lines.append(f"  {c.kind:28s} {k * c.gain:6.2f} {unit:2s} t={c.t_stat:5.1f}  threshold "
                      f"{k * b.thresholds[c.kind]:.2f} {unit}  {_fmt(c.params)}")
     return "\n".join(lines)

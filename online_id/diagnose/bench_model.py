@@ -71,6 +71,7 @@ class Spec:
     shift_dyno: float = 0.0
     shift_engine: float = 0.0
     terms: tuple = ()
+    transfer_mode: str = ""  # where a further inertia sits in the speed transfer's model ("": none)
 
     def orders(self, eq: str) -> tuple[int, int]:
         m = self.modes[EQS.index(eq)] if eq in EQS else 0
