@@ -239,6 +239,8 @@ def summarise(rows: list[dict]) -> dict:
     return {"rotation_order": rates(dist), "by_position": {k: rates(v) for k, v in sorted(by_pos.items())},
             "clean": {"cases": len(clean),
                       "false_effect_pct": 100.0 * sum(r["found_kind"] != "clean" for r in clean) / max(len(clean), 1)},
-            "clock": {"offset_err_max_ms": 1e3 * max(off), "offset_err_median_ms": 1e3 * float(np.median(off)),
+            "clock": {"estimated_pct": 100.0 * sum(r.get("clock_mode", "estimated") == "estimated" for r in rows)
+                      / max(len(rows), 1),
+                      "offset_err_max_ms": 1e3 * max(off), "offset_err_median_ms": 1e3 * float(np.median(off)),
                       "drift_err_max_ppm": max(drift), "drift_err_median_ppm": float(np.median(drift))},
             "seconds_per_case": float(np.mean([r["seconds"] for r in rows]))}

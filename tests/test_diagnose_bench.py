@@ -244,12 +244,13 @@ def test_speed_transfer_delay_fit(fa_hz, zeta, tau_s):
 def test_evaluate_diagnose_resummarises_earlier_cases(tmp_path, capsys):
     run = tmp_path / "run"
     run.mkdir()
-    delay = {"gain": 0.3, "t": 9.0, "params": {"signal": "dyno_speed", "delay_s": 3e-4, "heldout_gain": 0.0}}
+    delay = {"gain": 0.003, "t": 9.0, "params": {"signal": "dyno_speed", "delay_s": 3e-4, "heldout_gain": 0.003}}
     backlash = {"backlash": {"gain": 0.02, "t": 4.0, "params": {"gap_rad": 1e-3}}}
     clean = {"case": "clean-100000", "kind": "clean", "magnitude": 0.0, "truth": {"kind": "clean"},
              "no_demand": {"best": backlash}, "demand": {"best": {}}}
     (run / "calibration.jsonl").write_text(json.dumps(clean) + "\n")
-    found = {"sensor_delay": {**delay, "gain": 4.2, "params": {**delay["params"], "delay_s": 0.0042}}}
+    found = {"sensor_delay": {**delay, "gain": 0.42, "params": {**delay["params"], "delay_s": 0.0042,
+                                                                "heldout_gain": 0.42}}}
     cases = [{**clean, "case": "clean-1", "no_demand": {"best": {"sensor_delay": delay}},
               "demand": {"best": {"sensor_delay": delay}}},
              {"case": "sensor_delay-1", "kind": "sensor_delay", "magnitude": 0.5,
@@ -262,10 +263,10 @@ def test_evaluate_diagnose_resummarises_earlier_cases(tmp_path, capsys):
     thr = json.loads((out / "thresholds.json").read_text())
     # per path, 1.1 x the largest significant clean gain, else the floors
     assert thr["no_demand"]["backlash"] == pytest.approx(0.022) and thr["demand"]["backlash"] == 0.005
-    assert thr["no_demand"]["sensor_delay"] == 0.5
+    assert thr["no_demand"]["sensor_delay"] == 0.005
     summary = json.loads((out / "diagnose_evaluation.json").read_text())["summary"]
     kinds = {r["case"]: r["named"] for r in summary["no_demand"]["cases"]}
-    assert kinds == {"clean-1": "clean", "sensor_delay-1": "sensor_delay"}  # 0.3 ms is below the floor
+    assert kinds == {"clean-1": "clean", "sensor_delay-1": "sensor_delay"}  # a gain of 0.003 is below the floor
     assert {r["case"]: r["named"] for r in summary["demand"]["cases"]}["sensor_delay-1"] == "clean"
     right = summary["no_demand"]["per_kind"]["sensor_delay"]["right_first"]
     assert right["k"] == right["n"] == 1 and right["ci95"][0] == pytest.approx(20.65, abs=0.01)  # Wilson

@@ -205,9 +205,12 @@ def make_structures_case(kind: str, seed: int) -> Case:
             truth.update(shaft="engine", order=0.5, excess=excess)
         else:
             shaft = "dyno" if variant == "dyno_high" else "engine"
-            top = 0.45 * 1000.0 if variant == "dyno_high" else MAX_LINE_HZ  # up to 0.45 of the 1 kHz rate
-            grid = np.arange(3.0, 9.0) if shaft == "dyno" else np.arange(1, 17) / 2.0
-            grid = [k for k in grid if k % 2.0 != 0.0 and k * top_rev_hz <= top]
+            if shaft == "dyno":  # lines mostly above the decimated band: 100 Hz and up, to 0.45 of 1 kHz
+                low_rev_hz = min(speeds) / 60.0
+                grid = [k for k in np.arange(3.0, 13.0) if k % 2.0 != 0.0 and k * top_rev_hz <= 450.0]
+                grid = [k for k in grid if k * low_rev_hz >= 100.0] or grid[-1:]
+            else:
+                grid = [k for k in np.arange(1, 17) / 2.0 if k % 2.0 != 0.0 and k * top_rev_hz <= MAX_LINE_HZ]
             order = float(rng.choice(grid))
             amp, mag = _loguniform(rng, *rng_mag)
             effects = Effects(order_torque=OrderTorque(shaft, order, amp, float(rng.uniform(0, 2 * math.pi))))

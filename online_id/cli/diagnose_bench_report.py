@@ -8,7 +8,7 @@ import numpy as np
 
 from online_id.diagnose.bench_data import RPM_PER_RAD_S
 from online_id.io.jsonout import dumps
-from online_id.diagnose.bench_diagnosis import CHANNEL_TEXT, BenchDiagnosis
+from online_id.diagnose.bench_diagnosis import CHANNEL_TEXT, FULL, BenchDiagnosis
 
 
 def _fmt(params: dict) -> str:
@@ -25,14 +25,17 @@ def _fmt(params: dict) -> str:
     return ", ".join(out)
 
 
+CHANNEL_HEAD = {"dyno": "dyno eq rpm", "engine": "engine eq rpm", "balance": "torque balance Nm",
+                "transfer": "transfer misfit", "dyno" + FULL: "dyno eq at full rate rpm",
+                "engine" + FULL: "engine eq at full rate rpm"}
+
+
 def _channel_cells(ch) -> str:
-    return " | ".join([f"{np.sqrt(ch.mse['dyno']) * RPM_PER_RAD_S:.4g}", f"{np.sqrt(ch.mse['engine']) * RPM_PER_RAD_S:.4g}",
-                       f"{np.sqrt(ch.mse['balance']):.4g}", f"{ch.mse['transfer']:.4g}"]) + " |"
-
-
-def _gain(c) -> float:
-    """The held-out gain of a candidate (a sensor delay's score is its size in ms; its gain is a parameter)."""
-    return float(c.params.get("heldout_gain", c.gain))
+    cells = []
+    for c, v in ch.mse.items():
+        k = RPM_PER_RAD_S if c.startswith(("dyno", "engine")) else 1.0
+        cells.append(f"{v:.4g}" if c == "transfer" else f"{np.sqrt(v) * k:.4g}")
+    return " | ".join(cells) + " |"
 
 
 def bench_text(b: BenchDiagnosis) -> str:
@@ -53,8 +56,9 @@ def bench_text(b: BenchDiagnosis) -> str:
     lines += ["", "Held-out error per channel (speed equations: one-step [rpm]; torque balance [Nm]; speed transfer: "
               "relative misfit) and their summary (RMS over the channels relative to the baseline). A step is "
               "taken when the figure it is judged on falls significantly and the summary falls.", "",
-              "| step | effect | parameters | judged on (held out) | before -> after | t | dyno eq rpm | engine eq rpm "
-              "| torque balance Nm | transfer misfit | summary |", "|---|---|---|---|---|---|---|---|---|---|---|",
+              "| step | effect | parameters | judged on (held out) | before -> after | t | "
+              + " | ".join(CHANNEL_HEAD[c] for c in b.base_channels.mse) + " | summary |",
+              "|---|---|---|---|---|---|" + "---|" * (len(b.base_channels.mse) + 1),
               f"| 0 | baseline per plateau (na={b.baseline.spec.na}, nb={b.baseline.spec.nb}) | | | | | "
               + _channel_cells(b.base_channels) + " 1.000 |"]
     for i, st in enumerate(b.steps, 1):
@@ -87,10 +91,11 @@ def bench_text(b: BenchDiagnosis) -> str:
         if not notes["backlash_testable"]:
             lines.append("  the shaft torque hardly reverses on any plateau: a backlash may not be seen")
         lines += [f"warning: {w}" for w in notes["warnings"]]
-    lines += ["", "strongest candidates of step 1 (score, t; accepted when the score reaches the threshold and "
-              "t >= 2.86; a sensor delay's score is its size):"]
+    lines += ["", "strongest candidates of step 1 (score: the share of the held-out error of the figure it is "
+              "judged on that it removes; t; accepted when the score reaches the threshold, t >= 2.86 and the "
+              "summary falls):"]
     for c in sorted(b.candidates[0], key=lambda c: -c.gain / b.thresholds[c.kind])[:6] if b.candidates else []:
-        unit, k = ("ms", 1.0) if c.kind == "sensor_delay" else ("%", 100.0)
+        unit, k = "%", 100.0
         lines.append(f"  {c.kind:28s} {k * c.gain:6.2f} {unit:2s} t={c.t_stat:5.1f}  threshold "
                      f"{k * b.thresholds[c.kind]:.2f} {unit}  {_fmt(c.params)}")
     return "\n".join(lines)

@@ -169,6 +169,7 @@ def read_records(args: argparse.Namespace) -> DiagnoseData:
     paths = [Path(args.path)] + ([Path(args.second_file)] if args.second_file else [])
     if not args.second_file:
         for flag, given in (("--same-clock", args.same_clock), ("--align", args.align is not None),
+                            ("--clock-offset-s", args.clock_offset_s is not None),
                             ("--second-time-col", args.second_time_col), ("--second-columns", args.second_columns)):
             if given:
                 raise ConfigError(f"{flag} needs --second-file")

@@ -258,7 +258,10 @@ class Clock:
     warnings: tuple[str, ...] = ()
 
     def as_dict(self, aligned_on: str = "") -> dict:
-        return {**self.fit.as_dict(), "mode": self.mode, "estimated": self.mode == "estimated",
+        fit = self.fit.as_dict()
+        if self.mode != "estimated":
+            fit["misfit"] = None  # nothing was fitted
+        return {**fit, "mode": self.mode, "estimated": self.mode == "estimated",
                 "aligned_on": aligned_on, "text": self.text, "warnings": list(self.warnings)}
 
 

@@ -45,7 +45,8 @@ from scipy.optimize import minimize_scalar
 from online_id.diagnose import bench_effects as bx
 from online_id.diagnose import bench_transfer as bt
 from online_id.diagnose.bench_data import RPM_PER_RAD_S, BenchSeries
-from online_id.diagnose.bench_model import ALL_EQS, BALANCE, EQS, BenchFit, Spec, batch_mean_t, fit_plateau, fit_spec
+from online_id.diagnose.bench_model import (ALL_EQS, BALANCE, EQS, BenchFit, Spec, batch_mean_t, design, fit_plateau,
+                                            fit_spec, order_columns, output, plateau_signals)
 
 T_CRIT = 2.86
 COHERENCE_MODE = 0.7  # coherence contrast with the excitation at a line: a mode (else a disturbance)
@@ -56,6 +57,7 @@ SIDE_UNDETERMINED = 0.8  # the weaker side explains at least this share of the s
 # be seen (the estimate reads a few per cent on shafts that never reverse: speed noise in J1 y1')
 REVERSAL_MIN_PCT = 10.0
 MAX_DELAY_S = 0.012
+BRANCH_EDGE = 0.95  # a branch found this close to the top of its band is no resonance
 FREQ_GRID_HZ = 0.002  # line frequency grid (a 60 s record resolves about 0.017 Hz)
 # Calibrated on 60 clean randomised benches (seeds 100000-100059, apart from every test seed) by
 # `online-id evaluate-diagnose --calibration-cases 60` at commit c2e69d6, per path (without and with a
@@ -67,7 +69,7 @@ THRESHOLDS = {
     "fixed_frequency_disturbance": 0.005,
     "additional_mode": 0.01695,
     "backlash": 0.01555,
-    "sensor_delay": 0.5,
+    "sensor_delay": 0.005,
     "coulomb_friction": 0.00563,
 }
 # with a recorded torque demand (the PRBS) as the reference of the speed transfer and the coherence
@@ -103,15 +105,18 @@ class BenchCandidate:
 # the held-out figures of a model: the one-step error of both speed equations, the torque balance's error
 # and the speed transfer's misfit
 CHANNELS = ("dyno", "engine", BALANCE, "transfer")
+FULL = "@full"  # suffix of a speed equation fitted at the recording's own rate (lines above the decimated band)
 CHANNEL_TEXT = {"dyno": "dyno speed equation", "engine": "engine speed equation", BALANCE: "torque balance",
-                "transfer": "engine/dyno speed transfer"}
+                "transfer": "engine/dyno speed transfer", "dyno" + FULL: "dyno speed equation at the recording's rate",
+                "engine" + FULL: "engine speed equation at the recording's rate"}
 
 
 @dataclass(frozen=True)
 class Channels:
-    """Held-out error of one model per channel (:data:`CHANNELS`).
+    """Held-out error of one model per channel (:data:`CHANNELS`, and both speed equations at the
+    recording's own rate when the diagnosis decimates: :data:`FULL`).
 
-    ``mse``: the mean squared held-out one-step error of both speed equations [(rad/s)^2] and of the
+    ``mse``: the mean squared held-out one-step error of the speed equations [(rad/s)^2] and of the
     torque balance [Nm^2], and the speed transfer's held-out relative misfit (fitted on the estimation
     segments, :func:`~online_id.diagnose.bench_transfer.heldout_misfit`).  Channels in rpm, Nm and a
     ratio are pooled relative to the baseline's: the *summary* is
@@ -121,7 +126,7 @@ class Channels:
     mse: dict
 
     def relative(self, base: "Channels") -> dict[str, float]:
-        return {c: self.mse[c] / base.mse[c] if base.mse[c] > 0 else 1.0 for c in CHANNELS}
+        return {c: self.mse[c] / base.mse[c] if base.mse[c] > 0 else 1.0 for c in base.mse}
 
     def summary(self, base: "Channels") -> float:
         return float(np.sqrt(np.mean(list(self.relative(base).values()))))
@@ -169,7 +174,7 @@ def error_doc(ch: Channels, base: Channels) -> dict:
     rel = ch.relative(base)
     out: dict = {"rms": ch.summary(base), "summary": "RMS over the channels of the held-out error relative "
                  "to the baseline's (speed equations, torque balance, speed transfer)"}
-    for c in CHANNELS:
+    for c in ch.mse:
         if c == "transfer":
             out[c] = {"misfit": ch.mse[c], "relative": rel[c]}
         else:
@@ -196,7 +201,7 @@ class BenchDiagnosis:
 
     def summary_with(self, c: BenchCandidate) -> float:
         """The summary of the held-out error (relative to the baseline) with candidate ``c`` of step 1 added."""
-        return channels_of(fit_spec(self.series, c.spec), self.transfer_cache).summary(self.base_channels)
+        return channels_of(self.series, fit_spec(self.series, c.spec), self.transfer_cache).summary(self.base_channels)
 
     @property
     def effects(self) -> list[BenchCandidate]:
@@ -335,6 +340,80 @@ def backlash_fit(series: BenchSeries, spec: Spec) -> tuple[bx.TwistTerm, BenchFi
     return term, new, g, t
 
 
+FAMILY_TRIES = 8  # orders (by the share of the estimation residual they take) tried as further members
+MEMBER_GAIN = 0.002  # a further member of a family must remove this share of the held-out error, significantly
+
+
+def family_grid(fit: BenchFit, shaft: str) -> list[float]:
+    """Orders a family on ``shaft`` may hold: half orders of the engine (a four-stroke's cam turns at half
+    its rate), whole orders of the dyno, below 0.45 fs on the slowest plateau, the declared ones left out."""
+    ps = fit.plateaus
+    declared = set().union(*(p.declared for p in ps))
+    step = bx.ORDER_GRID_STEP if shaft == "engine" else 1.0
+    slow = min(p.rev_hz for p in ps)
+    ks = np.arange(step, bx.MAX_ORDER + 1e-9, step)
+    return [float(k) for k in ks if k not in declared and k * slow < 0.45 * ps[0].fs_hz]
+
+
+def order_family(series: BenchSeries, spec: Spec, base: BenchFit, shaft: str, seed: float) -> tuple[list[float], BenchFit]:
+    """The family of orders around ``seed`` on ``shaft``: further orders of :func:`family_grid`, tried in
+    the order of the share of the estimation residual each takes alone (projection), each kept when it
+    lowers the held-out error of the shaft's equation by :data:`MEMBER_GAIN` significantly (``t >=
+    T_CRIT``) beyond the family so far.  Returns the members and the fit of the shaft's equation."""
+    eq, ps = shaft, base.plateaus
+    proj = {p.index: bx.Projector(design(p, spec, eq)[p.est], output(p, eq)[p.est]) for p in ps}
+
+    def share(k: float) -> float:
+        total = 0.0
+        for p in ps:
+            if k * p.rev_hz < 0.5 * p.fs_hz:
+                theta = (p.theta1 if shaft == "dyno" else p.theta2)[p.rows][p.est]
+                total += proj[p.index].share_of(order_columns(theta, [k]))
+        return total
+
+    grid = [k for k in family_grid(base, shaft) if k != seed]
+    ranked = sorted(grid, key=share, reverse=True)[:FAMILY_TRIES]
+    members = [seed]
+    cur = fit_spec(series, spec.with_term(bx.OrderFamilyTerm(shaft, (seed,))), ps, only=(eq,))
+    for k in ranked:
+        trial = fit_spec(series, spec.with_term(bx.OrderFamilyTerm(shaft, tuple(members + [k]))), ps, only=(eq,))
+        g, t = _gain(trial, cur, (eq,))
+        if g >= MEMBER_GAIN and t >= T_CRIT:
+            members.append(k)
+            cur = trial
+    return sorted(members), cur
+
+
+def order_candidates(series: BenchSeries, spec: Spec, base: BenchFit, terms: list, suffix: str = "") -> list[BenchCandidate]:
+    """Rotation-order candidates from screened order terms (both shafts each): the side whose equation
+    gains more (``undetermined`` when the other gains 80 % of it), then the family around the order on
+    that side (:func:`order_family`), named by its fundamental with a reading.  ``suffix``: the fits are
+    at the recording's own rate (:data:`FULL`)."""
+    orders: dict[float, dict[str, tuple]] = {}
+    for term in terms:
+        new = fit_spec(series, spec.with_term(term), base.plateaus, only=(term.shaft,))
+        g, t = _gain(new, base, (term.shaft,))
+        orders.setdefault(term.order, {})[term.shaft] = (g, t)
+    out, seen = [], set()
+    for k, sides in orders.items():
+        (s1, (g1, t1)), *rest = sorted(sides.items(), key=lambda kv: -kv[1][0])
+        g2 = rest[0][1][0] if rest else 0.0
+        shaft = s1 if not (g2 > SIDE_UNDETERMINED * g1 > 0) else "undetermined"
+        members, fam = order_family(series, spec, base, s1, k)
+        if (s1, tuple(members)) in seen:
+            continue
+        seen.add((s1, tuple(members)))
+        g, t = _gain(fam, base, (s1,))
+        f0 = bx.fundamental(members)
+        out.append(BenchCandidate("rotation_order_disturbance",
+                                  {"order": f0, "shaft": shaft, "family_orders": members,
+                                   "reading": bx.family_reading(s1, members, series.pulses_per_rev),
+                                   "found_at": k, "gains": {s: v[0] for s, v in sides.items()},
+                                   **({"rate_hz": series.fs_hz} if suffix else {})},
+                                  g, t, fam.spec, (s1 + suffix,)))
+    return out
+
+
 def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
                         report: Callable[[str], None] = lambda m: None) -> list[BenchCandidate]:
     """Fit every screened candidate against ``base`` (the current model)."""
@@ -342,18 +421,15 @@ def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
     out: list[BenchCandidate] = []
     lines = bx.screen_lines(base, EQS)
     report("rotation orders")
-    orders: dict[float, dict[str, tuple]] = {}
-    for term in bx.order_candidates(lines, base):
-        new = fit_spec(series, spec.with_term(term), base.plateaus, only=(term.shaft,))
-        g, t = _gain(new, base, (term.shaft,))
-        orders.setdefault(term.order, {})[term.shaft] = (g, t, new.spec)
-    for k, sides in orders.items():
-        (s1, (g1, t1, _)), *rest = sorted(sides.items(), key=lambda kv: -kv[1][0])
-        g2 = rest[0][1][0] if rest else 0.0
-        shaft = s1 if not (g2 > SIDE_UNDETERMINED * g1 > 0) else "undetermined"
-        out.append(BenchCandidate("rotation_order_disturbance",
-                                  {"order": k, "shaft": shaft, "gains": {s: v[0] for s, v in sides.items()}},
-                                  g1, t1, sides[s1][2], (s1,)))
+    out += order_candidates(series, spec, base, bx.order_candidates(lines, base))
+    if series.full is not None and series.full.meta.get("line_free_orders"):
+        report("rotation orders at the recording's own rate")
+        full_base = fit_spec(series.full, spec, only=EQS)
+        orders = series.full.meta["line_free_orders"]
+        terms = [bx.OrderTerm(sh, k) for k in orders for sh in EQS]
+        out += order_candidates(series.full, spec, full_base, terms, FULL)
+    report("speed transfer: delay and additional mode")
+    tr = bt.transfer_effects(base.plateaus, MAX_DELAY_S)
     report("fixed-frequency lines")
     # lines fixed in Hz in the torque balance: an external torque shows there whatever the shaft
     # it enters, and nothing in the balance predicts it from the speeds' past
@@ -379,6 +455,8 @@ def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
                                   {"freq_hz": f, "coherence_contrast": contrast, "coherence": level,
                                    "line_strength": strength},
                                   g_f, t_f, fixed.spec, (BALANCE,)))
+    report("inertia beyond the dyno")
+    out.append(branch_candidate(series, spec, bal, tr["two_mass"]))
     report("backlash")
     term, new, g, t = backlash_fit(series, spec)
     out.append(BenchCandidate("backlash", {**term.params(), "shaft_torque_reversed_pct": bx.shaft_torque_reversed(bal)},
@@ -387,29 +465,73 @@ def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
     new = fit_spec(series, spec.with_term(bx.CoulombTerm(spec.nb)), only=EQS)
     g, t = _gain(new, base, EQS)
     out.append(BenchCandidate("coulomb_friction", {}, g, t, new.spec, EQS))
-    report("speed transfer: delay and additional mode")
-    tr = bt.transfer_effects(base.plateaus, MAX_DELAY_S)
     td, tm = tr["delay"], tr["mode"]
     signal = "engine" if td["tau_s"] > 0 else "dyno"
     attr = "shift_engine" if signal == "engine" else "shift_dyno"
-    trial = replace(spec, **{attr: getattr(spec, attr) + abs(td["tau_s"]) * fs})
-    onestep, _ = _gain(fit_spec(series, trial, only=EQS), base, EQS)
-    # score: the delay in ms (clean benches show a small bias; the threshold is calibrated on them);
-    # heldout_gain: the share of the held-out transfer misfit the delay removes
+    trial = replace(spec, **{attr: getattr(spec, attr) + abs(td["tau_s"])})
+    # score: the share of the held-out transfer misfit of the model with a further inertia that a delay
+    # removes (a delay is a phase slope at unit gain, which a mode cannot take)
     out.append(BenchCandidate("sensor_delay", {"signal": f"{signal}_speed", "delay_s": abs(td["tau_s"]),
-                                               "heldout_gain": td["heldout_gain"], "onestep_gain": onestep,
+                                               "heldout_gain": td["heldout_gain"],
+                                               "delay_with_mode_s": abs(td["tau_with_mode_s"]),
                                                "jackknife_s": td["jackknife_s"]},
-                              1000.0 * abs(td["tau_s"]), td["t"], trial, ("transfer",)))
+                              td["heldout_gain"], td["t"], trial, ("transfer",)))
     modes = list(spec.modes)
     modes[EQS.index("engine")] += 1
-    mode_spec = replace(spec, modes=tuple(modes))
-    onestep, _ = _gain(fit_spec(series, mode_spec, only=("engine",)), base, ("engine",))
-    # score: the share of the held-out transfer misfit one more pole pair removes
-    out.append(BenchCandidate("additional_mode", {"freq_hz": tm["freq_hz"], "shaft": "engine",
-                                                  "heldout_gain": tm["heldout_gain"], "onestep_gain": onestep,
-                                                  "in_band": tm["in_band"]},
+    mode_spec = replace(spec, modes=tuple(modes), transfer_mode=tm["variant"])
+    # score: the share of the held-out transfer misfit of the model with a delay that the further inertia
+    # removes (it changes the gain, which a delay cannot)
+    out.append(BenchCandidate("additional_mode", {"freq_hz": tm["freq_hz"], "location": tm["location"],
+                                                  "heldout_gain": tm["heldout_gain"], "in_band": tm["in_band"],
+                                                  "location_z": tm["location_z"]},
                               tm["heldout_gain"], tm["t"], mode_spec, ("transfer",)))
     return out
+
+
+def branch_candidate(series: BenchSeries, spec: Spec, bal: BenchFit, two_mass: dict) -> BenchCandidate:
+    """A further inertia beyond the dyno (:class:`~online_id.diagnose.bench_effects.BranchTerm`), judged on
+    the torque balance; its frequency is the added mode of the three-mass chain built from the balance's
+    inertias, the branch and the speed transfer's shaft (the mode farthest from the two-mass one)."""
+    ref_spec = spec.with_term(bx.smooth_reference(series.fs_hz))
+    ref = fit_spec(series, ref_spec, bal.plateaus, only=(BALANCE,))
+    term = bx.search_branch(series, ref_spec, bal.plateaus)
+    new = fit_spec(series, ref_spec.with_term(term), bal.plateaus, only=(BALANCE,))
+    g, t = _gain(new, ref, (BALANCE,))
+    j1, j2, j3 = bx.branch_inertias(new)
+    f_mode, params = float("nan"), {}
+    if j2 > 0 and j1 + j3 > 0:
+        j1, j2, j3, c3, d3 = bt.fit_dyno_branch(new.plateaus, j1 + j3, j2, two_mass["c_per_J2"],
+                                                two_mass["d_per_J2"], term.freq_hz, term.zeta)
+        c_s, d_s = two_mass["c_per_J2"] * j2, two_mass["d_per_J2"] * j2
+        modes = bx.chain_modes((j1, j2, j3), [(0, 1, c_s, d_s), (0, 2, c3, d3)])
+        f0 = np.sqrt(c_s * (1 / j1 + 1 / j2)) / (2 * np.pi)
+        if modes:
+            f_mode, zeta = max(modes, key=lambda m: abs(np.log(m[0] / f0)))
+            params = {"damping": zeta, "J1_kgm2": j1, "J2_kgm2": j2, "J3_kgm2": j3}
+    if not np.isfinite(f_mode) or term.freq_hz >= BRANCH_EDGE * bx.BRANCH_BAND_HZ[1] * series.fs_hz:
+        t = 0.0  # no resonance: a branch at the band's top is the low-pass of the reference again
+    return BenchCandidate("additional_mode", {"freq_hz": f_mode, "location": "dyno", **term.params(), **params},
+                          g, t, new.spec, (BALANCE,))
+
+
+def high_lines(series: BenchSeries) -> tuple[float, ...]:
+    """Undeclared order lines of the measured speeds at the recording's own rate that the decimated path
+    cannot judge on every plateau (above its passband on the fastest): the orders at which the speed
+    equations at the recording's rate are made line-free (:func:`~online_id.diagnose.bench_model.design`)."""
+    base = fit_spec(series.full, Spec(), only=EQS)
+    ps = base.plateaus
+    top = max(p.rev_hz for p in ps)
+    declared = set().union(*(p.declared for p in ps))
+    out = []
+    # in the measured speeds (where the equations predict a strong line from their lags) and in the
+    # equations' residuals (where the speed's own spectrum holds it below the response to the excitation)
+    for line in bx.speed_lines(ps) + bx.screen_signals(ps, {eq: base.eqs[eq].residuals for eq in EQS}, ("order",),
+                                                       exclude=declared):
+        step = bx.ORDER_GRID_STEP if line.eq == "engine" else 1.0
+        k = round(line.at / step) * step
+        if k > 0 and k not in declared and abs(k - line.at) <= 0.05 and k * top > series.path.passband_hz:
+            out.append(float(k))
+    return tuple(sorted(set(out)))
 
 
 def diagnose_bench(series: BenchSeries, *, na: int = 6, nb: int = 6, max_effects: int = 2,
@@ -425,10 +547,12 @@ def diagnose_bench(series: BenchSeries, *, na: int = 6, nb: int = 6, max_effects
     thr = default_thresholds(series) if thresholds is None else dict(thresholds)
     report = progress or (lambda f, m: None)
     spec = Spec(na, nb)
+    if series.full is not None:
+        series.full.meta["line_free_orders"] = high_lines(series)
     report(0.0, "baseline")
     base = fit_spec(series, spec)
     transfer: dict = {}
-    base_ch = channels_of(base, transfer)
+    base_ch = channels_of(series, base, transfer)
     cur, cur_ch, steps, all_cands, refused = base, base_ch, [], [], []
     stop = f"max_effects={max_effects} reached"
     for step in range(max_effects):
@@ -443,7 +567,7 @@ def diagnose_bench(series: BenchSeries, *, na: int = 6, nb: int = 6, max_effects
         chosen = None
         for c in ok:
             new = fit_spec(series, c.spec)
-            new_ch = channels_of(new, transfer)
+            new_ch = channels_of(series, new, transfer)
             s0, s1 = cur_ch.summary(base_ch), new_ch.summary(base_ch)
             if s1 < s0:
                 chosen = (c, new, new_ch)
@@ -463,15 +587,20 @@ def diagnose_bench(series: BenchSeries, *, na: int = 6, nb: int = 6, max_effects
     return BenchDiagnosis(series, base, cur, steps, all_cands, thr, stop, base_ch, cur_ch, refused, transfer)
 
 
-def channels_of(fit: BenchFit, transfer_cache: dict | None = None) -> Channels:
-    """The held-out figures of a fitted spec (every equation fitted); the transfer's misfit depends only on
-    the speed shifts and the modes, and is kept in ``transfer_cache`` under them."""
+def channels_of(series: BenchSeries, fit: BenchFit, transfer_cache: dict | None = None) -> Channels:
+    """The held-out figures of a fitted spec (every equation fitted; at the recording's own rate the
+    speed equations are fitted here); the transfer's misfit depends only on the speed shifts and the
+    mode, and is kept in ``transfer_cache`` under them."""
     spec = fit.spec
-    key = (spec.shift_dyno, spec.shift_engine, spec.modes)
+    key = (spec.shift_dyno, spec.shift_engine, spec.transfer_mode)
     cache = {} if transfer_cache is None else transfer_cache
     if key not in cache:
-        cache[key] = bt.heldout_misfit(fit.plateaus, spec.modes[EQS.index("engine")] > 0)
-    return Channels({**{eq: fit.mse(eq) for eq in ALL_EQS}, "transfer": cache[key]})
+        cache[key] = bt.heldout_misfit(fit.plateaus, spec.transfer_mode)
+    mse = {**{eq: fit.mse(eq) for eq in ALL_EQS}, "transfer": cache[key]}
+    if series.full is not None:
+        full = fit_spec(series.full, spec, only=EQS)
+        mse.update({eq + FULL: full.mse(eq) for eq in EQS})
+    return Channels(mse)
 
 
 def rise_text(before: Channels, after: Channels) -> str:

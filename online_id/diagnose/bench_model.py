@@ -68,9 +68,10 @@ class Spec:
     na: int = 6
     nb: int = 6
     modes: tuple[int, int] = (0, 0)
-    shift_dyno: float = 0.0
-    shift_engine: float = 0.0
+    shift_dyno: float = 0.0  # advance of the dyno speed [s] (a sensor delay corrected)
+    shift_engine: float = 0.0  # advance of the engine speed [s]
     terms: tuple = ()
+    transfer_mode: str = ""  # where a further inertia sits in the speed transfer's model ("": none)
 
     def orders(self, eq: str) -> tuple[int, int]:
         m = self.modes[EQS.index(eq)] if eq in EQS else 0
@@ -102,6 +103,7 @@ class PlateauSignals:
     rev_hz: float
     fs_hz: float
     declared: list = field(default_factory=list)
+    line_free_hz: tuple = ()  # the speed equations' regressors carry nothing within a notch at these [Hz]
     demand: np.ndarray | None = None  # recorded torque demand (PRBS) on the series grid
     own: dict = field(default_factory=dict)  # speed equation -> (its output, the other speed) in its time base
     cache: dict = field(default_factory=dict)  # (eq, na, nb) -> base regressors
@@ -174,9 +176,9 @@ def plateau_signals(series: BenchSeries, spec: Spec) -> list[PlateauSignals]:
     speed from :func:`own_time_base`.
     """
     fs = series.fs_hz
-    y1 = shifted(series.dyno, spec.shift_dyno)
-    y2 = shifted(series.engine, spec.shift_engine)
-    own = own_time_base(series.dyno, series.engine, spec.shift_dyno, spec.shift_engine)
+    y1 = shifted(series.dyno, spec.shift_dyno * fs)
+    y2 = shifted(series.engine, spec.shift_engine * fs)
+    own = own_time_base(series.dyno, series.engine, spec.shift_dyno * fs, spec.shift_engine * fs)
     block, hold = int(round(BLOCK_S * fs)), int(round(HOLDOUT_S * fs))
     out = []
     for i, p in enumerate(series.plateaus):
@@ -193,6 +195,8 @@ def plateau_signals(series: BenchSeries, spec: Spec) -> list[PlateauSignals]:
                                   float(np.mean(series.engine[span])) / (2 * np.pi), fs,
                                   demand=series.demand, own=own))
         out[-1].declared = declared_orders(series, out[-1].rev_hz)
+        out[-1].line_free_hz = tuple(k * out[-1].rev_hz for k in series.meta.get("line_free_orders", ())
+                                     if k * out[-1].rev_hz < 0.5 * fs)
     return out
 
 
@@ -269,15 +273,40 @@ def _lstsq(phi: np.ndarray, y: np.ndarray) -> np.ndarray:
     return coef / scale
 
 
+LINE_FREE_Q = 30.0  # quality factor of the notches that keep lines out of the regressors
+
+
 def design(p: PlateauSignals, spec: Spec, eq: str, extra: list[np.ndarray] = ()) -> np.ndarray:
-    """Regressors of equation ``eq`` of ``spec`` on the rows of plateau ``p`` (and ``extra`` columns)."""
+    """Regressors of equation ``eq`` of ``spec`` on the rows of plateau ``p`` (and ``extra`` columns).
+
+    Where the plateau names line-free frequencies (``p.line_free_hz``), the regressors of a speed
+    equation, all but the rotation-order columns and the constant, are notched there (zero phase): a
+    strong order line is otherwise predicted one step ahead from its own past and from the speed
+    controller's reaction to it in the torque, and an order term then explains nothing of it.
+    """
     cols = _base_columns(p, spec, eq)
+    free = eq in EQS and bool(p.line_free_hz)
+    if free:
+        key = ("line_free", eq) + spec.orders(eq) + (p.line_free_hz,)
+        if key not in p.cache:
+            p.cache[key] = _notched(np.hstack(cols)[:, :-1], p)
+        cols = [p.cache[key], np.hstack(cols)[:, -1:]]
     for term in spec.terms:
         c = term.columns(p, eq)
         if c is not None:
-            cols.append(np.asarray(c, dtype=float).reshape(p.rows.size, -1))
+            c = np.asarray(c, dtype=float).reshape(p.rows.size, -1)
+            cols.append(_notched(c, p) if free and term.kind != "rotation_order_disturbance" else c)
     cols += [np.asarray(c, dtype=float).reshape(p.rows.size, -1) for c in extra]
     return np.hstack(cols)
+
+
+def _notched(x: np.ndarray, p: PlateauSignals) -> np.ndarray:
+    from scipy.signal import filtfilt, iirnotch
+
+    for f in p.line_free_hz:
+        b, a = iirnotch(f, LINE_FREE_Q, fs=p.fs_hz)
+        x = filtfilt(b, a, x, axis=0)
+    return x
 
 
 def output(p: PlateauSignals, eq: str) -> np.ndarray:
