@@ -86,3 +86,36 @@ def test_held_out_fit_is_computed_on_samples_no_fit_saw(monkeypatch):
     assert held.driveline.f0_hz == pytest.approx(base.driveline.f0_hz, rel=1e-12)
     window = identify(corrupted("window"), SETTINGS, InertiaSettings(J1=0.8), refine_s=60.0)
     assert any(not np.allclose(q.fit.theta, p.fit.theta, rtol=1e-6) for p, q in zip(base.points, window.points))
+
+
+@pytest.mark.slow
+def test_identify_validates_on_another_recording_and_prints_fit_bounds_and_intervals(tmp_path, capsys):
+    """One command gives the held-out fit, the residual bounds and the parameter intervals (docs/sysid.md)."""
+    import json
+
+    from online_id.cli import main
+
+    for name, seed in (("a", 41), ("b", 42)):
+        (tmp_path / f"{name}.yaml").write_text("operating_points:\n  - {speed_rpm: 1100, duration_s: 16}\n"
+                                              f"  - {{speed_rpm: 1900, duration_s: 16}}\nseed: {seed}\n")
+        assert main(["simulate", "--config", str(tmp_path / f"{name}.yaml"), "--out", str(tmp_path / f"{name}.csv")]) == 0
+    capsys.readouterr()
+    args = ["identify", str(tmp_path / "a.csv"), "--J1", "0.8", "--na", "8", "--resid", "--validate",
+            str(tmp_path / "b.csv")]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "held out" in out and "simulation fit" in out and "99 % bounds" in out and "outside +-0.0" in out
+    assert "c_s  =" in out and "+-" in out and "[95 % interval]" in out
+    assert f"Validation on {tmp_path / 'b.csv'}" in out
+    assert main(args + ["--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    rows = doc["validation_file"]["points"]
+    assert [round(r["model_speed_rpm"], -2) for r in rows] == [1100, 1900]
+    assert all(r["fit_one_step_pct"] > 80 for r in rows)
+    for p in doc["operating_points"]:
+        v, r = p["validation"], p["resid"]
+        assert v["held_out"] and v["window_s"][0] >= p["held_out_s"][0] - 1e-9
+        assert r["autocorrelation_bound"] == pytest.approx(2.576 / np.sqrt(r["n_samples"]), rel=1e-3)
+        assert len(r["cross_correlation"]) == 51 and r["cross_correlation_bound"] > 0
+    d = doc["driveline"]
+    assert d["ci95"]["c_s"][0] < d["c_s"] < d["ci95"]["c_s"][1] and d["std"]["J1"] is None
