@@ -43,14 +43,9 @@ def point_model(point) -> dict:
     circle with the same magnitude response): stable, for simulating the
     torque-to-speed response elsewhere.
     """
-    from online_id.analysis.poles import SPEED_DEPENDENT
-    from online_id.estimation.validation import cancel_pairs, stable_theta
-
     fit = point.fit
     y0, u0 = point.offsets
-    theta, _ = cancel_pairs(fit, [q.z for q in point.poles if q.cls == SPEED_DEPENDENT])
-    theta, n_reflected = stable_theta(theta, fit.orders)
-    a_sim, b_sim, _ = fit.orders.split(theta)
+    a_sim, b_sim, _, _ = simulation_polynomials(point)
     roots = np.roots(fit.A) if fit.A.size > 1 else np.zeros(0)
     return {
         "form": FORM,
@@ -65,6 +60,19 @@ def point_model(point) -> dict:
         "engine_speed_rpm": float(point.speed_rpm),
         "t_start_s": float(point.plateau.t_start_s), "t_end_s": float(point.plateau.t_end_s),
     }
+
+
+def simulation_polynomials(point) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """``(A_sim, B_sim, pairs cancelled, poles reflected)``: the stable torque-to-speed model ``compare``
+    simulates (see :func:`~online_id.estimation.validation.cancel_pairs`, ``stable_theta``)."""
+    from online_id.analysis.poles import SPEED_DEPENDENT
+    from online_id.estimation.validation import cancel_pairs, stable_theta
+
+    fit = point.fit
+    theta, n_cancelled = cancel_pairs(fit, [q.z for q in point.poles if q.cls == SPEED_DEPENDENT])
+    theta, n_reflected = stable_theta(theta, fit.orders)
+    a_sim, b_sim, _ = fit.orders.split(theta)
+    return a_sim, b_sim, n_cancelled, n_reflected
 
 
 def z_polynomials(num: np.ndarray, den: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -156,25 +156,36 @@ def plot_compare(result: IdentificationResult, rows: list[tuple[PointResult, Com
 
 
 def plot_responses(result: IdentificationResult, path: Path, title: str = "", duration_s: float = 1.0) -> None:
-    """Step and impulse response of each point's model B/A (dyno torque -> dyno speed), as identified."""
+    """Step and impulse response of each point's torque-to-speed model, the stable one ``compare`` simulates.
+
+    As identified, a model may hold spurious unstable poles (near Nyquist,
+    where the data pin nothing) whose response grows without bound; the
+    simulation model reflects them (same magnitude response) and leaves out
+    the order-line pole-zero pairs the torque does not drive.
+    """
     from scipy.signal import lfilter
+
+    from online_id.estimation.export import simulation_polynomials
 
     plt = pyplot()
     fig, (ax_s, ax_i) = plt.subplots(1, 2, figsize=(11, 4.2))
     for p in result.points:
         if p.fit is None:
             continue
+        a_sim, b_sim, n_cancelled, n_reflected = simulation_polynomials(p)
         n = max(2, int(round(duration_s / p.dt)))
         t = p.dt * np.arange(n)
-        impulse = lfilter(p.fit.B, p.fit.A, np.r_[1.0, np.zeros(n - 1)])
+        impulse = lfilter(b_sim, a_sim, np.r_[1.0, np.zeros(n - 1)])
         step = np.cumsum(impulse)
-        unstable = int(np.count_nonzero(np.abs(np.roots(p.fit.A)) > 1.0)) if p.fit.A.size > 1 else 0
-        label = f"{p.speed_rpm:.0f} rpm" + (f" ({unstable} unstable pole(s))" if unstable else "")
+        how = ", ".join(x for x in (f"{n_cancelled} order-line pair(s) cancelled" if n_cancelled else "",
+                                     f"{n_reflected} unstable pole(s) reflected" if n_reflected else "") if x)
+        label = f"{p.speed_rpm:.0f} rpm" + (f" ({how})" if how else "")
         ax_s.step(t, step * RPM_PER_RAD_S, where="post", lw=1, label=label)
         ax_i.step(t, impulse * RPM_PER_RAD_S, where="post", lw=1, label=label)
     if result.driveline is not None:
         for ax in (ax_s, ax_i):
-            ax.axvline(1.0 / result.driveline.f0_hz, color="0.5", lw=0.8, ls=":")
+            ax.axvline(1.0 / result.driveline.f0_hz, color="0.5", lw=0.8, ls=":",
+                       label="one period of the driveline" if ax is ax_s else None)
     ax_s.set_title("step: dyno torque +1 Nm at t = 0 (positive torque brakes)", fontsize=9)
     ax_i.set_title(f"impulse: 1 Nm for one sample ({1e3 * result.points[0].dt:.3g} ms)", fontsize=9)
     ax_s.set_ylabel("dyno speed deviation [rpm]")
