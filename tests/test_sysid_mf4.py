@@ -94,3 +94,20 @@ def test_report_of_a_state_file_writes_alerts_and_tracks(tmp_path):
     assert chans["oid_track_f"].unit == "Hz" and chans["oid_alert_change"].unit == "%"
     assert chans["oid_alert_kind"].samples[-1] == b"FREQ_DRIFT"
     assert chans["oid_track_f"].timestamps.size > 100
+
+
+def test_report_of_a_log_with_residual_tests(bench, tmp_path, cli_error):
+    out = tmp_path / "r"
+    assert main(["report", str(bench / "bench.log"), "--out", str(out), "--resid"]) == 0
+    doc = json.loads((out / "report.json").read_text())
+    points = doc["resid"]["points"]
+    assert [round(p["engine_speed_rpm"], -2) for p in points] == [1200, 1700]
+    for p in points:
+        assert p["held_out"] and p["autocorrelation_bound"] == pytest.approx(2.576 / np.sqrt(p["n_samples"]), rel=1e-3)
+    assert (out / "resid.png").read_bytes()[:4] == b"\x89PNG" and "resid.png" in doc["figures"]
+    assert "## Residual tests" in (out / "report.md").read_text()
+    state = tmp_path / "s" / "online-id-state.json"
+    from test_report_cmd import _state_with_alarm
+
+    save_state(state, _state_with_alarm())
+    assert "--resid needs a CAN log" in cli_error(["report", str(state), "--out", str(tmp_path / "r2"), "--resid"])

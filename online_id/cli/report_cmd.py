@@ -66,7 +66,9 @@ REPORT_UNITS = {
     "J1": "kg m^2", "J2": "kg m^2", "value_pct": "%", "change_pct": "%", "spread_ratio": "1",
     "residual_rms": "rad/s (one-step prediction error of the dyno speed, RMS)",
     "fpe": "rad/s (square root of the final prediction error of the dyno speed)",
-    "excitation_nm": "Nm (RMS of the torque excitation)", "learned_t_s": "s",
+    "excitation_nm": "Nm (RMS of the torque excitation)", "learned_t_s": "s", "engine_speed_rpm": "rpm",
+    "fit_one_step_pct": "%", "autocorrelation": "1", "cross_correlation": "1", "autocorrelation_bound": "1",
+    "cross_correlation_bound": "1", "lags": "samples of the identification's rate", "cross_lags": "samples",
 }
 EPOCH_S = 1e8  # stream times above this are Unix times (a live service), below: seconds from a log start
 
@@ -83,6 +85,9 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("source", metavar="LOG_OR_STATE", help="CAN log (.log, .asc, .blf) or state file (.json)")
     p.add_argument("--out", metavar="DIR", required=True, help="directory for the figures and the summary")
     p.add_argument("--config", metavar="FILE", help="YAML configuration (DBC, mapping, model, detection)")
+    p.add_argument("--resid", action="store_true",
+                   help="(a CAN log) also identify the log per operating point as identify does and test the "
+                        "residuals as MATLAB's resid: resid.png and a section in report.md and report.json")
     p.add_argument("--out-mf4", metavar="FILE.mf4",
                    help="also write the results as MDF 4 channels with units on the recording's time base: of a log, "
                         "the estimates, quality, state and alerts (as replay --out-mf4); of a state file, the alerts "
@@ -111,6 +116,7 @@ class ReportData:
     extra: dict = field(default_factory=dict)
     runtime: RecordingRuntime | None = None  # the replay's (a CAN log), for --out-mf4
     engaged: EngagedSeries | None = None  # engaged-flank readings (shafts with backlash)
+    identification: Any = None  # the offline identification of the log (--resid), for resid.png
 
 
 class RecordingRuntime(ResultsRuntime):
@@ -419,7 +425,7 @@ def summary(data: ReportData) -> dict:
     out["active_alarm"] = data.active_alarm
     out["final_estimate"] = data.final
     out.update(data.extra)
-    out["figures"] = list(FIGURES)
+    out["figures"] = list(FIGURES) + (["resid.png"] if data.identification is not None else [])
     out["units"] = dict(REPORT_UNITS)
     return out
 
@@ -470,6 +476,7 @@ def markdown(data: ReportData, doc: dict) -> str:
                           f"{b.get('kind', 'learned' if b['learned'] else 'learning')} | {b.get('source') or '-'} "
                           f"| {fmt(b.get('spread_ratio'), '.1f')} |" for b in doc["baselines"]])
     lines += _engaged_section(doc.get("engaged_flank"))
+    lines += _resid_section(doc)
     lines += _section("Alerts", "| t [s] | kind | level | speed [rpm] | change [%] | message |",
                       "|---:|---|---|---:|---:|---|", "No alerts.", [
                           f"| {fmt(a['t_s'], '.1f')} | {a['kind']} | {a['level']} | "
@@ -520,6 +527,11 @@ def write_report(data: ReportData, out: Path) -> list[Path]:
         plot_tracks_over_time(paths[2], data.estimates, data.tracks, data.baselines, marks, label,
                               title=f"driveline estimate over time, {name}", learned_t_s=learned,
                               engaged=data.engaged)
+        if data.identification is not None and any(p.resid is not None for p in data.identification.points):
+            from online_id.plots.identification import plot_resid
+
+            paths.append(out / "resid.png")
+            plot_resid(data.identification, paths[-1], title=f"residual tests per operating point, {name}")
         doc = summary(data)
         paths.append(out / "report.json")
         paths[-1].write_text(json.dumps(_plain(doc), indent=2, allow_nan=False) + "\n", encoding="utf-8")
@@ -528,6 +540,44 @@ def write_report(data: ReportData, out: Path) -> list[Path]:
     except OSError as err:
         raise InputDataError(f"{out}: cannot write the report: {err.strerror or err}") from err
     return paths
+
+
+def identify_residuals(data: ReportData, config: str | None) -> None:
+    """``--resid``: identify the log per operating point (as ``identify``) and keep its residual tests."""
+    from online_id.benchlog import read_bench
+    from online_id.errors import EstimationError
+    from online_id.estimation.identification import identify
+
+    s = load_config(config)
+    try:
+        bench = read_bench(str(data.source), s, lambda _note: None)
+        result = identify(bench, s.identification, s.inertias)
+    except (InputDataError, EstimationError) as err:
+        data.extra["resid"] = {"error": str(err)}
+        return
+    data.identification = result
+    data.extra["resid"] = {"points": [
+        {"engine_speed_rpm": p.speed_rpm, "held_out": bool(p.check and p.check.held_out),
+         "fit_one_step_pct": p.check.fit_pred_pct if p.check else None,
+         **(p.resid.as_dict() if p.resid is not None else {})} for p in result.points]}
+
+
+def _resid_section(doc: dict) -> list[str]:
+    r = doc.get("resid")
+    if not r:
+        return []
+    if "error" in r:
+        return ["", "## Residual tests", "", f"Not identified per operating point: {r['error']}"]
+    rows = [f"| {p['engine_speed_rpm']:.0f} | {'held out' if p['held_out'] else 'fit window'} "
+            f"| {fmt(p['fit_one_step_pct'], '.1f')} | {p.get('autocorrelation_outside', '-')}/"
+            f"{len(p.get('lags', [0])) - 1} | +-{fmt(p.get('autocorrelation_bound'), '.3f')} "
+            f"| {p.get('cross_correlation_outside', '-')}/{len(p.get('cross_lags', []))} "
+            f"| +-{fmt(p.get('cross_correlation_bound'), '.3f')} |" for p in r["points"]]
+    return _section("Residual tests", "| speed [rpm] | samples | one-step fit [%] | autocorrelation outside | "
+                    "99 % bound | cross-correlation with the torque outside | 99 % bound |",
+                    "|---:|---|---:|---:|---:|---:|---:|", "No operating point.", rows) + [
+        "", "The log identified per operating point as `online-id identify` does; MATLAB's `resid` on the "
+        "one-step residual ([resid.png](resid.png))."]
 
 
 def write_results_mf4(data: ReportData, path: str) -> None:
@@ -560,6 +610,10 @@ def run(args: argparse.Namespace) -> int:
     if args.out_mf4:
         check_output(args.out_mf4, "results file")
     data = load_source(Path(args.source), args.config)
+    if args.resid:
+        if data.kind != "can_log":
+            raise InputDataError(f"{args.source}: --resid needs a CAN log (a state file holds no samples to test)")
+        identify_residuals(data, args.config)
     for path in write_report(data, Path(args.out)):
         print(f"wrote {path}")
     if args.out_mf4:
