@@ -119,3 +119,9 @@ def test_identify_validates_on_another_recording_and_prints_fit_bounds_and_inter
         assert len(r["cross_correlation"]) == 51 and r["cross_correlation_bound"] > 0
     d = doc["driveline"]
     assert d["ci95"]["c_s"][0] < d["c_s"] < d["ci95"]["c_s"][1] and d["std"]["J1"] is None
+
+
+def test_bad_holdout_and_batch_flags_with_recursive_are_one_line(cli_error, tmp_path):
+    csv = tmp_path / "none.csv"
+    assert "--holdout" in cli_error(["identify", str(csv), "--holdout", "1.5"])
+    assert "--resid, --mat" in cli_error(["identify", str(csv), "--recursive", "--resid", "--mat", "m.mat"])

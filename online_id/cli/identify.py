@@ -227,6 +227,11 @@ def run(args: argparse.Namespace) -> int:
         if value:
             check_output(value, flag.lstrip("-"))
     if args.recursive:
+        batch = [flag for flag, on in (("--resid", args.resid), ("--validate", args.validate), ("--mat", args.mat),
+                                       ("--out-mf4", args.out_mf4)) if on]
+        if batch:
+            raise ConfigError(f"{', '.join(batch)}: the per-operating-point identification's, not --recursive's "
+                              "(the streaming estimator's results go to MDF 4 with replay --out-mf4)")
         return run_recursive(args, s)
     if not 0.0 <= args.holdout < 1.0:
         raise ConfigError(f"--holdout: expected a fraction 0 <= F < 1, got {args.holdout!r}")
