@@ -318,3 +318,56 @@ def test_the_demand_column_is_read_with_the_signals_in_one_pass(tmp_path, sign):
         series = bench_series(path, s, demand_col=named)
         assert series.demand is not None and np.allclose(series.demand, expect.demand, atol=1e-6)
     assert bench_series(path, s, use_demand=False).demand is None
+
+
+@pytest.mark.parametrize("f1, f2, mu, tau_s", [(15.0, 70.0, 0.3, 0.0), (30.0, 110.0, 0.15, -0.002),
+                                               (20.0, 45.0, 0.5, 0.001)])
+def test_speed_transfer_mode_between_the_shaft_and_the_engine(f1, f2, mu, tau_s):
+    """A further inertia between the shaft and the engine (a dual-mass flywheel, the sensor on the engine):
+    the transfer's other shape fits it, recovers the delay (none, or the given one) and the added mode,
+    and the shape of an inertia beyond the engine fits it worse."""
+    from online_id.bench.plant import linear_modes
+    from online_id.diagnose.bench_transfer import fit_ratio_mode, fit_ratio_tau
+
+    rng = np.random.default_rng(int(f2))
+    f = np.arange(2.0, 150.0)
+    s = 2j * np.pi * f
+    J2, Jm = 1.0, mu  # engine and the inertia between (the shaft drives Jm, Jm drives the engine)
+    c1, d1 = (2 * np.pi * f1) ** 2 * 0.5, 2 * 0.08 * 2 * np.pi * f1 * 0.5
+    c2, d2 = (2 * np.pi * f2) ** 2 * Jm * J2 / (Jm + J2), 2 * 0.05 * 2 * np.pi * f2 * Jm * J2 / (Jm + J2)
+    k1, k2 = d1 + c1 / s, d2 + c2 / s
+    T = k1 * k2 / ((Jm * s + k1) * (J2 * s + k2) + J2 * s * k2) * np.exp(-s * tau_s)
+    T = T * (1 + 0.01 * (rng.standard_normal(f.size) + 1j * rng.standard_normal(f.size)))
+    w = np.ones(f.size)
+    two = fit_ratio_tau(f, T, w, 0.012)
+    between, _ = fit_ratio_mode(f, T, w, two, 0.012, variant="between")
+    beyond, _ = fit_ratio_mode(f, T, w, two, 0.012, variant="engine")
+    assert between.misfit(f, T, w) < 0.2 * two.misfit(f, T, w)
+    assert between.misfit(f, T, w) < 0.5 * beyond.misfit(f, T, w)
+    assert between.tau_s == pytest.approx(tau_s, abs=2e-4)
+    # its poles are those of the chain dyno held still (the transfer does not see the dyno's inertia)
+    held = linear_modes(1e9, J2, c1, d1, (Jm, c2, d2), "between")
+    assert sorted(between.poles_hz()) == pytest.approx(sorted(m["f_hz"] for m in held), rel=0.01)
+
+
+def test_chain_modes_are_the_simulators():
+    from online_id.bench.plant import linear_modes
+    from online_id.diagnose.bench_effects import chain_modes
+
+    J1, J2, J3, c, d, c3, d3 = 0.8, 0.35, 0.1, 6000.0, 4.0, 2.0e4, 3.0
+    ours = chain_modes((J1, J2, J3), [(0, 1, c, d), (0, 2, c3, d3)])
+    sim = linear_modes(J1, J2, c, d, (J3, c3, d3), "dyno")
+    assert [m[0] for m in ours] == pytest.approx([m["f_hz"] for m in sim], rel=1e-9)
+    assert [m[1] for m in ours] == pytest.approx([m["zeta"] for m in sim], rel=1e-9)
+
+
+@pytest.mark.parametrize("orders, f0", [([0.5, 1.0, 1.5, 2.5, 3.0], 0.5), ([1.5, 2.5], 0.5), ([3.0], 3.0),
+                                        ([3.0, 6.0, 9.0], 3.0), ([1.5], 1.5), ([1.0, 3.0], 1.0)])
+def test_an_order_family_is_named_by_its_fundamental(orders, f0):
+    from online_id.diagnose.bench_effects import family_reading, fundamental
+
+    assert fundamental(orders) == f0
+    text = family_reading("engine", orders, 2.0)
+    if f0 % 1 and len(orders) > 1:
+        assert "one cylinder differs" in text and "misfire" in text
+    assert family_reading("dyno", [3.0], 2.0).startswith("order 3 of the dyno")

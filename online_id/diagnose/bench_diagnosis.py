@@ -242,6 +242,7 @@ class BenchDiagnosis:
         s = self.series
         return {
             "source": s.source, "data_path": s.path.as_dict(), "pulses_per_rev": s.pulses_per_rev,
+            **({"read_as": s.meta["read_as"]} if "read_as" in s.meta else {}),
             "demand": s.demand is not None,
             "plateaus": [{"speed_rpm": p.speed_rpm, "t_start_s": p.t_start_s, "t_end_s": p.t_end_s,
                           "declared_orders": q.declared}
