@@ -46,7 +46,7 @@ from online_id.diagnose import bench_effects as bx
 from online_id.diagnose import bench_transfer as bt
 from online_id.diagnose.bench_data import RPM_PER_RAD_S, BenchSeries
 from online_id.diagnose.bench_model import (ALL_EQS, BALANCE, EQS, BenchFit, Spec, batch_mean_t, design, fit_plateau,
-                                            fit_spec, order_columns, output, plateau_signals)
+                                            fit_spec, order_columns, output)
 
 T_CRIT = 2.86
 COHERENCE_MODE = 0.7  # coherence contrast with the excitation at a line: a mode (else a disturbance)
@@ -418,7 +418,6 @@ def order_candidates(series: BenchSeries, spec: Spec, base: BenchFit, terms: lis
 def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
                         report: Callable[[str], None] = lambda m: None) -> list[BenchCandidate]:
     """Fit every screened candidate against ``base`` (the current model)."""
-    fs = series.fs_hz
     out: list[BenchCandidate] = []
     lines = bx.screen_lines(base, EQS)
     report("rotation orders")
