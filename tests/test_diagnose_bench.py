@@ -459,3 +459,24 @@ def test_a_bench_read_through_the_generic_options_gives_the_bench_answer(tmp_pat
     assert bench["result"] == "rotation_order_disturbance" == generic["result"]
     assert generic["effects"] == bench["effects"]
     assert generic["error_after"] == pytest.approx(bench["error_after"])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("plant, seed, points", [
+    ("a", 45, (OperatingPoint(3200, 36),)),
+    ("b", 46, (OperatingPoint(2600, 14), OperatingPoint(3000, 14), OperatingPoint(3300, 14)))])
+def test_a_once_per_revolution_line_above_the_resonance_is_never_a_mode(plant, seed, points):
+    """A strong order-1 torque on the engine above the resonance, at one speed or three: the bench path
+    names no additional mode at the line (it is the rotation order, or at one speed a line that cannot be
+    told from one fixed in Hz)."""
+    sc = BenchScenario(operating_points=points, seed=seed, **PLANTS[plant], compression_nm=0.0,
+                       effects=Effects(order_torque=OrderTorque("engine", 1.0, 15.0, 0.2)))
+    r = diagnose_bench(series_of(sc), max_effects=2)
+    c = first(r)
+    assert c.kind in ("rotation_order_disturbance", "fixed_frequency_disturbance")
+    if len(points) > 1:
+        assert c.kind == "rotation_order_disturbance" and c.params["order"] == 1.0
+    for st in r.steps:
+        if st.candidate.kind == "additional_mode":
+            f = st.candidate.params["freq_hz"]
+            assert all(abs(f - p.speed_rpm / 60.0) > 0.03 * f for p in r.series.plateaus)
