@@ -503,7 +503,8 @@ def branch_candidate(series: BenchSeries, spec: Spec, bal: BenchFit, two_mass: d
         j1, j2, j3, c3, d3 = bt.fit_dyno_branch(new.plateaus, j1 + j3, j2, two_mass["c_per_J2"],
                                                 two_mass["d_per_J2"], term.freq_hz, term.zeta)
         c_s, d_s = two_mass["c_per_J2"] * j2, two_mass["d_per_J2"] * j2
-        modes = bx.chain_modes((j1, j2, j3), [(0, 1, c_s, d_s), (0, 2, c3, d3)])
+        ok = all(np.isfinite(x) and x > 0 for x in (j1, j2, j3, c3, c_s))
+        modes = bx.chain_modes((j1, j2, j3), [(0, 1, c_s, d_s), (0, 2, c3, d3)]) if ok else []
         f0 = np.sqrt(c_s * (1 / j1 + 1 / j2)) / (2 * np.pi)
         if modes:
             f_mode, zeta = max(modes, key=lambda m: abs(np.log(m[0] / f0)))

@@ -496,4 +496,6 @@ def fit_dyno_branch(ps: list[PlateauSignals], j_total: float, j2: float, c_per_j
         r = least_squares(resid, x0, method="lm", max_nfev=500)
         if np.all(np.isfinite(r.x)) and (best is None or r.cost < best[0]):
             best = (r.cost, r.x)
+    if best is None:
+        return (float("nan"),) * 5
     return tuple(float(v) for v in np.exp(best[1][:5]))
