@@ -457,6 +457,10 @@ def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
                                   g_f, t_f, fixed.spec, (BALANCE,)))
     report("inertia beyond the dyno")
     out.append(branch_candidate(series, spec, bal, tr["two_mass"]))
+    report("broadband resonance")
+    hump = hump_candidate(series, spec, bal, coh_f, coh, seen)
+    if hump is not None:
+        out.append(hump)
     report("backlash")
     term, new, g, t = backlash_fit(series, spec)
     out.append(BenchCandidate("backlash", {**term.params(), "shaft_torque_reversed_pct": bx.shaft_torque_reversed(bal)},
@@ -486,6 +490,36 @@ def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
                                                   "location_z": tm["location_z"]},
                               tm["heldout_gain"], tm["t"], mode_spec, ("transfer",)))
     return out
+
+
+HUMP_PEAK = 3.0  # a broad hump's peak over the balance residual's smooth floor (pooled over the plateaus)
+HUMP_EVERY = 1.5  # ... and its band's mean over the floor on every plateau (fixed in Hz)
+HUMP_MIN_ZETA = 0.06  # narrower is a line (screened as such)
+
+
+def hump_candidate(series: BenchSeries, spec: Spec, bal: BenchFit, coh_f: np.ndarray, coh: np.ndarray,
+                   narrow: list[float]) -> BenchCandidate | None:
+    """A broadband (heavily damped) fixed-frequency disturbance: a resonance driven by its own noise,
+    acting on a measured mass (:func:`~online_id.diagnose.bench_effects.balance_hump`).  It stands out of
+    the torque balance's residual on every plateau and the excitation does not explain it (else it is in
+    the input-output path: a mode); it is fitted as the balance's residual band-passed at its frequency
+    with its bandwidth (:class:`~online_id.diagnose.bench_effects.FixedTerm`) and judged on the
+    balance."""
+    h = bx.balance_hump(bal)
+    if h is None or h.zeta < HUMP_MIN_ZETA or any(abs(h.freq_hz - f) < 2.0 for f in narrow):
+        return None
+    term = bx.FixedTerm(h.freq_hz, BALANCE, tuple(bal.eqs[BALANCE].residuals), q=max(0.5 / h.zeta, 1.0))
+    new = fit_spec(series, spec.with_term(term), bal.plateaus, only=(BALANCE,))
+    g, t = _gain(new, bal, (BALANCE,))
+    contrast = bx.coherence_contrast(coh_f, coh, h.freq_hz)
+    level = float(coh[int(np.argmin(np.abs(coh_f - h.freq_hz)))])
+    driven = contrast >= COHERENCE_MODE and level >= COHERENCE_LEVEL
+    if driven or h.peak < HUMP_PEAK or min(h.per_plateau) < HUMP_EVERY:
+        t = 0.0
+    return BenchCandidate("fixed_frequency_disturbance",
+                          {"freq_hz": h.freq_hz, "broadband": True, "zeta": h.zeta, "hump_peak": h.peak,
+                           "hump_per_plateau": list(h.per_plateau), "coherence_contrast": contrast,
+                           "coherence": level}, g, t, new.spec, (BALANCE,))
 
 
 def branch_candidate(series: BenchSeries, spec: Spec, bal: BenchFit, two_mass: dict) -> BenchCandidate:
