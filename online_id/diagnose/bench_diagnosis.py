@@ -59,21 +59,25 @@ REVERSAL_MIN_PCT = 10.0
 MAX_DELAY_S = 0.012
 BRANCH_EDGE = 0.95  # a branch found this close to the top of its band is no resonance
 FREQ_GRID_HZ = 0.002  # line frequency grid (a 60 s record resolves about 0.017 Hz)
-# Calibrated on 60 clean randomised benches (seeds 100000-100059, apart from every test seed) by
-# `online-id evaluate-diagnose --calibration-cases 60` at commit c2e69d6, per path (without and with a
-# recorded demand): 1.1 x the largest gain a significant candidate (t >= T_CRIT) of the kind reached on a
-# clean bench, at least 0.005; the sensor delay's score is its size in ms, at least 0.5 ms (see
-# docs/diagnose.md).  No clean bench gave a rotation-order or fixed-frequency candidate at all.
+# Calibrated on clean randomised benches apart from every test seed by `online-id evaluate-diagnose`: 1.1 x
+# the largest score a significant candidate (t >= T_CRIT) of the kind reached on a clean bench, at least
+# 0.005 (docs/diagnose.md).  The scores of issue 36 (a delay and a mode by nested fits of the speed transfer,
+# an inertia beyond the dyno in the balance, order families, lines at the recording's rate) on 27 clean
+# benches (seeds 100000-100006 of the first family, 100000-100019 of the structures family): no significant
+# clean candidate of a mode, an order or a line at all; a delay up to 0.0105, backlash 0.0154, Coulomb
+# friction 0.0047.  Where the earlier calibration on 60 clean benches of the first family set a higher
+# value for an unchanged score (backlash, Coulomb friction) or the new sample found nothing (the mode:
+# 0.01695 there), the higher is kept: 27 benches bound a false-effect rate less tightly.
 THRESHOLDS = {
     "rotation_order_disturbance": 0.005,
     "fixed_frequency_disturbance": 0.005,
     "additional_mode": 0.01695,
-    "backlash": 0.01555,
-    "sensor_delay": 0.005,
+    "backlash": 0.01689,
+    "sensor_delay": 0.01152,
     "coulomb_friction": 0.00563,
 }
 # with a recorded torque demand (the PRBS) as the reference of the speed transfer and the coherence
-THRESHOLDS_DEMAND = {**THRESHOLDS, "additional_mode": 0.01705}
+THRESHOLDS_DEMAND = {**THRESHOLDS, "additional_mode": 0.01705, "sensor_delay": 0.01141}
 
 
 def default_thresholds(series: BenchSeries) -> dict[str, float]:
