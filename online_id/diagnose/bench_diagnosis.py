@@ -459,12 +459,13 @@ def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
                                   {"freq_hz": f, "coherence_contrast": contrast, "coherence": level,
                                    "line_strength": strength},
                                   g_f, t_f, fixed.spec, (BALANCE,)))
-    report("inertia beyond the dyno")
-    out.append(branch_candidate(series, spec, bal, tr["two_mass"]))
     report("broadband resonance")
-    hump = hump_candidate(series, spec, bal, coh_f, coh, seen)
-    if hump is not None:
-        out.append(hump)
+    hump = bx.balance_hump(bal)
+    cand = hump_candidate(series, spec, bal, coh_f, coh, seen, hump)
+    if cand is not None:
+        out.append(cand)
+    report("inertia beyond the dyno")
+    out.append(branch_candidate(series, spec, bal, tr["two_mass"], hump))
     report("backlash")
     term, new, g, t = backlash_fit(series, spec)
     out.append(BenchCandidate("backlash", {**term.params(), "shaft_torque_reversed_pct": bx.shaft_torque_reversed(bal)},
@@ -502,14 +503,13 @@ HUMP_MIN_ZETA = 0.06  # narrower is a line (screened as such)
 
 
 def hump_candidate(series: BenchSeries, spec: Spec, bal: BenchFit, coh_f: np.ndarray, coh: np.ndarray,
-                   narrow: list[float]) -> BenchCandidate | None:
+                   narrow: list[float], h: "bx.Hump | None") -> BenchCandidate | None:
     """A broadband (heavily damped) fixed-frequency disturbance: a resonance driven by its own noise,
     acting on a measured mass (:func:`~online_id.diagnose.bench_effects.balance_hump`).  It stands out of
     the torque balance's residual on every plateau and the excitation does not explain it (else it is in
     the input-output path: a mode); it is fitted as the balance's residual band-passed at its frequency
     with its bandwidth (:class:`~online_id.diagnose.bench_effects.FixedTerm`) and judged on the
     balance."""
-    h = bx.balance_hump(bal)
     if h is None or h.zeta < HUMP_MIN_ZETA or any(abs(h.freq_hz - f) < 2.0 for f in narrow):
         return None
     term = bx.FixedTerm(h.freq_hz, BALANCE, tuple(bal.eqs[BALANCE].residuals), q=max(0.5 / h.zeta, 1.0))
@@ -526,13 +526,21 @@ def hump_candidate(series: BenchSeries, spec: Spec, bal: BenchFit, coh_f: np.nda
                            "coherence": level}, g, t, new.spec, (BALANCE,))
 
 
-def branch_candidate(series: BenchSeries, spec: Spec, bal: BenchFit, two_mass: dict) -> BenchCandidate:
+def branch_candidate(series: BenchSeries, spec: Spec, bal: BenchFit, two_mass: dict,
+                     hump: "bx.Hump | None" = None) -> BenchCandidate:
     """A further inertia beyond the dyno (:class:`~online_id.diagnose.bench_effects.BranchTerm`), judged on
     the torque balance; its frequency is the added mode of the three-mass chain built from the balance's
-    inertias, the branch and the speed transfer's shaft (the mode farthest from the two-mass one)."""
+    inertias, the branch and the speed transfer's shaft (the mode farthest from the two-mass one).
+
+    Where the search ends at the top of its band (the reference's low-pass again) and the balance's
+    residual holds a hump (:func:`~online_id.diagnose.bench_effects.balance_hump`), the branch at the
+    hump is tried instead: a weak branch gains less than the low-pass at the top."""
     ref_spec = spec.with_term(bx.smooth_reference(series.fs_hz))
     ref = fit_spec(series, ref_spec, bal.plateaus, only=(BALANCE,))
     term = bx.search_branch(series, ref_spec, bal.plateaus)
+    top = BRANCH_EDGE * bx.BRANCH_BAND_HZ[1] * series.fs_hz
+    if term.freq_hz >= top and hump is not None and bx.BRANCH_BAND_HZ[0] < hump.freq_hz < top:
+        term = bx.BranchTerm(hump.freq_hz, float(np.clip(hump.zeta, bx.BRANCH_ZETAS[0], bx.BRANCH_ZETAS[-1])))
     new = fit_spec(series, ref_spec.with_term(term), bal.plateaus, only=(BALANCE,))
     g, t = _gain(new, ref, (BALANCE,))
     j1, j2, j3 = bx.branch_inertias(new)
