@@ -86,11 +86,10 @@ def run_case(args: tuple) -> dict[str, Any]:
                 if c.kind not in best or c.gain > best[c.kind][0].gain:
                     best[c.kind] = (c, {"gain": c.gain, "t": c.t_stat, "params": plain(c.params)})
             for c, doc in best.values():  # what re-applied thresholds may accept: its summary decides too
-                if c.t_stat >= T_CRIT:
+                if c.t_stat >= T_CRIT and hasattr(result, "summary_with"):  # (not in a diagnosis before it)
                     doc["summary_after"] = result.summary_with(c)
             out[path] = {"best": {k: doc for k, (_, doc) in best.items()}, "seconds": time.perf_counter() - t1,
-                         "n_plateaus": len(series.plateaus), "demand": series.demand is not None,
-                         "error_before": plain(result.error_figures(False))}
+                         "n_plateaus": len(series.plateaus), "demand": series.demand is not None}
     out["seconds"] = time.perf_counter() - t0
     return out
 

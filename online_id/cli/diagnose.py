@@ -215,8 +215,8 @@ def run_bench(args: argparse.Namespace) -> BenchDiagnosis:
         progress.close()
 
 
-def run_diagnosis(args: argparse.Namespace) -> Diagnosis:
-    data, bench = load_data(args)
+def run_diagnosis(args: argparse.Namespace, data: DiagnoseData | None = None) -> Diagnosis:
+    data, bench = load_data(args) if data is None else (data, False)
     na, nb, nc, nk = BENCH_ORDERS if bench else GENERIC_ORDERS
     na = args.na if args.na is not None else na
     nb = args.nb if args.nb is not None else (None if na == "auto" else nb)
@@ -354,6 +354,46 @@ def plot_residuals(d: Diagnosis, out: Path) -> list[Path]:
     return [spec, corr]
 
 
+SAME_RATE = 0.005  # two shafts whose mean speeds agree this closely turn as one (a bench's dyno and engine)
+
+
+def bench_shafts(data: DiagnoseData) -> tuple[str, str] | None:
+    """``(dyno, engine)``: the shafts of generic records that are a bench, else ``None``.
+
+    A bench is a torque and exactly two measured shafts turning at one rate: the per-operating-point
+    diagnosis of a bench file applies, whichever options named the columns.  The dyno is the shaft the
+    output is the speed of (the torque acts on it), else the first named.
+    """
+    speeds = dict(data.shaft_speeds_rad_s)
+    if len(speeds) != 2:
+        return None
+    (n1, w1), (n2, w2) = speeds.items()
+    m1, m2 = float(np.mean(w1)), float(np.mean(w2))
+    if not (abs(m1) > 0 and abs(m2 / m1 - 1.0) <= SAME_RATE):
+        return None
+    if np.allclose(data.y, w2, rtol=0.0, atol=1e-9 * max(abs(m2), 1.0)):
+        return n2, n1
+    return n1, n2
+
+
+def bench_series_of(data: DiagnoseData, shafts: tuple[str, str], args: argparse.Namespace) -> BenchSeries:
+    """Generic records that are a bench, prepared as a bench file is (:func:`bench_series`): the input is
+    the torque on the dyno (braking positive: its sign is taken from the data, a braking torque slows the
+    dyno), the shafts' speeds at the records' rate."""
+    dyno, engine = (data.shaft_speeds_rad_s[n] for n in shafts)
+    u = np.asarray(data.u, dtype=float)
+    acc = np.gradient(dyno) * data.fs_hz
+    if float(np.dot(u - u.mean(), acc - acc.mean())) > 0:  # the torque speeds the dyno up: driving positive
+        u = -u
+    s = load_config(args.config)
+    ppr = args.pulses_per_rev if args.pulses_per_rev is not None else (s.model.pulses_per_rev or DEFAULT_PULSES_PER_REV)
+    series = prepare(data.time_s, u, dyno, engine, source=data.source, pulses_per_rev=ppr,
+                     target_hz=args.sample_rate or TARGET_FS_HZ)
+    series.meta["read_as"] = (f"generic records with a torque ({data.input_name}) and two shafts turning as one "
+                              f"({shafts[0]}: dyno, {shafts[1]}: engine): the bench's diagnosis")
+    return series
+
+
 def run(args: argparse.Namespace) -> int:
     if args.report:
         check_output(args.report, "report", directory=True)  # before the work, not after it
@@ -362,7 +402,19 @@ def run(args: argparse.Namespace) -> int:
     if is_bench(args):
         result, text, writer = run_bench(args), bench_text, write_bench_report
     else:
-        result, text, writer = run_diagnosis(args), text_report, write_report
+        data, _ = load_data(args)
+        shafts = bench_shafts(data)
+        if shafts is not None:  # one diagnosis: a bench read through the generic options is a bench
+            progress = progress_for(args, "diagnose")
+            try:
+                result = diagnose_bench(bench_series_of(data, shafts, args), max_effects=args.max_effects,
+                                        na=args.na if isinstance(args.na, int) else 6,
+                                        nb=args.nb if isinstance(args.nb, int) else 6, progress=progress)
+            finally:
+                progress.close()
+            text, writer = bench_text, write_bench_report
+        else:
+            result, text, writer = run_diagnosis(args, data), text_report, write_report
     files = writer(result, Path(args.report)) if args.report else []
     if args.json:
         sys.stdout.write(dumps(result.as_dict(), indent=2) + "\n")

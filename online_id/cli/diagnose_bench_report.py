@@ -41,7 +41,7 @@ def _channel_cells(ch) -> str:
 def bench_text(b: BenchDiagnosis) -> str:
     """The report printed by ``online-id diagnose`` for a bench file."""
     s, path = b.series, b.series.path
-    lines = [f"online-id diagnose {s.source}",
+    lines = [f"online-id diagnose {s.source}"] + ([f"read as: {s.meta['read_as']}"] if "read_as" in s.meta else []) + [
              f"causal data path: {path.fs_in_hz:g} Hz -> {path.fs_hz:g} Hz, linear-phase FIR of "
              f"{path.numtaps} taps, its delay ({path.group_delay_samples} samples) removed from "
              "torque and both speeds alike",

@@ -46,7 +46,7 @@ from online_id.diagnose import bench_effects as bx
 from online_id.diagnose import bench_transfer as bt
 from online_id.diagnose.bench_data import RPM_PER_RAD_S, BenchSeries
 from online_id.diagnose.bench_model import (ALL_EQS, BALANCE, EQS, BenchFit, Spec, batch_mean_t, design, fit_plateau,
-                                            fit_spec, order_columns, output, plateau_signals)
+                                            fit_spec, order_columns, output)
 
 T_CRIT = 2.86
 COHERENCE_MODE = 0.7  # coherence contrast with the excitation at a line: a mode (else a disturbance)
@@ -59,21 +59,25 @@ REVERSAL_MIN_PCT = 10.0
 MAX_DELAY_S = 0.012
 BRANCH_EDGE = 0.95  # a branch found this close to the top of its band is no resonance
 FREQ_GRID_HZ = 0.002  # line frequency grid (a 60 s record resolves about 0.017 Hz)
-# Calibrated on 60 clean randomised benches (seeds 100000-100059, apart from every test seed) by
-# `online-id evaluate-diagnose --calibration-cases 60` at commit c2e69d6, per path (without and with a
-# recorded demand): 1.1 x the largest gain a significant candidate (t >= T_CRIT) of the kind reached on a
-# clean bench, at least 0.005; the sensor delay's score is its size in ms, at least 0.5 ms (see
-# docs/diagnose.md).  No clean bench gave a rotation-order or fixed-frequency candidate at all.
+# Calibrated on clean randomised benches apart from every test seed by `online-id evaluate-diagnose`: 1.1 x
+# the largest score a significant candidate (t >= T_CRIT) of the kind reached on a clean bench, at least
+# 0.005 (docs/diagnose.md).  The scores of issue 36 (a delay and a mode by nested fits of the speed transfer,
+# an inertia beyond the dyno in the balance, order families, lines at the recording's rate) on 27 clean
+# benches (seeds 100000-100006 of the first family, 100000-100019 of the structures family): no significant
+# clean candidate of a mode, an order or a line at all; a delay up to 0.0105, backlash 0.0154, Coulomb
+# friction 0.0047.  Where the earlier calibration on 60 clean benches of the first family set a higher
+# value for an unchanged score (backlash, Coulomb friction) or the new sample found nothing (the mode:
+# 0.01695 there), the higher is kept: 27 benches bound a false-effect rate less tightly.
 THRESHOLDS = {
     "rotation_order_disturbance": 0.005,
     "fixed_frequency_disturbance": 0.005,
     "additional_mode": 0.01695,
-    "backlash": 0.01555,
-    "sensor_delay": 0.005,
+    "backlash": 0.01689,
+    "sensor_delay": 0.01152,
     "coulomb_friction": 0.00563,
 }
 # with a recorded torque demand (the PRBS) as the reference of the speed transfer and the coherence
-THRESHOLDS_DEMAND = {**THRESHOLDS, "additional_mode": 0.01705}
+THRESHOLDS_DEMAND = {**THRESHOLDS, "additional_mode": 0.01705, "sensor_delay": 0.01141}
 
 
 def default_thresholds(series: BenchSeries) -> dict[str, float]:
@@ -242,6 +246,7 @@ class BenchDiagnosis:
         s = self.series
         return {
             "source": s.source, "data_path": s.path.as_dict(), "pulses_per_rev": s.pulses_per_rev,
+            **({"read_as": s.meta["read_as"]} if "read_as" in s.meta else {}),
             "demand": s.demand is not None,
             "plateaus": [{"speed_rpm": p.speed_rpm, "t_start_s": p.t_start_s, "t_end_s": p.t_end_s,
                           "declared_orders": q.declared}
@@ -417,7 +422,6 @@ def order_candidates(series: BenchSeries, spec: Spec, base: BenchFit, terms: lis
 def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
                         report: Callable[[str], None] = lambda m: None) -> list[BenchCandidate]:
     """Fit every screened candidate against ``base`` (the current model)."""
-    fs = series.fs_hz
     out: list[BenchCandidate] = []
     lines = bx.screen_lines(base, EQS)
     report("rotation orders")
@@ -455,8 +459,13 @@ def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
                                   {"freq_hz": f, "coherence_contrast": contrast, "coherence": level,
                                    "line_strength": strength},
                                   g_f, t_f, fixed.spec, (BALANCE,)))
+    report("broadband resonance")
+    hump = bx.balance_hump(bal)
+    cand = hump_candidate(series, spec, bal, coh_f, coh, seen, hump)
+    if cand is not None:
+        out.append(cand)
     report("inertia beyond the dyno")
-    out.append(branch_candidate(series, spec, bal, tr["two_mass"]))
+    out.append(branch_candidate(series, spec, bal, tr["two_mass"], hump))
     report("backlash")
     term, new, g, t = backlash_fit(series, spec)
     out.append(BenchCandidate("backlash", {**term.params(), "shaft_torque_reversed_pct": bx.shaft_torque_reversed(bal)},
@@ -488,13 +497,50 @@ def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
     return out
 
 
-def branch_candidate(series: BenchSeries, spec: Spec, bal: BenchFit, two_mass: dict) -> BenchCandidate:
+HUMP_PEAK = 3.0  # a broad hump's peak over the balance residual's smooth floor (pooled over the plateaus)
+HUMP_EVERY = 1.5  # ... and its band's mean over the floor on every plateau (fixed in Hz)
+HUMP_MIN_ZETA = 0.06  # narrower is a line (screened as such)
+
+
+def hump_candidate(series: BenchSeries, spec: Spec, bal: BenchFit, coh_f: np.ndarray, coh: np.ndarray,
+                   narrow: list[float], h: "bx.Hump | None") -> BenchCandidate | None:
+    """A broadband (heavily damped) fixed-frequency disturbance: a resonance driven by its own noise,
+    acting on a measured mass (:func:`~online_id.diagnose.bench_effects.balance_hump`).  It stands out of
+    the torque balance's residual on every plateau and the excitation does not explain it (else it is in
+    the input-output path: a mode); it is fitted as the balance's residual band-passed at its frequency
+    with its bandwidth (:class:`~online_id.diagnose.bench_effects.FixedTerm`) and judged on the
+    balance."""
+    if h is None or h.zeta < HUMP_MIN_ZETA or any(abs(h.freq_hz - f) < 2.0 for f in narrow):
+        return None
+    term = bx.FixedTerm(h.freq_hz, BALANCE, tuple(bal.eqs[BALANCE].residuals), q=max(0.5 / h.zeta, 1.0))
+    new = fit_spec(series, spec.with_term(term), bal.plateaus, only=(BALANCE,))
+    g, t = _gain(new, bal, (BALANCE,))
+    contrast = bx.coherence_contrast(coh_f, coh, h.freq_hz)
+    level = float(coh[int(np.argmin(np.abs(coh_f - h.freq_hz)))])
+    driven = contrast >= COHERENCE_MODE and level >= COHERENCE_LEVEL
+    if driven or h.peak < HUMP_PEAK or min(h.per_plateau) < HUMP_EVERY:
+        t = 0.0
+    return BenchCandidate("fixed_frequency_disturbance",
+                          {"freq_hz": h.freq_hz, "broadband": True, "zeta": h.zeta, "hump_peak": h.peak,
+                           "hump_per_plateau": list(h.per_plateau), "coherence_contrast": contrast,
+                           "coherence": level}, g, t, new.spec, (BALANCE,))
+
+
+def branch_candidate(series: BenchSeries, spec: Spec, bal: BenchFit, two_mass: dict,
+                     hump: "bx.Hump | None" = None) -> BenchCandidate:
     """A further inertia beyond the dyno (:class:`~online_id.diagnose.bench_effects.BranchTerm`), judged on
     the torque balance; its frequency is the added mode of the three-mass chain built from the balance's
-    inertias, the branch and the speed transfer's shaft (the mode farthest from the two-mass one)."""
+    inertias, the branch and the speed transfer's shaft (the mode farthest from the two-mass one).
+
+    Where the search ends at the top of its band (the reference's low-pass again) and the balance's
+    residual holds a hump (:func:`~online_id.diagnose.bench_effects.balance_hump`), the branch at the
+    hump is tried instead: a weak branch gains less than the low-pass at the top."""
     ref_spec = spec.with_term(bx.smooth_reference(series.fs_hz))
     ref = fit_spec(series, ref_spec, bal.plateaus, only=(BALANCE,))
     term = bx.search_branch(series, ref_spec, bal.plateaus)
+    top = BRANCH_EDGE * bx.BRANCH_BAND_HZ[1] * series.fs_hz
+    if term.freq_hz >= top and hump is not None and bx.BRANCH_BAND_HZ[0] < hump.freq_hz < top:
+        term = bx.BranchTerm(hump.freq_hz, float(np.clip(hump.zeta, bx.BRANCH_ZETAS[0], bx.BRANCH_ZETAS[-1])))
     new = fit_spec(series, ref_spec.with_term(term), bal.plateaus, only=(BALANCE,))
     g, t = _gain(new, ref, (BALANCE,))
     j1, j2, j3 = bx.branch_inertias(new)
@@ -503,7 +549,8 @@ def branch_candidate(series: BenchSeries, spec: Spec, bal: BenchFit, two_mass: d
         j1, j2, j3, c3, d3 = bt.fit_dyno_branch(new.plateaus, j1 + j3, j2, two_mass["c_per_J2"],
                                                 two_mass["d_per_J2"], term.freq_hz, term.zeta)
         c_s, d_s = two_mass["c_per_J2"] * j2, two_mass["d_per_J2"] * j2
-        modes = bx.chain_modes((j1, j2, j3), [(0, 1, c_s, d_s), (0, 2, c3, d3)])
+        ok = all(np.isfinite(x) and x > 0 for x in (j1, j2, j3, c3, c_s))
+        modes = bx.chain_modes((j1, j2, j3), [(0, 1, c_s, d_s), (0, 2, c3, d3)]) if ok else []
         f0 = np.sqrt(c_s * (1 / j1 + 1 / j2)) / (2 * np.pi)
         if modes:
             f_mode, zeta = max(modes, key=lambda m: abs(np.log(m[0] / f0)))

@@ -148,6 +148,7 @@ class FixedTerm:
     eq: str
     residuals: tuple = field(default=(), compare=False, repr=False)
     kind: str = "fixed_frequency_disturbance"
+    q: float = BAND_Q  # quality factor of the band-pass (a broadband resonance: 1 / (2 zeta))
 
     def columns(self, p: PlateauSignals, eq: str) -> np.ndarray | None:
         if eq != self.eq:
@@ -155,7 +156,7 @@ class FixedTerm:
         w = 2.0 * np.pi * self.freq_hz * p.time_s[p.rows]
         cols = [np.sin(w), np.cos(w)]
         if self.residuals:
-            b, a = iirpeak(self.freq_hz, BAND_Q, fs=p.fs_hz)
+            b, a = iirpeak(self.freq_hz, self.q, fs=p.fs_hz)
             bp = lfilter(b, a, self.residuals[p.index])
             k0 = BALANCE_BP_LAG if eq == BALANCE else 1
             quarter = max(1, int(round(p.fs_hz / (4.0 * self.freq_hz))))
@@ -370,6 +371,68 @@ def screen_signals(ps: list[PlateauSignals], signals: dict[str, list[np.ndarray]
             idx = idx[np.argsort(spec[idx])[::-1]][:N_LINES]
             out += [Line(eq, axis, float(grid[i]), float(spec[i])) for i in idx]
     return out
+
+
+HUMP_BAND = (8.0, 0.4)  # Hz, fraction of fs: where the torque balance's residual is searched for a hump
+HUMP_WELCH_S = 1.0
+
+
+@dataclass(frozen=True)
+class Hump:
+    """A broad resonance hump in the torque balance's residual spectrum: natural frequency, damping,
+    the peak's height over the floor (pooled) and per plateau (the band's mean ratio around it)."""
+
+    freq_hz: float
+    zeta: float
+    peak: float
+    per_plateau: tuple[float, ...]
+
+
+def balance_hump(fit: BenchFit) -> Hump | None:
+    """The broad hump a heavily damped resonance driven by its own noise leaves in the torque balance's
+    residual (nothing in the balance predicts it from the speeds).
+
+    Each plateau's residual spectrum (Welch, 1 s) over a smooth floor (a quadratic in log frequency fitted
+    robustly: twice, leaving out the bins more than twice above it), the ratios averaged over the
+    plateaus, and a resonance ``1 + A / ((1 - (f/f0)^2)^2 + (2 zeta f/f0)^2)`` fitted to them from the
+    best of a grid of starts.  A narrow line stands out of a running median and is screened as a line;
+    a hump as wide as that neighbourhood does not.
+    """
+    from scipy.optimize import least_squares as lsq
+
+    ps = fit.plateaus
+    fs = ps[0].fs_hz
+    ratios = []
+    for p, r in zip(ps, fit.eqs[BALANCE].residuals):
+        f, pxx = welch(r, fs=fs, nperseg=int(HUMP_WELCH_S * fs))
+        band = (f >= HUMP_BAND[0]) & (f <= HUMP_BAND[1] * fs)
+        x, y = np.log(f[band]), np.log(np.maximum(pxx[band], 1e-300))
+        keep = np.ones(x.size, bool)
+        for _ in range(3):
+            c = np.polyfit(x[keep], y[keep], 2)
+            keep = y - np.polyval(c, x) < np.log(2.0)
+        ratios.append(np.exp(y - np.polyval(c, x)))
+    fb = f[band]
+    R = np.mean(ratios, axis=0)
+
+    def model(v: np.ndarray) -> np.ndarray:
+        a, f0, z = np.exp(v)
+        q = fb / f0
+        return 1.0 + a / ((1 - q * q) ** 2 + (2 * z * q) ** 2)
+
+    best = None
+    for f0 in np.geomspace(15.0, HUMP_BAND[1] * 0.75 * fs, 24):
+        for z in (0.1, 0.2, 0.3):
+            v0 = np.log([max(float(np.interp(f0, fb, R)) - 1.0, 0.05) * (2 * z) ** 2, f0, z])
+            cost = float(np.sum((model(v0) - R) ** 2))
+            if best is None or cost < best[0]:
+                best = (cost, v0)
+    fitv = lsq(lambda v: model(v) - R, best[1], method="lm", max_nfev=400).x
+    a, f0, z = (float(x) for x in np.exp(fitv))
+    if not (HUMP_BAND[0] < f0 < HUMP_BAND[1] * fs and 0.0 < z < 1.0):
+        return None
+    near = np.abs(fb - f0) <= max(z * f0, 2.0)
+    return Hump(f0, z, 1.0 + a / (2 * z) ** 2, tuple(float(np.mean(r[near])) for r in ratios))
 
 
 def line_strength(fit: BenchFit, eq: str, freq_hz: float) -> list[float]:

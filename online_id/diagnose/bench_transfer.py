@@ -55,7 +55,8 @@ BAND_HZ = (2.0, 0.3)  # lowest frequency [Hz], highest as a fraction of fs
 DELAY_GRID_S = 2e-4
 W_REF = 2 * np.pi * 50.0  # frequency scale of the polynomial coefficients (conditioning)
 SK_ITERATIONS = 4
-N_STARTS, N_REFINED = 12, 2  # antiresonance starts of the mode fit; the best few are refined
+N_STARTS, N_REFINED = 12, 3  # second-spring frequencies started from per inertia ratio; the best few refined
+MU_STARTS = (0.05, 0.2, 0.6)  # inertia ratios started from
 MAX_NFEV = 150
 
 
@@ -255,17 +256,16 @@ def fit_ratio_mode(f: np.ndarray, T: np.ndarray, w: np.ndarray, two: RatioModel,
         d = np.nan_to_num(d, nan=1e6, posinf=1e6, neginf=-1e6)
         return np.concatenate((d.real, d.imag))
 
-    a0, b0 = max(two.num[0], 1e-6), max(two.num[1], 1e-6)
-    mu0 = 0.1 if variant == "engine" else 0.2
-    if variant == "between":  # the two-mass fit sees the engine and the inertia between as one
-        a0, b0 = a0 * (1 + mu0), b0 * (1 + mu0)
-    tau0 = two.tau_s if free else tau
     starts = []
-    for fa in np.geomspace(30.0, f[-1], N_STARTS):
-        al = (2 * np.pi * fa / W_REF) ** 2
-        x0 = np.array([np.log(a0), np.log(b0), np.log(al), np.log(0.08 * np.sqrt(al)), np.log(mu0), tau0])
-        x0 = x0 if free else x0[:5]
-        starts.append((float(np.sum(resid(x0) ** 2)), x0))
+    for tau0, mu0 in [(t, m) for t in ((two.tau_s, 0.0) if free else (tau,)) for m in MU_STARTS]:
+        a0, b0 = max(two.num[0], 1e-6), max(two.num[1], 1e-6)
+        if variant == "between":  # the two-mass fit sees the engine and the inertia between as one
+            a0, b0 = a0 * (1 + mu0), b0 * (1 + mu0)
+        for fa in np.geomspace(min(30.0, 0.5 * f[-1]), f[-1], N_STARTS):
+            al = (2 * np.pi * fa / W_REF) ** 2
+            x0 = np.array([np.log(a0), np.log(b0), np.log(al), np.log(0.08 * np.sqrt(al)), np.log(mu0), tau0])
+            x0 = x0 if free else x0[:5]
+            starts.append((float(np.sum(resid(x0) ** 2)), x0))
     tries = sorted(starts, key=lambda c: c[0])[:N_REFINED]
     if start is not None:
         x0 = np.asarray(start, dtype=float)
@@ -496,4 +496,6 @@ def fit_dyno_branch(ps: list[PlateauSignals], j_total: float, j2: float, c_per_j
         r = least_squares(resid, x0, method="lm", max_nfev=500)
         if np.all(np.isfinite(r.x)) and (best is None or r.cost < best[0]):
             best = (r.cost, r.x)
+    if best is None:
+        return (float("nan"),) * 5
     return tuple(float(v) for v in np.exp(best[1][:5]))

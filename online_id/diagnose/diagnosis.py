@@ -38,6 +38,7 @@ from online_id.analysis.plateaus import find_plateaus
 from online_id.analysis.poles import poles_of, rotation_line
 from online_id.estimation.pem import fit_percent
 from online_id.diagnose import effects as fx
+from online_id.diagnose.bench_effects import family_reading
 from online_id.diagnose.data import DiagnoseData, Split
 from online_id.diagnose.model import AugmentedFit, Structure, fit_extension, fit_structure, regressors, windows
 from online_id.diagnose.residual_tests import RIG_SPLIT_RATIO, ResidualTest, run_tests
@@ -279,6 +280,9 @@ def _params(kind: str, model: AugmentedFit, cur: AugmentedFit, data: DiagnoseDat
                              tol_hz=2.0 * data.fs_hz / len(data))
         if line is not None:
             params["locked_to"] = {"shaft": line[0], "order": line[1]}
+    if kind == "rotation_order_disturbance":  # the bench path's shape: a family (here of one) and a reading
+        params["family_orders"] = [params["order"]]
+        params["reading"] = family_reading(params["shaft"], [params["order"]], 0.0)
     if kind == "rotation_order_disturbance" and hint.get("aliases"):
         params["aliases"] = list(hint["aliases"])
     if kind == "rotation_order_disturbance" and "line_ratio" in hint:
