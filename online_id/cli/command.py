@@ -31,6 +31,7 @@ import time
 from pathlib import Path
 
 from online_id.cli import command_help
+from online_id.cli.bus_options import add_bus_options, with_bus_options
 from online_id.config import load_config
 from online_id.errors import ConfigError, DbcError
 from online_id.io.auth import read_key
@@ -47,8 +48,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
         text = command_help(name)
         p = subparsers.add_parser(name, help=text, description=f"Send the service a command frame: {text}.")
         p.add_argument("--config", metavar="FILE", help="the service's YAML configuration (bus, DBC, mapping)")
-        p.add_argument("--interface", help="override bus.interface")
-        p.add_argument("--channel", help="override bus.channel")
+        add_bus_options(p)
         p.add_argument("--key-file", metavar="FILE",
                        help="the key (hex) of authenticated commands (default: commands.key_file of the config)")
         p.add_argument("--wait", type=float, default=2.0, metavar="S",
@@ -64,7 +64,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    s = load_config(args.config)
+    s = with_bus_options(load_config(args.config), args)
     if getattr(args, "from_log", None):
         return relearn_from(args.from_log, args.state, s)
     if getattr(args, "state", None) is not None:
@@ -75,8 +75,7 @@ def run(args: argparse.Namespace) -> int:
     key = read_key(key_file, "--key-file" if args.key_file else "commands.key_file") if key_file else None
     m = s.mapping
     repeats = 2 if command == BenchCommand.RELEARN_BASELINE else 1
-    interface = args.interface or s.bus.interface
-    channel = args.channel or s.bus.channel
+    interface, channel = s.bus.interface, s.bus.channel
     with CanBus(interface, channel, s.bus.bitrate) as bus:
         wait_s = args.wait if args.wait > 0 else FRESHNESS_WAIT_S
         fresh = ask_freshness(bus, s, db, wait_s)

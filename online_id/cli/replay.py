@@ -14,9 +14,10 @@ from online_id.io.canlog import count_frames, read_log
 from online_id.io.outfile import check_output
 from online_id.io.statefile import load_state, save_state
 from online_id.progress import Progress, add_quiet_option, progress_for
-from online_id.records import FrameFault
+from online_id.records import AlertKind, AlertOut, EstimateOut, ExcitationOut, FrameFault, Publication, QualityOut, \
+    ServiceState, StatusOut
 from online_id.report import fmt
-from online_id.runtime import Runtime
+from online_id.runtime import OutFrame, Runtime
 from online_id.cli import command_help
 
 
@@ -36,8 +37,84 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    "start and save it there at the end, as online-id run keeps it (replay a day of logs one "
                    "after another)")
     p.add_argument("--json", action="store_true", help="print one JSON document")
+    p.add_argument("--out-mf4", metavar="FILE.mf4",
+                   help="write the estimates, quality, state and alerts as MDF 4 channels with units, on the log's "
+                        "time base (docs/sysid.md lists the channels)")
     add_quiet_option(p)
     p.set_defaults(func=run)
+
+
+class ResultsRuntime(Runtime):
+    """A :class:`~online_id.runtime.Runtime` that keeps every publication with the engine speed at that moment."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        self.published: list[tuple[Publication, float]] = []
+
+    def frames(self, pubs: list[Publication]) -> list[OutFrame]:
+        speed = self.pipeline.estimator.speed_rpm
+        self.published += [(pub, speed) for pub in pubs]
+        return super().frames(pubs)
+
+
+def results_groups(published: list[tuple[Publication, float]], base, alerts: list[AlertOut] | None = None) -> list:
+    """The MDF 4 channel groups of the service's publications (:mod:`online_id.io.mdf_results`).
+
+    ``alerts`` replaces the alerts among ``published`` (e.g. the pipeline's
+    own list, without the repeats of a latched alarm).
+    """
+    from online_id.io.mdf_results import Channel, ChannelGroup
+
+    def of(kind):
+        return [(p, n) for p, n in published if isinstance(p, kind)]
+
+    est, qual, stat, exc = of(EstimateOut), of(QualityOut), of(StatusOut), of(ExcitationOut)
+    alert_list = [p for p, _ in of(AlertOut)] if alerts is None else list(alerts)
+    states = {int(s): s.name for s in ServiceState}
+    kinds = {int(k): k.name for k in AlertKind}
+    return [
+        ChannelGroup("online-id estimate", base.rel([p.t_s for p, _ in est]), [
+            Channel("oid_f0", [p.f0_hz for p, _ in est], "Hz", "driveline resonance frequency"),
+            Channel("oid_zeta", [p.zeta for p, _ in est], "", "driveline damping ratio"),
+            Channel("oid_c_s", [p.c_s for p, _ in est], "Nm/rad", "shaft stiffness"),
+            Channel("oid_d_s", [p.d_s for p, _ in est], "Nm s/rad", "shaft damping"),
+            Channel("oid_valid", [int(p.valid) for p, _ in est], "", "estimate valid", {0: "invalid", 1: "valid"}),
+            Channel("oid_engine_speed", [n for _, n in est], "rpm", "engine speed of the estimator at the estimate"),
+        ], "the published driveline estimates"),
+        ChannelGroup("online-id quality", base.rel([p.t_s for p, _ in qual]), [
+            Channel("oid_residual_rms", [p.residual_rms for p, _ in qual], "rad/s",
+                    "RMS of the one-step prediction error of the dyno speed"),
+            Channel("oid_fpe", [p.fpe for p, _ in qual], "rad/s", "square root of the final prediction error"),
+            Channel("oid_excitation_rms", [p.excitation for p, _ in qual], "Nm", "RMS of the torque excitation"),
+            Channel("oid_samples_used", [p.samples_used for p, _ in qual], "", "samples in the estimate"),
+        ], "the published model quality"),
+        ChannelGroup("online-id status", base.rel([p.t_s for p, _ in stat]), [
+            Channel("oid_state", [int(p.state) for p, _ in stat], "", "health state of the service", states),
+            Channel("oid_bad_frames", [p.bad_frames for p, _ in stat], "", "bad input frames so far"),
+            Channel("oid_missing_frames", [p.missing_frames for p, _ in stat], "", "missing input frames so far"),
+        ], "the published health state"),
+        ChannelGroup("online-id alert", base.rel([a.t_s for a in alert_list]), [
+            Channel("oid_alert_kind", [int(a.kind) for a in alert_list], "", "kind of alert", kinds),
+            Channel("oid_alert_severity", [int(a.severity) for a in alert_list], "", "severity",
+                    {0: "info", 1: "warning", 2: "fault"}),
+            Channel("oid_alert_change", [a.value_pct for a in alert_list], "%", "change against the baseline"),
+            Channel("oid_alert_speed", [a.speed_rpm for a in alert_list], "rpm", "engine speed at the alert"),
+            Channel("oid_alert_message", [a.message or "-" for a in alert_list], "", "the alert's message"),
+        ], "the alerts raised"),
+        ChannelGroup("online-id excitation", base.rel([p.t_s for p, _ in exc]), [
+            Channel("oid_prbs_offset", [p.torque_offset_nm for p, _ in exc], "Nm", "PRBS torque offset requested"),
+            Channel("oid_prbs_active", [int(p.active) for p, _ in exc], "", "PRBS active", {0: "off", 1: "on"}),
+        ], "the requested test torque"),
+    ]
+
+
+def write_results(path: str, log: str, runtime: ResultsRuntime, alerts: list[AlertOut] | None = None) -> None:
+    """``--out-mf4``: the publications of a replay of ``log`` as MDF 4 channels on the log's time base."""
+    from online_id.io.mdf_results import recording_time_base, write_results_mdf
+
+    base = recording_time_base(log, runtime.pipeline.t_first)
+    write_results_mdf(path, results_groups(runtime.published, base, alerts), base,
+                      comment=f"online-id results of {Path(log).name}")
 
 
 def state_file(directory: Path) -> Path:
@@ -116,7 +193,9 @@ def no_match(path: str, runtime: Runtime, ids: set[int]) -> str:
 
 def run(args: argparse.Namespace) -> int:
     s = load_config(args.config)
-    runtime = Runtime(s)
+    if args.out_mf4:
+        check_output(args.out_mf4, "results file")
+    runtime = ResultsRuntime(s)
     path = state_file(args.state) if args.state is not None else None
     restored = restore(runtime, path) if path is not None else False
     runtime.pipeline.run_label = Path(args.log).name
@@ -130,6 +209,9 @@ def run(args: argparse.Namespace) -> int:
     if path is not None:
         keep(runtime, path)
         result["state_file"] = {"path": str(path), "restored": restored, "saved": True}
+    if args.out_mf4:
+        write_results(args.out_mf4, args.log, runtime, list(runtime.pipeline.alerts))
+        result["results_file"] = args.out_mf4
     if args.json:
         json.dump(result, sys.stdout, indent=2)
         sys.stdout.write("\n")
@@ -154,4 +236,6 @@ def run(args: argparse.Namespace) -> int:
               f"{b['kind']}" + (f" from {b['source']}" if b['source'] else ""))
     for a in result["alerts"]:
         print(f"  alert at {a['t_s']:.1f} s: {a['kind']} {a['message']}")
+    if args.out_mf4:
+        print(f"wrote {args.out_mf4}")
     return 0

@@ -28,7 +28,8 @@ from typing import Any
 
 import numpy as np
 
-from online_id.cli.replay import replay
+from online_id.io.jsonout import plain
+from online_id.cli.replay import ResultsRuntime, replay
 from online_id.config import Settings, load_config
 from online_id.monitoring.baseline import Baseline
 from online_id.monitoring.cells import BandStats
@@ -42,6 +43,7 @@ from online_id.io.statefile import load_state
 from online_id.records import AlertKind, AlertOut, EstimateOut, Publication
 from online_id.report import (
     AlertMark,
+    EngagedSeries,
     EstimateSeries,
     TerminalProgress,
     TrackSeries,
@@ -64,7 +66,9 @@ REPORT_UNITS = {
     "J1": "kg m^2", "J2": "kg m^2", "value_pct": "%", "change_pct": "%", "spread_ratio": "1",
     "residual_rms": "rad/s (one-step prediction error of the dyno speed, RMS)",
     "fpe": "rad/s (square root of the final prediction error of the dyno speed)",
-    "excitation_nm": "Nm (RMS of the torque excitation)", "learned_t_s": "s",
+    "excitation_nm": "Nm (RMS of the torque excitation)", "learned_t_s": "s", "engine_speed_rpm": "rpm",
+    "fit_one_step_pct": "%", "autocorrelation": "1", "cross_correlation": "1", "autocorrelation_bound": "1",
+    "cross_correlation_bound": "1", "lags": "samples of the identification's rate", "cross_lags": "samples",
 }
 EPOCH_S = 1e8  # stream times above this are Unix times (a live service), below: seconds from a log start
 
@@ -81,6 +85,13 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("source", metavar="LOG_OR_STATE", help="CAN log (.log, .asc, .blf) or state file (.json)")
     p.add_argument("--out", metavar="DIR", required=True, help="directory for the figures and the summary")
     p.add_argument("--config", metavar="FILE", help="YAML configuration (DBC, mapping, model, detection)")
+    p.add_argument("--resid", action="store_true",
+                   help="(a CAN log) also identify the log per operating point as identify does and test the "
+                        "residuals as MATLAB's resid: resid.png and a section in report.md and report.json")
+    p.add_argument("--out-mf4", metavar="FILE.mf4",
+                   help="also write the results as MDF 4 channels with units on the recording's time base: of a log, "
+                        "the estimates, quality, state and alerts (as replay --out-mf4); of a state file, the alerts "
+                        "and the pole tracks' points")
     p.set_defaults(func=run)
 
 
@@ -103,9 +114,12 @@ class ReportData:
     final: dict
     learned_t_s: dict[tuple, float] | None = None  # per baseline cell (cell_key), when it was learned; None: unknown
     extra: dict = field(default_factory=dict)
+    runtime: RecordingRuntime | None = None  # the replay's (a CAN log), for --out-mf4
+    engaged: EngagedSeries | None = None  # engaged-flank readings (shafts with backlash)
+    identification: Any = None  # the offline identification of the log (--resid), for resid.png
 
 
-class RecordingRuntime(Runtime):
+class RecordingRuntime(ResultsRuntime):
     """A :class:`~online_id.runtime.Runtime` that keeps what the pipeline publishes.
 
     Every publication passes :meth:`frames` on its way to the encoder; the
@@ -125,6 +139,15 @@ class RecordingRuntime(Runtime):
         self.notices: list[AlertOut] = []
         self.learned_at: dict[tuple, float] = {}  # baseline cell -> stream time it was first learned
         self._awaiting: float | None = None  # a publication whose tracking has not run yet
+        self.engaged_readings: list = []  # the engaged flank's readings (shafts with backlash), as offered
+        engaged = self.pipeline.engaged
+        offer = engaged.offer
+
+        def keep_reading(reading, learn):
+            self.engaged_readings.append(reading)
+            return offer(reading, learn)
+
+        engaged.offer = keep_reading
 
     def frames(self, pubs: list[Publication]) -> list[OutFrame]:
         for pub in pubs:
@@ -209,11 +232,25 @@ def from_log(path: Path, settings: Settings) -> ReportData:
         alerts=[dataclasses.replace(a, t_s=a.t_s - t0) for a in alerts],
         active_alarm=_alarm_dict(pipe.detector, t0), final=final,
         learned_t_s={k: v - t0 for k, v in runtime.learned_at.items()},
+        runtime=runtime, engaged=engaged_series(runtime.engaged_readings, pipe.engaged, t0),
         extra={"frames_in": runtime.frames_in, "frames_out": runtime.frames_out,
                "replay_s": round(time.monotonic() - t_wall, 3), "quality": result["quality"],
                "counters": result["counters"], "status_changes": result["status_changes"],
                "engaged_flank": pipe.engaged.summary()},
     )
+
+
+def engaged_series(readings: list, flank: EngagedFlank, t0: float) -> EngagedSeries | None:
+    """The engaged flank's readings, those inside a confirmed change marked (None without readings)."""
+    if not readings:
+        return None
+    t = np.array([r.t_s for r in readings], dtype=float)
+    alarm = np.zeros(t.size, dtype=bool)
+    for ch in flank.changes:
+        alarm |= (t >= ch.since_t_s) & (t <= ch.detected_t_s)
+    ref = flank.reference()
+    return EngagedSeries(t - t0, np.array([r.f0_hz for r in readings]), np.array([r.zeta for r in readings]), alarm,
+                         ref["f0_hz"] if ref else None, ref["zeta"] if ref else None)
 
 
 def final_estimate(result: dict, estimates: EstimateSeries) -> dict:
@@ -284,8 +321,9 @@ def from_state(path: Path) -> ReportData:
                  "source": f"driveline track {drive.id} (confidence {drive.confidence:.2f})"}
     final["why"] = ("a state file holds the pole tracks, not the service's last estimate nor its health state "
                     "(e.g. INPUT_TIMEOUT): whether the estimate was valid is not known; replay the log for that")
+    engaged_pts = engaged_series(list(engaged.learned), engaged, t0)
     return ReportData(
-        source=path, kind="state", t0_s=t0, estimates=None, tracks=tracks, baselines=baseline.bands,
+        source=path, kind="state", t0_s=t0, estimates=None, tracks=tracks, baselines=baseline.bands, engaged=engaged_pts,
         min_count=baseline.min_count, alerts=[dataclasses.replace(a, t_s=a.t_s - t0) for a in raw_alerts],
         active_alarm=_alarm_dict(detector, t0), final=final,
         extra={"state_version": state.get("version"), "tracks_reclassed": reclassed,
@@ -330,17 +368,7 @@ def _looks_like_json(path: Path) -> bool:
 # --- outputs ----------------------------------------------------------------------------------------
 
 
-def _plain(obj: Any) -> Any:
-    """``obj`` with numpy scalars as Python numbers and non-finite floats as None (strict JSON)."""
-    if isinstance(obj, dict):
-        return {str(k): _plain(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_plain(v) for v in obj]
-    if isinstance(obj, (np.floating, float)):
-        return _fin(obj)
-    if isinstance(obj, (np.integer, np.bool_)):
-        return obj.item()
-    return obj
+_plain = plain  # strict JSON (non-finite floats as null)
 
 
 def _stats(x: np.ndarray) -> dict | None:
@@ -397,7 +425,7 @@ def summary(data: ReportData) -> dict:
     out["active_alarm"] = data.active_alarm
     out["final_estimate"] = data.final
     out.update(data.extra)
-    out["figures"] = list(FIGURES)
+    out["figures"] = list(FIGURES) + (["resid.png"] if data.identification is not None else [])
     out["units"] = dict(REPORT_UNITS)
     return out
 
@@ -448,6 +476,7 @@ def markdown(data: ReportData, doc: dict) -> str:
                           f"{b.get('kind', 'learned' if b['learned'] else 'learning')} | {b.get('source') or '-'} "
                           f"| {fmt(b.get('spread_ratio'), '.1f')} |" for b in doc["baselines"]])
     lines += _engaged_section(doc.get("engaged_flank"))
+    lines += _resid_section(doc)
     lines += _section("Alerts", "| t [s] | kind | level | speed [rpm] | change [%] | message |",
                       "|---:|---|---|---:|---:|---|", "No alerts.", [
                           f"| {fmt(a['t_s'], '.1f')} | {a['kind']} | {a['level']} | "
@@ -496,7 +525,13 @@ def write_report(data: ReportData, out: Path) -> list[Path]:
         learned = (None if data.learned_t_s is None else
                    [data.learned_t_s.get(cell_key(b), math.inf) for b in data.baselines])
         plot_tracks_over_time(paths[2], data.estimates, data.tracks, data.baselines, marks, label,
-                              title=f"driveline estimate over time, {name}", learned_t_s=learned)
+                              title=f"driveline estimate over time, {name}", learned_t_s=learned,
+                              engaged=data.engaged)
+        if data.identification is not None and any(p.resid is not None for p in data.identification.points):
+            from online_id.plots.identification import plot_resid
+
+            paths.append(out / "resid.png")
+            plot_resid(data.identification, paths[-1], title=f"residual tests per operating point, {name}")
         doc = summary(data)
         paths.append(out / "report.json")
         paths[-1].write_text(json.dumps(_plain(doc), indent=2, allow_nan=False) + "\n", encoding="utf-8")
@@ -507,9 +542,81 @@ def write_report(data: ReportData, out: Path) -> list[Path]:
     return paths
 
 
+def identify_residuals(data: ReportData, config: str | None) -> None:
+    """``--resid``: identify the log per operating point (as ``identify``) and keep its residual tests."""
+    from online_id.benchlog import read_bench
+    from online_id.errors import EstimationError
+    from online_id.estimation.identification import identify
+
+    s = load_config(config)
+    try:
+        bench = read_bench(str(data.source), s, lambda _note: None)
+        result = identify(bench, s.identification, s.inertias)
+    except (InputDataError, EstimationError) as err:
+        data.extra["resid"] = {"error": str(err)}
+        return
+    data.identification = result
+    data.extra["resid"] = {"points": [
+        {"engine_speed_rpm": p.speed_rpm, "held_out": bool(p.check and p.check.held_out),
+         "fit_one_step_pct": p.check.fit_pred_pct if p.check else None,
+         **(p.resid.as_dict() if p.resid is not None else {})} for p in result.points]}
+
+
+def _resid_section(doc: dict) -> list[str]:
+    r = doc.get("resid")
+    if not r:
+        return []
+    if "error" in r:
+        return ["", "## Residual tests", "", f"Not identified per operating point: {r['error']}"]
+    rows = [f"| {p['engine_speed_rpm']:.0f} | {'held out' if p['held_out'] else 'fit window'} "
+            f"| {fmt(p['fit_one_step_pct'], '.1f')} | {p.get('autocorrelation_outside', '-')}/"
+            f"{len(p.get('lags', [0])) - 1} | +-{fmt(p.get('autocorrelation_bound'), '.3f')} "
+            f"| {p.get('cross_correlation_outside', '-')}/{len(p.get('cross_lags', []))} "
+            f"| +-{fmt(p.get('cross_correlation_bound'), '.3f')} |" for p in r["points"]]
+    return _section("Residual tests", "| speed [rpm] | samples | one-step fit [%] | autocorrelation outside | "
+                    "99 % bound | cross-correlation with the torque outside | 99 % bound |",
+                    "|---:|---|---:|---:|---:|---:|---:|", "No operating point.", rows) + [
+        "", "The log identified per operating point as `online-id identify` does; MATLAB's `resid` on the "
+        "one-step residual ([resid.png](resid.png))."]
+
+
+def write_results_mf4(data: ReportData, path: str) -> None:
+    """``--out-mf4``: a log's publications (as ``replay --out-mf4``), or a state's alerts and track points."""
+    from online_id.cli.replay import results_groups, write_results
+    from online_id.io.mdf_results import Channel, ChannelGroup, TimeBase, write_results_mdf
+
+    if data.runtime is not None:
+        write_results(path, str(data.source), data.runtime, list(data.runtime.pipeline.alerts))
+        return
+    base = TimeBase(datetime.fromtimestamp(data.t0_s, timezone.utc) if data.t0_s > EPOCH_S else None, 0.0)
+    alerts = [a for a in data.alerts]
+    groups = [g for g in results_groups([], base, alerts) if g.name == "online-id alert"]
+    pts = sorted((t, tr.id, tr.cls, n, f, z) for tr in data.tracks
+                 for t, n, f, z in zip(tr.t_s, tr.speed_rpm, tr.f_hz, tr.zeta))
+    classes = {0: "driveline", 1: "speed_dependent", 2: "unknown"}
+    code = {v: k for k, v in classes.items()}
+    groups.append(ChannelGroup("online-id pole tracks", np.array([p[0] for p in pts]), [
+        Channel("oid_track_id", [p[1] for p in pts], "", "pole track"),
+        Channel("oid_track_class", [code.get(p[2], 2) for p in pts], "", "class of the track", classes),
+        Channel("oid_track_speed", [p[3] for p in pts], "rpm", "engine speed at the point"),
+        Channel("oid_track_f", [p[4] for p in pts], "Hz", "pole frequency"),
+        Channel("oid_track_zeta", [p[5] for p in pts], "", "pole damping ratio"),
+    ], "the points of the pole tracks of the saved state"))
+    write_results_mdf(path, groups, base, comment=f"online-id results of {data.source.name}")
+
+
 def run(args: argparse.Namespace) -> int:
     check_output(args.out, "report", directory=True)  # before the work, not after it
+    if args.out_mf4:
+        check_output(args.out_mf4, "results file")
     data = load_source(Path(args.source), args.config)
+    if args.resid:
+        if data.kind != "can_log":
+            raise InputDataError(f"{args.source}: --resid needs a CAN log (a state file holds no samples to test)")
+        identify_residuals(data, args.config)
     for path in write_report(data, Path(args.out)):
         print(f"wrote {path}")
+    if args.out_mf4:
+        write_results_mf4(data, args.out_mf4)
+        print(f"wrote {args.out_mf4}")
     return 0
