@@ -52,7 +52,7 @@ def run_case(args: tuple) -> dict[str, Any]:
     """Simulate one case ``(kind, seed[, family[, paths]])``, write it as a bench CSV, diagnose it on the
     paths (default both)."""
     from online_id.cli.diagnose import bench_series
-    from online_id.cli.simulate import write_csv
+    from online_id.offline.bench_files import write_csv
     from online_id.config import load_config
     from online_id.diagnose.bench_diagnosis import T_CRIT, diagnose_bench
 

@@ -22,13 +22,13 @@ import json
 import sys
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from online_id.config import load_config
 from online_id.errors import ConfigError, DbcError
-from online_id.io.bus import CanBus
-from online_id.io.dbc import load_dbc, signal_bounds
-from online_id.io.dbc_output import OutputEncoder
+
+if TYPE_CHECKING:
+    from online_id.io.dbc_output import OutputEncoder
 from online_id.cli import command_help
 from online_id.cli.bus_options import add_bus_options, with_bus_options
 
@@ -64,6 +64,8 @@ class Seen:
 
 def _limits(message: Any) -> dict[str, tuple[float, float, dict[int, str] | None]]:
     """Signal -> (lowest, highest physical value allowed, defined values or None), from the DBC."""
+    from online_id.io.dbc import signal_bounds
+
     return {sig.name: (*signal_bounds(sig), {int(k): str(v) for k, v in sig.choices.items()} if sig.choices else None)
             for sig in message.signals}
 
@@ -169,6 +171,9 @@ def screen(watch: Watch, now: float, where: str) -> str:
 
 def open_watch(args: argparse.Namespace):
     """The config, a :class:`Watch` of its outputs, and the bus description."""
+    from online_id.io.dbc import load_dbc
+    from online_id.io.dbc_output import OutputEncoder
+
     s = with_bus_options(load_config(args.config), args)
     db = load_dbc(s.dbc)
     codec = OutputEncoder(db, source=s.dbc or "online_id.dbc")
@@ -178,6 +183,8 @@ def open_watch(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
+    from online_id.io.bus import CanBus
+
     if args.max_seconds is not None and not args.max_seconds > 0:
         raise ConfigError(f"--max-seconds: expected a number > 0, but got {args.max_seconds!r}")
     s, watch, interface, channel = open_watch(args)

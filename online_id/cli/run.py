@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 
 from online_id.config import load_config
-from online_id.service import run_service
 from online_id.cli import command_help
 from online_id.cli.bus_options import add_bus_options, with_bus_options
 
@@ -24,5 +23,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from online_id.service import run_service
+
     s = with_bus_options(load_config(args.config), args)
     return run_service(s, max_s=args.max_seconds)

@@ -46,7 +46,7 @@ from typing import Callable
 
 import numpy as np
 
-from online_id.estimation.settings import IdentificationSettings, InertiaSettings
+from online_id.estimation.settings import HOLDOUT, IdentificationSettings, InertiaSettings
 from online_id.estimation.model import ArmaxOrders
 from online_id.estimation.pem import ArmaxFit, fit_armax, predict_errors
 from online_id.estimation.window import fit_two_starts
@@ -68,8 +68,6 @@ from online_id.errors import EstimationError, InputDataError
 from online_id.records import BenchData
 
 Progress = Callable[[float, str], None]
-HOLDOUT = 0.25
-"""Default fraction of each operating point held out of the fit for validation."""
 GUARD = 20
 """Decimated samples between a fit and the held-out stretch: the reach of the zero-phase anti-alias filter
 (:func:`~online_id.estimation.preprocess.decimate`: 10 output samples per stage, under 20 for a cascade)."""
