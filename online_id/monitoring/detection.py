@@ -28,9 +28,8 @@ unscaled where it is not known): the estimator's uncertainty calibrated
 against the scatter measured where the baseline was learned. On a shaft
 with backlash the model's damping uncertainty over-states how much the 1 Hz
 estimates scatter, by a factor of 1.7-2.5 (the residual holds the backlash,
-which does not change from one window to the next: plant 1510 of
-``online-id evaluate``, 3.0 % of zeta against 1.2 %; plant 13703 of family
-(a), 6.8 % against 3.3 %). There a +50 % change, seen as +36 % of which the
+which does not change from one window to the next: on two simulated benches
+3.0 % of zeta against 1.2 % and 6.8 % against 3.3 %). There a +50 % change, seen as +36 % of which the
 dead band leaves 16 %, counted as 2.3 standard deviations instead of 4.8,
 and was missed. A momentarily poor estimate still weighs less (the scaling
 keeps its ratio to the estimator's usual uncertainty there). The
@@ -60,7 +59,7 @@ loss is within ``detection.damping_tie_pct`` (1 %) of the best; the
 window then does not contradict the baseline and the alarm is withheld.
 The frequency alike (``detection.frequency_tie_pct``, 1 %): the same two
 minima differ by 1-3 % in the resonance. Where the data prefer the other
-minimum by more (plant 1017 of ``online-id evaluate``, 0.59 mrad of
+minimum by more (a simulated bench with 0.59 mrad of
 backlash: at a learned point the estimate sat 0.9 % above its baseline for
 four minutes, where the fit from the baseline's solution lost 1.7 % more
 than the best), the service rechecks against the cell's own data: the window

@@ -9,8 +9,7 @@ the points of one bench. A learned cell serves its own point only, and the
 learned cells of smaller and larger loads bound a point between them
 (:meth:`~online_id.monitoring.baseline.Baseline.bracketed`); a point above
 every learned load is compared with nothing but its own visit's first
-estimates, so a change that comes with the visit (plant 12701 of
-``online-id evaluate``'s family (a): a 10 % stiffness loss on the ramp to
+estimates, so a change that comes with the visit (a 10 % stiffness loss on the ramp to
 a point 3 Nm above every learned one) goes unseen until a learned point is
 visited again.
 
