@@ -20,7 +20,7 @@ ALLOWED = {
     "records": set(),
     "units": {"errors"},
     "progress": set(),
-    "config": {"errors", "estimation"},  # the settings dataclasses of the identification
+    "config": {"errors", "estimation", "monitoring"},  # the identification's settings, detection's defaults
     # the numerical core: no I/O, no clocks
     "analysis": {"errors", "records"},
     "estimation": {"errors", "records", "analysis"},

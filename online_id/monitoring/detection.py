@@ -159,6 +159,7 @@ from dataclasses import asdict, dataclass
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Any, Callable, Mapping
 
+from online_id.monitoring import defaults
 from online_id.monitoring.checks import number
 from online_id.errors import ConfigError
 
@@ -284,16 +285,16 @@ class ChangeDetector:
     def __init__(
         self,
         *,
-        k: float = 0.5,
-        h_warning: float = 8.0,
-        h_fault: float = 16.0,
+        k: float = defaults.K,
+        h_warning: float = defaults.H_WARNING,
+        h_fault: float = defaults.H_FAULT,
         update_interval_s: float = 1.0,
         hysteresis: float = 0.5,
         correlation_s: float = 5.0,
         z_clip: float = 5.0,
         change_window_s: float = 5.0,
-        min_change_f: float = 0.005,
-        min_change_zeta: float = 0.20,
+        min_change_f: float = defaults.MIN_FREQ_CHANGE_PCT / 100.0,
+        min_change_zeta: float = defaults.MIN_DAMPING_CHANGE_PCT / 100.0,
     ) -> None:
         self.k = _num("k", k, strict=False)
         self.h_warning = _num("h_warning", h_warning)

@@ -66,6 +66,7 @@ from typing import Any
 
 import numpy as np
 
+from online_id.monitoring import defaults
 from online_id.monitoring.detection import DAMPING, FREQUENCY
 
 EVERY_S = 6.0  # a reading at most this often within a visit (the test's CPU: 0.16 s median)
@@ -125,7 +126,7 @@ class EngagedFlank:
         Relative damping change that counts as none (the detector's dead band).
     """
 
-    def __init__(self, dead_band_k: float = DEAD_BAND_K, dead_band_zeta: float = 0.20) -> None:
+    def __init__(self, dead_band_k: float = DEAD_BAND_K, dead_band_zeta: float = defaults.MIN_DAMPING_CHANGE_PCT / 100.0) -> None:
         self.dead_band_k = float(dead_band_k)
         self.dead_band_zeta = float(dead_band_zeta)
         self.learned: list[EngagedReading] = []
