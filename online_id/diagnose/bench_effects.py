@@ -155,7 +155,9 @@ class FixedTerm:
             return None
         w = 2.0 * np.pi * self.freq_hz * p.time_s[p.rows]
         cols = [np.sin(w), np.cos(w)]
-        if self.residuals:
+        # the band-passed residual belongs to the record the line was found in (not to the same record at
+        # another rate: there the line is the sinusoid alone)
+        if self.residuals and len(self.residuals[p.index]) == p.rows.size:
             b, a = iirpeak(self.freq_hz, self.q, fs=p.fs_hz)
             bp = lfilter(b, a, self.residuals[p.index])
             k0 = BALANCE_BP_LAG if eq == BALANCE else 1
