@@ -57,6 +57,7 @@ SIDE_UNDETERMINED = 0.8  # the weaker side explains at least this share of the s
 # be seen (the estimate reads a few per cent on shafts that never reverse: speed noise in J1 y1')
 REVERSAL_MIN_PCT = 10.0
 MAX_DELAY_S = 0.012
+SPEED_LINE_MIN = 0.15  # a fixed line screened in a speed equation is judged there above this share of fs
 BRANCH_EDGE = 0.95  # a branch found this close to the top of its band is no resonance
 BRANCH_COUPLED = (0.8, 2.0)  # the chain's added mode over the branch's own frequency, for a branch
 FREQ_GRID_HZ = 0.002  # line frequency grid (a 60 s record resolves about 0.017 Hz)
@@ -447,8 +448,10 @@ def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
     for line in sorted(bx.screen_lines(bal, axes=("hz",)), key=lambda ln: ln.eq != BALANCE):
         if any(abs(line.at - f) < 1.0 for f in seen):
             continue
-        seen.append(line.at)
         eq = line.eq
+        if eq != BALANCE and line.at < SPEED_LINE_MIN * series.fs_hz:
+            continue  # below it the balance sees an external torque, and a speed equation holds its misfits
+        seen.append(line.at)
         if eq not in cohs:
             cohs[eq] = bx.excitation_coherence(bal, eq)
         f = _refine_freq(series, spec, bal, line.at, eq)
