@@ -347,6 +347,7 @@ def backlash_fit(series: BenchSeries, spec: Spec) -> tuple[bx.TwistTerm, BenchFi
     return term, new, g, t
 
 
+FAMILY_MIN = 3  # members a family needs to be named by their common divisor
 FAMILY_TRIES = 8  # orders (by the share of the estimation residual they take) tried as further members
 MEMBER_GAIN = 0.002  # a further member of a family must remove this share of the held-out error, significantly
 
@@ -362,11 +363,13 @@ def family_grid(fit: BenchFit, shaft: str) -> list[float]:
     return [float(k) for k in ks if k not in declared and k * slow < 0.45 * ps[0].fs_hz]
 
 
-def order_family(series: BenchSeries, spec: Spec, base: BenchFit, shaft: str, seed: float) -> tuple[list[float], BenchFit]:
+def order_family(series: BenchSeries, spec: Spec, base: BenchFit, shaft: str,
+                 seed: float) -> tuple[list[float], BenchFit, dict[float, float]]:
     """The family of orders around ``seed`` on ``shaft``: further orders of :func:`family_grid`, tried in
     the order of the share of the estimation residual each takes alone (projection), each kept when it
     lowers the held-out error of the shaft's equation by :data:`MEMBER_GAIN` significantly (``t >=
-    T_CRIT``) beyond the family so far.  Returns the members and the fit of the shaft's equation."""
+    T_CRIT``) beyond the family so far.  Returns the members, the fit of the shaft's equation and each
+    member's share of the estimation residual alone."""
     eq, ps = shaft, base.plateaus
     proj = {p.index: bx.Projector(design(p, spec, eq)[p.est], output(p, eq)[p.est]) for p in ps}
 
@@ -379,7 +382,8 @@ def order_family(series: BenchSeries, spec: Spec, base: BenchFit, shaft: str, se
         return total
 
     grid = [k for k in family_grid(base, shaft) if k != seed]
-    ranked = sorted(grid, key=share, reverse=True)[:FAMILY_TRIES]
+    shares = {k: share(k) for k in grid + [seed]}
+    ranked = sorted(grid, key=shares.get, reverse=True)[:FAMILY_TRIES]
     members = [seed]
     cur = fit_spec(series, spec.with_term(bx.OrderFamilyTerm(shaft, (seed,))), ps, only=(eq,))
     for k in ranked:
@@ -388,7 +392,7 @@ def order_family(series: BenchSeries, spec: Spec, base: BenchFit, shaft: str, se
         if g >= MEMBER_GAIN and t >= T_CRIT:
             members.append(k)
             cur = trial
-    return sorted(members), cur
+    return sorted(members), cur, {k: shares[k] for k in members}
 
 
 def order_candidates(series: BenchSeries, spec: Spec, base: BenchFit, terms: list, suffix: str = "") -> list[BenchCandidate]:
@@ -406,12 +410,14 @@ def order_candidates(series: BenchSeries, spec: Spec, base: BenchFit, terms: lis
         (s1, (g1, t1)), *rest = sorted(sides.items(), key=lambda kv: -kv[1][0])
         g2 = rest[0][1][0] if rest else 0.0
         shaft = s1 if not (g2 > SIDE_UNDETERMINED * g1 > 0) else "undetermined"
-        members, fam = order_family(series, spec, base, s1, k)
+        members, fam, shares = order_family(series, spec, base, s1, k)
         if (s1, tuple(members)) in seen:
             continue
         seen.add((s1, tuple(members)))
         g, t = _gain(fam, base, (s1,))
-        f0 = bx.fundamental(members)
+        # a family of several lines is named by their greatest common divisor (one cylinder that differs:
+        # 0.5 with every half order); two lines are a line and a passenger, named by the stronger
+        f0 = bx.fundamental(members) if len(members) >= FAMILY_MIN else max(members, key=shares.get)
         out.append(BenchCandidate("rotation_order_disturbance",
                                   {"order": f0, "shaft": shaft, "family_orders": members,
                                    "reading": bx.family_reading(s1, members, series.pulses_per_rev),
