@@ -420,7 +420,7 @@ def order_candidates(series: BenchSeries, spec: Spec, base: BenchFit, terms: lis
         f0 = bx.fundamental(members) if len(members) >= FAMILY_MIN else max(members, key=shares.get)
         out.append(BenchCandidate("rotation_order_disturbance",
                                   {"order": f0, "shaft": shaft, "family_orders": members,
-                                   "reading": bx.family_reading(s1, members, series.pulses_per_rev),
+                                   "reading": bx.family_reading(s1, members, series.pulses_per_rev, f0),
                                    "found_at": k, "gains": {s: v[0] for s, v in sides.items()},
                                    **({"rate_hz": series.fs_hz} if suffix else {})},
                                   g, t, fam.spec, (s1 + suffix,)))

@@ -107,9 +107,10 @@ def fundamental(orders: list[float] | tuple[float, ...], step: float = ORDER_GRI
     return n * step
 
 
-def family_reading(shaft: str, orders: list[float], pulses_per_rev: float) -> str:
-    """What a family of rotation orders on ``shaft`` points to (a physical reading for an engineer)."""
-    f0 = fundamental(orders)
+def family_reading(shaft: str, orders: list[float], pulses_per_rev: float, named: float | None = None) -> str:
+    """What a family of rotation orders on ``shaft``, named by ``named`` (default its fundamental), points to
+    (a physical reading for an engineer)."""
+    f0 = fundamental(orders) if named is None else named
     listed = ", ".join(f"{k:g}" for k in sorted(orders))
     if shaft == "engine":
         if f0 % 1.0:
