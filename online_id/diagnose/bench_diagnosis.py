@@ -69,14 +69,16 @@ FREQ_GRID_HZ = 0.002  # line frequency grid (a 60 s record resolves about 0.017 
 # clean candidate of a mode, an order or a line at all; a delay up to 0.0105, backlash 0.0154, Coulomb
 # friction 0.0047.  Where the earlier calibration on 60 clean benches of the first family set a higher
 # value for an unchanged score (backlash, Coulomb friction) or the new sample found nothing (the mode:
-# 0.01695 there), the higher is kept: 27 benches bound a false-effect rate less tightly.
+# 0.01695 there), the higher is kept: 27 benches bound a false-effect rate less tightly.  The clean benches
+# among the chain family's development seeds (60003, 60012, 60021, 60030, 60057, 60066, docs/evaluation-chain.md)
+# count as calibration benches too: Coulomb friction 0.0077 (60030), a mode 0.0022.
 THRESHOLDS = {
     "rotation_order_disturbance": 0.005,
     "fixed_frequency_disturbance": 0.005,
     "additional_mode": 0.01695,
     "backlash": 0.01689,
     "sensor_delay": 0.01152,
-    "coulomb_friction": 0.00563,
+    "coulomb_friction": 0.00847,
 }
 # with a recorded torque demand (the PRBS) as the reference of the speed transfer and the coherence
 THRESHOLDS_DEMAND = {**THRESHOLDS, "additional_mode": 0.01705, "sensor_delay": 0.01141}
