@@ -28,7 +28,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "evaluate-diagnose": ("evaluate_diagnose", "measure the diagnosis on randomised benches (confusion matrix)"),
     "evaluate-diagnose-rig": ("evaluate_rig",
                               "diagnose randomised multi-shaft rigs (order on each shaft, clean)"),
-    "simulate-rig": ("evaluate_rig", "write a randomised multi-shaft rig as two CSV files"),
+    "simulate-rig": ("evaluate_rig", "write a multi-shaft rig as two CSV files (randomised, or as two loggers "
+                                     "of a measured rig)"),
     "evaluate-diagnose-chain": ("evaluate_chain",
                                 "judge the diagnosis on independently built drivetrains and rigs, run as a user"),
     "convert": ("convert", "convert a bench CSV or MDF 4 signal recording into a CAN log of input frames, or a "
@@ -37,6 +38,9 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "relearn": ("command", "forget the learned baselines and learn them anew (after a planned shaft change)"),
     "fleet": ("fleet", "table of the benches publishing to an MQTT broker (needs the [mqtt] extra)"),
     "monitor": ("monitor", "watch the service's output frames and health live, decoded with the DBC"),
+    "archive": ("archive", "identify or diagnose an archive of recordings on a Dask cluster into one table "
+                           "(needs the [archive] extra)"),
+    "trend": ("trend", "resonance and damping per bench against the date: baseline, drift per month, alerts"),
 }
 """Subcommand -> (module in ``online_id.cli``, one-line help).  A module is imported only when its command
 runs: ``online-id --help`` and a command that reads a CSV do not load python-can, cantools, asammdf or
