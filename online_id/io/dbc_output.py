@@ -13,7 +13,7 @@ import cantools
 from online_id.errors import ConfigError, DbcError
 from online_id.io.crc import crc8_j1850
 from online_id.io.dbc import _message, _signal, load_dbc
-from online_id.records import AlertOut, EstimateOut, ExcitationOut, Publication, QualityOut, StatusOut
+from online_id.records import AlertOut, EstimateOut, ExcitationOut, FreshnessOut, Publication, QualityOut, StatusOut
 
 OUTPUT_MESSAGES = {
     "estimate": "OidEstimate",
@@ -22,8 +22,11 @@ OUTPUT_MESSAGES = {
     "status": "OidStatus",
     "alert": "OidAlert",
     "excitation": "OidExcitation",
+    "freshness": "OidFreshness",
 }
 """Default message name of each output (key -> DBC message)."""
+OPTIONAL_OUTPUTS = ("freshness",)
+"""Outputs a DBC may lack (a bench's DBC from before them): never sent then."""
 
 
 @dataclass(frozen=True)
@@ -66,6 +69,8 @@ class OutputEncoder:
         self._by_id: dict[int, _OutSpec] = {}
         self._count: dict[str, int] = {}
         for key, name in self.names.items():
+            if key in OPTIONAL_OUTPUTS and name not in {m.name for m in db.messages}:
+                continue
             msg = _message(db, name, source, f"{key} output")
             counter = _signal(msg, f"{name}Counter", source, "alive counter")
             crc = _signal(msg, f"{name}CRC", source, "CRC-8 over bytes 0..6")
@@ -113,7 +118,11 @@ class OutputEncoder:
                                            "DriftPct": pub.value_pct, "SpeedRpm": pub.speed_rpm})]
         if isinstance(pub, ExcitationOut):
             return [self._encode("excitation", {"TorqueOffset": pub.torque_offset_nm, "Active": bool(pub.active)})]
-        raise TypeError(f"Expected EstimateOut, QualityOut, StatusOut, AlertOut or ExcitationOut, "
+        if isinstance(pub, FreshnessOut):
+            if "freshness" not in self._specs:
+                return []
+            return [self._encode("freshness", {"FreshnessValue": pub.freshness, "Authenticated": pub.authenticated})]
+        raise TypeError(f"Expected EstimateOut, QualityOut, StatusOut, AlertOut, ExcitationOut or FreshnessOut, "
                         f"but got {type(pub).__name__}.")
 
     def _encode(self, key: str, values: Mapping[str, float]) -> tuple[int, bytes]:
