@@ -43,7 +43,7 @@ ALLOWED = {
     # the evaluations of the diagnosis (the chain family judges it from outside: through its CLI only)
     "evaluation": {"errors", "records", "bench"},
     "diagnose_evaluation": BASE | CORE | {"io", "bench", "ingest", "offline"},
-    "rig_evaluation": BASE | CORE | {"bench"},
+    "rig_evaluation": BASE | CORE | {"io", "bench"},
     # the command line on top of everything
     "interrupt": {"io"},
     "cli": None,  # may import every room

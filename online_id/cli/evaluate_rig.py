@@ -8,7 +8,6 @@ sensor side, each on its own clock) for ``online-id diagnose --second-file``;
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -16,6 +15,7 @@ from dataclasses import replace
 
 from typing import TYPE_CHECKING
 from online_id.errors import ConfigError
+from online_id.io.jsonout import dumps
 from online_id.io.outfile import check_output
 from online_id.progress import Progress, add_quiet_option
 from online_id.cli import command_help
@@ -82,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
         else:
             summary = evaluate(args.cases, args.seed, args.magnitude, args.jobs, Path(args.out), progress)
     summary["wall_s"] = time.perf_counter() - t0
-    print(json.dumps(summary, indent=1, default=float))
+    print(dumps(summary, indent=1))
     return 0
 
 
@@ -143,5 +143,5 @@ def run_simulate(args: argparse.Namespace) -> int:
     if spec.layout == "loggers":
         truth["encoders"] = {f"encoder{k}": {"shaft": name, "rate": rate}
                              for k, (name, rate) in enumerate(encoder_shafts(spec), 1)}
-    print(json.dumps(truth, indent=1))
+    print(dumps(truth, indent=1))
     return 0
