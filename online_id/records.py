@@ -176,3 +176,7 @@ class FreshnessOut:
 
 
 Publication = EstimateOut | QualityOut | StatusOut | AlertOut | ExcitationOut | FreshnessOut
+
+
+DEMAND_COLUMN = "torque_demand_nm"
+"""The bench CSV column of the recorded test-torque demand [Nm] (``simulate --with-demand`` writes it)."""

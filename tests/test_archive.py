@@ -333,7 +333,7 @@ def test_a_long_recording_is_cut_into_segments_each_a_task(archive, tmp_path):
 
 @pytest.mark.slow
 def test_archive_diagnose_adds_the_effects_of_online_id_diagnose(archive, reference, tmp_path, capsys):
-    from online_id.cli.diagnose import bench_series
+    from online_id.ingest.bench_series import bench_series
     from online_id.diagnose.bench_diagnosis import diagnose_bench
 
     path = recordings(archive)[0]

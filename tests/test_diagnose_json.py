@@ -100,8 +100,8 @@ def test_evaluation_writers_are_strict():
     from pathlib import Path
 
     root = Path(__file__).resolve().parent.parent / "online_id"
-    modules = ["diagnose_evaluation.py", "rig_evaluation.py", "evaluation/chain.py", "evaluation/chain_files.py",
-               "cli/diagnose.py", "cli/diagnose_bench_report.py", "cli/identify.py", "cli/evaluate_diagnose.py",
+    modules = ["evaluation/diagnose_benches.py", "evaluation/diagnose_rigs.py", "evaluation/chain.py", "evaluation/chain_files.py",
+               "offline/diagnose.py", "offline/diagnose_report.py", "offline/identify.py", "cli/evaluate_diagnose.py",
                "cli/evaluate_rig.py", "cli/evaluate_chain.py"]
     loose = []
     for name in modules:

@@ -3,8 +3,8 @@ the rate over all cases beside the rate above the smallest decile of magnitudes.
 
 import pytest
 
-from online_id import diagnose_evaluation as de
-from online_id import rig_evaluation as re_
+from online_id.evaluation import diagnose_benches as de
+from online_id.evaluation import diagnose_rigs as re_
 
 
 def _case(kind, magnitude, best=None, error=None, i=0):

@@ -12,7 +12,7 @@ Both tasks are module-level functions of one picklable argument, so that
   :func:`~online_id.estimation.identification.identify` with its defaults: the
   order grid fitted on the best-excited 40 s of each operating point) and,
   in ``diagnose`` mode, diagnoses the recording as ``online-id diagnose`` does
-  (:func:`~online_id.cli.diagnose.bench_series` and
+  (:func:`~online_id.ingest.bench_series.bench_series` and
   :func:`~online_id.diagnose.bench_diagnosis.diagnose_bench`).  Its rows are
   those of :mod:`online_id.archive.table`; an error of the recording is one
   row with its one-line message.
@@ -175,7 +175,7 @@ def process(job: Job) -> list[dict[str, Any]]:
 
 def diagnose_recording(path: str, s: Settings) -> tuple[str | None, str]:
     """(effects, result line) of ``online-id diagnose PATH`` with its defaults; an error is the result line."""
-    from online_id.cli.diagnose import bench_series
+    from online_id.ingest.bench_series import bench_series
     from online_id.diagnose.bench_diagnosis import diagnose_bench
 
     try:

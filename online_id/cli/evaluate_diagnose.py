@@ -74,7 +74,7 @@ def _read_cases(path: Path) -> list[dict]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from online_id import diagnose_evaluation as ev
+    from online_id.evaluation import diagnose_benches as ev
     from online_id.bench.diagnose_cases import KINDS
 
     from online_id.io.outfile import check_output

@@ -2,7 +2,7 @@
 
 ``simulate-rig`` writes one randomised rig as two CSV files (drive side and
 sensor side, each on its own clock) for ``online-id diagnose --second-file``;
-``evaluate-diagnose-rig`` runs :func:`online_id.rig_evaluation.evaluate`.
+``evaluate-diagnose-rig`` runs :func:`online_id.evaluation.diagnose_rigs.evaluate`.
 """
 
 from __future__ import annotations
@@ -67,7 +67,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from online_id.rig_evaluation import calibrate, evaluate
+    from online_id.evaluation.diagnose_rigs import calibrate, evaluate
 
     if args.cases < 1 or args.jobs < 1:
         raise ConfigError(f"--cases and --jobs must be >= 1, got {args.cases} and {args.jobs}")
@@ -116,7 +116,7 @@ def run_simulate(args: argparse.Namespace) -> int:
     import numpy as np
 
     from online_id.bench.rig import LAYOUTS, encoder_shafts, loggers_rig, lowest_mode_hz, simulate_rig
-    from online_id.rig_evaluation import rig_spec
+    from online_id.evaluation.diagnose_rigs import rig_spec
 
     if args.layout not in LAYOUTS:
         raise ConfigError(f"--layout: expected one of {', '.join(LAYOUTS)}, but got {args.layout!r}")

@@ -3,7 +3,7 @@
 Each case (:mod:`online_id.bench.diagnose_cases`) is simulated and written
 as the bench CSV ``online-id simulate --with-demand`` writes (time, both
 speeds, dyno torque and the test-torque demand); the CSV is read back and prepared by
-:func:`online_id.cli.diagnose.bench_series`, the same reader and
+:func:`online_id.ingest.bench_series.bench_series`, the same reader and
 arguments as ``online-id diagnose bench.csv``, and diagnosed twice:
 
 - ``no_demand``: torque and both speeds only (the demand column ignored),
@@ -52,7 +52,7 @@ FAILED = "error"  # what a case whose diagnosis raised is named: a failure, neve
 def run_case(args: tuple) -> dict[str, Any]:
     """Simulate one case ``(kind, seed[, family[, paths]])``, write it as a bench CSV, diagnose it on the
     paths (default both)."""
-    from online_id.cli.diagnose import bench_series
+    from online_id.ingest.bench_series import bench_series
     from online_id.offline.bench_files import write_csv
     from online_id.config import load_config
     from online_id.diagnose.bench_diagnosis import T_CRIT, diagnose_bench
