@@ -39,7 +39,7 @@ ALLOWED = {
     # a test centre's archive
     "archive": BASE | CORE | {"io", "service", "ingest", "bench", "report"},
     # the evaluations of the diagnosis on simulated benches and rigs (the chain family: see CHAIN below)
-    "evaluation": BASE | CORE | {"io", "bench", "ingest", "offline"},
+    "evaluation": BASE | CORE | {"io", "bench", "ingest", "offline", "archive"},  # archive: the Dask runner
     # the command line on top of everything
     "interrupt": {"io"},
     "cli": None,  # may import every room

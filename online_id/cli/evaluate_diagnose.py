@@ -31,6 +31,13 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    "{no_demand: {...}, demand: {...}} as thresholds.json holds them); 'defaults': the ones "
                    "the diagnosis ships with")
     p.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
+    d = p.add_mutually_exclusive_group()
+    d.add_argument("--dask", action="store_true",
+                   help="run the cases as Dask tasks on a local cluster of --jobs worker processes (needs the "
+                        "archive extra); the results are those of the process pool")
+    d.add_argument("--scheduler", metavar="tcp://HOST:8786",
+                   help="run the cases as Dask tasks on this scheduler's workers; a case whose task fails is "
+                        "a failed case")
     p.add_argument("--family", choices=("bench", "structures"), default="bench",
                    help="bench family of the test cases: bench (the first), or structures (unmeasured masses "
                    "between or beyond the measured ones, cylinder imbalance, high orders, broadband resonances, "
@@ -105,14 +112,15 @@ def run(args: argparse.Namespace) -> int:
             jobs = [("clean", ev.CALIBRATION_SEED0 + i, fam, paths)
                     for fam in (args.calibration_family or [args.family]) for i in range(n_cal)]
             calibration = ev.run_cases(jobs, args.jobs, _progress("calibration (clean benches)",
-                                                                  Path(args.out) / "calibration.jsonl"))
+                                                                  Path(args.out) / "calibration.jsonl"),
+                                       dask=args.dask, scheduler=args.scheduler)
         thresholds = ev.calibrate_paths(calibration)
         Path(args.out).mkdir(parents=True, exist_ok=True)
         (Path(args.out) / "thresholds.json").write_text(dumps(thresholds, indent=1) + "\n",
                                                         encoding="utf-8")
     jobs = [(k, args.seed + i, args.family, paths) for i in range(n_test) for k in KINDS]
-    results = (ev.run_cases(jobs, args.jobs, _progress("test benches", Path(args.out) / "cases.jsonl"))
-               if jobs else [])
+    results = (ev.run_cases(jobs, args.jobs, _progress("test benches", Path(args.out) / "cases.jsonl"),
+                            dask=args.dask, scheduler=args.scheduler) if jobs else [])
     for d in args.include:
         results += _read_cases(Path(d) / "cases.jsonl")
     seconds = time.monotonic() - t0

@@ -101,9 +101,28 @@ def path_result(result: dict, path: str) -> dict:
 
 
 def run_cases(jobs: list[tuple[str, int]], workers: int,
-              progress: Callable[[int, int, dict], None] | None = None) -> list[dict]:
-    """Run cases on ``workers`` processes (1 = in this process), in order."""
+              progress: Callable[[int, int, dict], None] | None = None, *, dask: bool = False,
+              scheduler: str | None = None) -> list[dict]:
+    """Run cases on ``workers`` processes (1 = in this process), in order; with ``dask`` as tasks on a local
+    Dask cluster of ``workers`` processes, with ``scheduler`` on that scheduler's workers. A task that fails on
+    the cluster (its worker lost, the case raised outside the diagnosis) is a failed case (``error`` on every
+    path), never left out."""
     out = []
+    if dask or scheduler:
+        from online_id.archive.runner import cluster, map_tasks
+
+        done = 0
+
+        def record(o) -> None:
+            nonlocal done
+            done += 1
+            if progress:
+                progress(done, len(jobs), o.value if o.ok else failed_case(jobs[o.index], o.error or "task lost"))
+
+        with cluster(scheduler, workers) as client:
+            outcomes = map_tasks(client, run_case, jobs, label="evaluate-diagnose", on_done=record, quiet=True)
+        return [o.value if o.ok else failed_case(jobs[o.index], o.error or "the task was lost (its worker died)")
+                for o in outcomes]
     if workers <= 1:
         for i, j in enumerate(jobs):
             out.append(run_case(j))
@@ -115,6 +134,23 @@ def run_cases(jobs: list[tuple[str, int]], workers: int,
             out.append(r)
             if progress:
                 progress(i + 1, len(jobs), r)
+    return out
+
+
+def failed_case(job: tuple, error: str) -> dict[str, Any]:
+    """The record of case ``job`` that gave no result: a failure on every path it was to run."""
+    kind, seed = job[:2]
+    family = job[2] if len(job) > 2 else "bench"
+    paths = tuple(job[3]) if len(job) > 3 else PATHS
+    try:
+        case = make_case(kind, seed, family=family)
+        out: dict[str, Any] = {"case": case.case_id, "kind": kind, "seed": seed, "family": family,
+                               "magnitude": case.magnitude, "truth": plain(dict(case.truth))}
+    except Exception as err:  # noqa: BLE001 - the case cannot even be made: still a failed case
+        out = {"case": f"{kind}-{seed}", "kind": kind, "seed": seed, "family": family, "magnitude": None,
+               "truth": {}, "error": f"{type(err).__name__}: {err}"}
+    for path in paths:
+        out[path] = {"error": error, "best": {}, "seconds": 0.0}
     return out
 
 
