@@ -11,6 +11,7 @@ from pathlib import Path
 from online_id.errors import ConfigError
 from online_id.io.jsonout import dumps
 from online_id.cli import command_help
+from online_id.cli.dask_options import add_dask_options
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
@@ -31,13 +32,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    "{no_demand: {...}, demand: {...}} as thresholds.json holds them); 'defaults': the ones "
                    "the diagnosis ships with")
     p.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
-    d = p.add_mutually_exclusive_group()
-    d.add_argument("--dask", action="store_true",
-                   help="run the cases as Dask tasks on a local cluster of --jobs worker processes (needs the "
-                        "archive extra); the results are those of the process pool")
-    d.add_argument("--scheduler", metavar="tcp://HOST:8786",
-                   help="run the cases as Dask tasks on this scheduler's workers; a case whose task fails is "
-                        "a failed case")
+    add_dask_options(p, "a case whose task fails is a failed case")
     p.add_argument("--family", choices=("bench", "structures"), default="bench",
                    help="bench family of the test cases: bench (the first), or structures (unmeasured masses "
                    "between or beyond the measured ones, cylinder imbalance, high orders, broadband resonances, "
