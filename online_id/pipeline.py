@@ -516,7 +516,7 @@ class Pipeline:
 
     def _publish_estimate(self, t_s: float, out: list[Publication]) -> OnlineEstimate:
         """The estimate of a publication into ``out``, first of its publications (the rest: _publish_rest)."""
-        est = self.estimator.estimate()
+        est = self.estimator.estimate(defer_std=True)  # completed by _publish_rest
         self._estimate = est
         phys = self._physical
         nan = float("nan")
@@ -527,6 +527,7 @@ class Pipeline:
     def _publish_rest(self, est: OnlineEstimate, t_s: float) -> list[Publication]:
         """The rest of the publication of ``est``: the state it gives, its quality, the status."""
         out: list[Publication] = []
+        est = self._estimate = self.estimator.complete_estimate(est)
         state = self._judge(est, t_s)
         self._set_state(state, t_s, out, est.why if state == ServiceState.LEARNING else "")
         if est.valid and (self._physical is None or t_s >= self._next_physical):
