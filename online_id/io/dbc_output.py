@@ -12,7 +12,7 @@ import cantools
 
 from online_id.errors import ConfigError, DbcError
 from online_id.io.crc import crc8_j1850
-from online_id.io.dbc import _message, _signal, load_dbc
+from online_id.io.dbc import _message, _signal, load_dbc, signal_bits
 from online_id.records import AlertOut, EstimateOut, ExcitationOut, Publication, QualityOut, StatusOut
 
 OUTPUT_MESSAGES = {
@@ -75,25 +75,17 @@ class _Packer:
 
 def _packer(message: Any, counter: str, crc: str, bounds: Mapping[str, tuple[float, float]]) -> _Packer | None:
     """The fast packer of ``message`` (see :class:`_Packer`), None where cantools must encode it."""
-    if message.is_multiplexed() or message.is_container or any(s.is_float for s in message.signals):
-        return None
-    zero = {s.name: 0 for s in message.signals}
     fields = []
     for sig in message.signals:
-        n = sig.length
-        positions = []
-        for k in range(n):
-            raw = -(1 << k) if sig.is_signed and k == n - 1 else 1 << k
-            word = int.from_bytes(message.encode({**zero, sig.name: raw}, scaling=False, padding=False,
-                                                 strict=False), "little")
-            if word.bit_count() != 1:
-                return None
-            positions.append(word.bit_length() - 1)
+        positions = signal_bits(message, sig)
+        if positions is None:
+            return None
+        n = len(positions)
         lo_raw, hi_raw = ((-(1 << (n - 1)), (1 << (n - 1)) - 1) if sig.is_signed else (0, (1 << n) - 1))
-        in_order = positions == list(range(positions[0], positions[0] + n))
+        in_order = positions == tuple(range(positions[0], positions[0] + n))
         what = COUNTER if sig.name == counter else CRC if sig.name == crc else VALUE
         fields.append((sig.name, what, *bounds[sig.name], sig.conversion.numeric_scaled_to_raw, lo_raw, hi_raw,
-                       positions[0] if in_order else 0, (1 << n) - 1, None if in_order else tuple(positions)))
+                       positions[0] if in_order else 0, (1 << n) - 1, None if in_order else positions))
     return _Packer(tuple(fields))
 
 
