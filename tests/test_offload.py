@@ -186,6 +186,35 @@ class _CountingWorker(InlineWorker):
         return True
 
 
+def test_no_job_is_handed_to_a_worker_process_just_before_a_publication() -> None:
+    """With a worker process, the window refits and physical fits wait while a publication falls due within
+    QUIET_S (handing over a job copies the window: up to a millisecond or two), and still all run."""
+    from online_id.pipeline import QUIET_S
+    from online_id.records import SignalSample
+
+    record = simulate_bench(dataclasses.replace(BenchScenario(), seed=4,
+                                                operating_points=(OperatingPoint(1500.0, 25.0),)))
+    worker = _CountingWorker()
+    pipe = Pipeline(Settings(inertias=InertiaSettings(J1=record.truth["J1"])), worker=worker)
+    before: list[tuple[str, float]] = []  # lane, stream time to the next publication, at each job handed over
+    submit = worker.submit
+
+    def watched(lane, fn, args, callback):
+        before.append((lane, pipe._next_publish - pipe.t_s))
+        submit(lane, fn, args, callback)
+
+    worker.submit = watched
+    d = record.to_data("sim")
+    for k in range(len(d)):
+        t = float(d.time_s[k])
+        for role, x in (("dyno_speed", d.dyno_speed_rad_s), ("engine_speed", d.engine_speed_rad_s),
+                        ("dyno_torque", d.dyno_torque_nm)):
+            pipe.on_signal(SignalSample(role, float(x[k]), t))
+    lanes = [lane for lane, _ in before]
+    assert lanes.count("window") >= 15 and lanes.count("physical") >= 5
+    assert all(left > QUIET_S or left < 0.0 for _, left in before), sorted(left for _, left in before)[:5]
+
+
 @pytest.mark.parametrize("rate_hz", [10.0, 1000.0])
 def test_the_worker_is_not_polled_on_a_sample_that_publishes(rate_hz: float) -> None:
     """Adopting a result (up to a millisecond) never delays an estimate: not on the sample that publishes, nor

@@ -1,0 +1,120 @@
+"""The runtime's split publication: the live loop sends a publication's OidEstimate before the rest is made.
+
+``Runtime.publications`` stops after the first publication's estimate; ``Runtime.finish`` makes the rest of that
+publication and takes the samples and values after it.  The frames, their order and the pipeline's state must be
+exactly those of ``Runtime.on_frame`` (replay), whatever the frames carry and however many samples one completes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from online_id.bench.scenario import BenchScenario, OperatingPoint
+from online_id.bench.simulate import simulate_bench
+from online_id.config import (InertiaSettings, InputSettings, MappingSettings, ModelSettings, PublishSettings,
+                              RoleSettings, Settings)
+from online_id.io.dbc import RoleMapping, RoleSignal, default_dbc_path, encode_inputs, load_dbc
+from online_id.offload import InlineWorker
+from online_id.records import EstimateOut, SignalSample
+from online_id.runtime import Runtime, role_mapping
+
+# the speeds in one message, the torque in another (a bench's own layout)
+SPEEDS_DBC = """
+BO_ 512 BenchSpeeds: 8 Bench
+ SG_ ShaftSpeedA : 0|24@1- (0.01,0) [-30000|30000] "rpm" OnlineId
+ SG_ ShaftSpeedB : 24|24@1- (0.01,0) [-30000|30000] "rpm" OnlineId
+ SG_ SpeedsAlive : 48|8@1+ (1,0) [0|255] "" OnlineId
+
+"""
+
+
+def _settings(truth: dict, **changes) -> Settings:
+    s = Settings(inertias=InertiaSettings(J1=truth["J1"]),
+                 model=dataclasses.replace(ModelSettings(), pulses_per_rev=truth["pulses_per_rev"]),
+                 publish=PublishSettings(rate_hz=50.0))
+    return dataclasses.replace(s, **changes)
+
+
+def _record(seed: int, seconds: float = 12.0):
+    scenario = dataclasses.replace(BenchScenario(), seed=seed, ramp_s=2.0,
+                                   operating_points=(OperatingPoint(1500.0, seconds / 2),
+                                                     OperatingPoint(2000.0, seconds / 2)))
+    return simulate_bench(scenario)
+
+
+def _replay(rt: Runtime, frames: list) -> list:
+    return [(i, fid, data) for i, (t, ident, payload) in enumerate(frames) for fid, data in rt.on_frame(t, ident, payload)]
+
+
+def _live(rt: Runtime, frames: list) -> tuple[list, int, int]:
+    """The frames as the live loop makes them; how many publications were split, and after how many a value or
+    sample was still to be taken."""
+    out, split, after = [], 0, 0
+    for i, (t, ident, payload) in enumerate(frames):
+        pubs = rt.publications(t, ident, payload)
+        if pubs:
+            split += rt.pipeline.split_pending
+            after += bool(rt._rest or (rt.pipeline._rest and rt.pipeline._rest[2]))
+            assert isinstance(pubs[-1], EstimateOut) and rt.pipeline.split_pending
+            out += [(i, *rt.first_frame(pubs[0]))] + [(i, *f) for f in rt.frames(pubs, skip_first=True)]
+        out += [(i, *f) for f in rt.frames(rt.finish())]
+    return out, split, after
+
+
+@pytest.mark.parametrize("seed", [3, 8])
+def test_split_publications_give_replays_frames_when_one_frame_completes_several_samples(seed: int) -> None:
+    """Torque frames lost in runs of 2-6: the next one completes the samples of the gap at once, and a publication
+    among them is split with samples after it."""
+    record = _record(seed)
+    frames = encode_inputs(record.time_s, record.dyno_speed_rpm, record.engine_speed_rpm, record.dyno_torque_nm,
+                           db=load_dbc(None))
+    rng = np.random.default_rng(seed)
+    torque = [i for i, (_t, ident, _d) in enumerate(frames) if ident == 0x103]
+    lost = set()
+    for k in rng.choice(len(torque) - 10, size=len(torque) // 40, replace=False):
+        lost.update(torque[k:k + int(rng.integers(2, 7))])
+    frames = [f for i, f in enumerate(frames) if i not in lost]
+    settings = _settings(record.truth)
+    replay, (live, split, after) = (_replay(Runtime(settings, worker=InlineWorker()), frames),
+                                    _live(Runtime(settings, worker=InlineWorker()), frames))
+    assert live == replay and len(replay) > 2000
+    assert split > 500 and after >= 5  # the path under test was taken
+
+
+def test_split_publications_give_replays_frames_when_values_follow_in_the_frame(tmp_path) -> None:
+    """Both speeds in one frame, the engine speed a slow role (held, it delays no sample): the dyno speed completes
+    the sample, and the engine speed after it in the same frame is taken by finish()."""
+    path = tmp_path / "bench.dbc"
+    text = default_dbc_path().read_text()
+    path.write_text(text.replace("\nBO_ 257 ", SPEEDS_DBC + "\nBO_ 257 ", 1))
+    db = load_dbc(path)
+    mapping = MappingSettings(dyno_speed=RoleSettings("BenchSpeeds", "ShaftSpeedA", "rpm", "positive", "SpeedsAlive"),
+                              engine_speed=RoleSettings("BenchSpeeds", "ShaftSpeedB", "rpm", "positive", "SpeedsAlive"))
+    record = _record(5)
+    frames = encode_inputs(record.time_s, record.dyno_speed_rpm, record.engine_speed_rpm, record.dyno_torque_nm,
+                           db=db, mapping=role_mapping(mapping))
+    # the torque first, then the speeds: the dyno speed completes each sample
+    frames.sort(key=lambda f: (f[0], f[1] != 0x103))
+    settings = _settings(record.truth, dbc=str(path), mapping=mapping,
+                         input=InputSettings(slow_roles=("engine_speed",)))
+    replay, (live, split, after) = (_replay(Runtime(settings, worker=InlineWorker()), frames),
+                                    _live(Runtime(settings, worker=InlineWorker()), frames))
+    assert live == replay and len(replay) > 2000
+    assert split > 500 and after >= split - 1  # every publication (but the first) left the engine speed of its frame
+
+
+def test_a_split_publication_must_be_finished_before_the_next_value() -> None:
+    record = _record(3, seconds=4.0)
+    rt = Runtime(_settings(record.truth), worker=InlineWorker())
+    frames = encode_inputs(record.time_s, record.dyno_speed_rpm, record.engine_speed_rpm, record.dyno_torque_nm,
+                           db=load_dbc(None))
+    for t, ident, payload in frames:
+        if rt.publications(t, ident, payload):
+            break
+    assert rt.pipeline.split_pending
+    with pytest.raises(RuntimeError, match="finish"):
+        rt.pipeline.on_signal(SignalSample("dyno_speed", 100.0, t))
+    assert rt.finish() and not rt.pipeline.split_pending and rt.finish() == []
