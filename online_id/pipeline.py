@@ -395,7 +395,8 @@ class Pipeline:
             # process worker it runs beside the stream and is adopted when it is back (``worker.poll``), and
             # it waits while a publication is near
             elif self.publication_near(a.t_s):
-                pass
+                if a.t_s + self.assembler.dt >= self._next_publish:
+                    self.estimator.prepare_estimate()  # the next sample publishes (see prepare_estimate)
             elif self.estimator.refit_due and not self.worker.busy(WINDOW):
                 self._submit_refit()
             elif self._refit_pending and not self.worker.busy(PHYSICAL):

@@ -312,15 +312,28 @@ class OnlineDriveline:
         return a, b, c, self._e2 * self.rels.P[:na, :na], self._e2, "recursive"
 
     def _poles_for(self, a: np.ndarray, source: str) -> list[Pole]:
-        """Poles of ``a``; a window refit's are computed once (refits come once a second, estimates at 10 Hz)."""
-        key = (source, self.window.n_fits) if source == "window" else None
-        if key is None or self._poles_key != key:
+        """Poles of ``a``; a window refit's are computed once (refits come once a second, estimates at 10 Hz), the
+        recursive model's once per model (it changes at the model rate, not at every input sample, and not while
+        adaptation is frozen: see :meth:`prepare_estimate`)."""
+        key = (source, self.window.n_fits) if source == "window" else (source, a.tobytes())
+        if self._poles_key != key:
             finite = bool(np.all(np.isfinite(a)))
             self._roots = polynomial_roots(a) if finite else np.zeros(0, dtype=complex)
             self._poles = poles_of_roots(self._roots, self.dt) if finite else []
             self._poles_key = key
             self._memo = {}
         return self._poles
+
+    def prepare_estimate(self) -> None:
+        """The current model's poles, computed now for an estimate due before the model changes.
+
+        The live service calls it on the sample before a publication: the model changes only on the
+        input samples that complete a model sample (every ``factor``-th), so the publication's estimate
+        often finds its poles done (:meth:`_poles_for`), and otherwise the code and data it needs in the
+        processor's caches.  Nothing else changes: the estimate is the same with or without it.
+        """
+        a, _b, _c, _cov, _V, source = self.polynomials()
+        self._poles_for(a, source)
 
     def _cached(self, what: str, z: complex, source: str, compute):
         """``compute()`` once per window fit and pole (``what``: residue, std); every time for the recursive model.
