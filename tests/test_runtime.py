@@ -16,8 +16,10 @@ from online_id.bench.scenario import BenchScenario, OperatingPoint
 from online_id.bench.simulate import simulate_bench
 from online_id.config import (InertiaSettings, InputSettings, MappingSettings, ModelSettings, PublishSettings,
                               RoleSettings, Settings)
-from online_id.io.dbc import RoleMapping, RoleSignal, default_dbc_path, encode_inputs, load_dbc
+from online_id.estimation.window import solve_or_error
+from online_id.io.dbc import default_dbc_path, encode_inputs, load_dbc
 from online_id.offload import InlineWorker
+from online_id.pipeline import Pipeline
 from online_id.records import EstimateOut, SignalSample
 from online_id.runtime import Runtime, role_mapping
 
@@ -118,3 +120,32 @@ def test_a_split_publication_must_be_finished_before_the_next_value() -> None:
     with pytest.raises(RuntimeError, match="finish"):
         rt.pipeline.on_signal(SignalSample("dyno_speed", 100.0, t))
     assert rt.finish() and not rt.pipeline.split_pending and rt.finish() == []
+
+
+def test_poles_computed_before_the_publication_give_the_same_estimates() -> None:
+    """prepare_estimate (the live service's, on the sample before a publication) changes no estimate: two
+    estimators fed the same samples, one prepared before each estimate (and sometimes a sample earlier, so that
+    the model changed since), give equal estimates, standard deviations and poles included; and a prepared one
+    finds the recursive model's poles done when the model did not change."""
+    record = _record(6, seconds=16.0)
+    settings = _settings(record.truth)
+    a, b = Pipeline(settings).estimator, Pipeline(settings).estimator
+    d = record.to_data("sim")
+    hits = compared = 0
+    for k in range(len(d)):
+        for est in (a, b):
+            est.update(float(d.dyno_speed_rad_s[k]), float(d.engine_speed_rad_s[k]), float(d.dyno_torque_nm[k]))
+        if k % 100 in (1, 99):
+            b.prepare_estimate()
+        if k % 100 == 0 and k:
+            key = b._poles_key
+            got = b.estimate(defer_std=bool(k % 200))
+            hits += key == b._poles_key and key[0] == "recursive"
+            assert repr(b.complete_estimate(got)) == repr(a.estimate())
+            compared += 1
+        if k % 1000 == 500:  # a refit now and then, so that window estimates come too
+            for est in (a, b):
+                job = est.refit_job()
+                if job is not None:
+                    est.complete(job, *solve_or_error(job))
+    assert compared > 100 and hits > 10 and a.window.n_fits > 3
