@@ -73,6 +73,8 @@ from online_id.runtime import Runtime  # noqa: E402
 GROUP = "239.74.163.51"
 REACTION = re.compile(r"reaction p50 (?P<p50>[\d.]+) ms, p99 (?P<p99>[\d.]+) ms, max (?P<max>[\d.]+) ms over (?P<n>\d+)")
 PROCESSING = re.compile(r"processing p50 (?P<p50>[\d.]+) ms, p99 (?P<p99>[\d.]+) ms, max (?P<max>[\d.]+) ms over (?P<n>\d+)")
+PHASE = re.compile(r"(?P<phase>pipeline CPU|encoding CPU|sending CPU|waiting) p50 (?P<p50>[\d.]+) ms, "
+                   r"p99 (?P<p99>[\d.]+) ms, max (?P<max>[\d.]+) ms over (?P<n>\d+)")
 PROCESSING_CPU = re.compile(r"processing CPU p50 (?P<p50>[\d.]+) ms, p99 (?P<p99>[\d.]+) ms, max (?P<max>[\d.]+) ms "
                             r"over (?P<n>\d+)")
 
@@ -125,6 +127,9 @@ def latency(args, work: Path) -> dict:
     processing_cpu = next((m for m in map(PROCESSING_CPU.search, run.log) if m), None)
     if processing_cpu:  # ... and its CPU time
         out["service_processing_cpu_ms"] = {k: float(v) for k, v in processing_cpu.groupdict().items()}
+    phases = next((ln for ln in run.log if "by phase:" in ln), "")
+    out["service_phases_ms"] = {m["phase"]: {k: float(m[k]) for k in ("p50", "p99", "max", "n")}
+                                for m in PHASE.finditer(phases)}
     if 0 < len(got) - len(marks) <= 2:
         # the live service completes the stream's last sample when the bus falls silent (the in-process run
         # has no such tick); an estimate it triggers comes after every matched one
@@ -245,6 +250,8 @@ def run_all(args, result: dict) -> None:
             if pc:
                 print(f"    its CPU time (the loop thread's thread_time): p50 {pc['p50']:.2f} ms, "
                       f"p99 {pc['p99']:.2f} ms, max {pc['max']:.2f} ms")
+            for phase, f in result["latency"].get("service_phases_ms", {}).items():
+                print(f"      {phase}: p50 {f['p50']:.2f} ms, p99 {f['p99']:.2f} ms, max {f['max']:.2f} ms")
             lat = result["latency"].get("latency_ms")
             counts = result["latency"]["counts"]
             if not lat:

@@ -86,6 +86,9 @@ class Service:
         self.reaction = ReactionTimes()  # input frame arrival -> its first output sent (see online_id.reaction)
         self.processing = ReactionTimes()  # the same output: from the loop receiving the frame to it sent
         self.processing_cpu = ReactionTimes()  # ... and the CPU time of this thread meanwhile (time.thread_time)
+        # ... by phase (CPU time): decoding and the pipeline, encoding the OidEstimate, sending it; and before it,
+        # the wait from the frame's arrival to the loop taking it off the socket (wall time)
+        self.phases = {what: ReactionTimes() for what in ("pipeline CPU", "encoding CPU", "sending CPU", "waiting")}
         self._last_state = None
         self._restore()
         self._n_alerts = self.runtime.pipeline.alerts_total
@@ -255,6 +258,7 @@ class Service:
         next_chores = 0.0
         runtime, monotonic, wall, cpu = self.runtime, time.monotonic, time.time, time.thread_time
         reaction, processing, processing_cpu = self.reaction, self.processing, self.processing_cpu
+        pipeline_cpu, encoding_cpu, sending_cpu, waiting = self.phases.values()
         collector = Collector()
         try:
             while True:
@@ -272,11 +276,19 @@ class Service:
                         if pubs:
                             # a publication's first frame is its OidEstimate: encoded and sent before anything
                             # else is encoded, and before the rest of the publication is made
-                            bus.send(*runtime.first_frame(pubs[0]))
+                            c_made = cpu()
+                            first = runtime.first_frame(pubs[0])
+                            c_encoded = cpu()
+                            bus.send(*first)
                             t_sent = wall()
-                            processing_cpu.add(cpu() - c_recv)
+                            c_sent = cpu()
                             reaction.add(t_sent - frame.t_s)
                             processing.add(t_sent - t_recv)
+                            processing_cpu.add(c_sent - c_recv)
+                            pipeline_cpu.add(c_made - c_recv)
+                            encoding_cpu.add(c_encoded - c_made)
+                            sending_cpu.add(c_sent - c_encoded)
+                            waiting.add(t_recv - frame.t_s)
                             for ident, data in runtime.frames(pubs, skip_first=True):
                                 bus.send(ident, data)
                             more = runtime.finish()
@@ -352,6 +364,9 @@ class Service:
                  + (f" (the loop's own work on the frame: {self.processing.summary('processing')}; "
                     f"its CPU time: {self.processing_cpu.summary('processing CPU')})"
                     if self.processing.n else ""))
+        if self.processing.n:
+            self.say("the loop on a frame that publishes, by phase: "
+                     + "; ".join(times.summary(what) for what, times in self.phases.items()))
         return 0
 
 

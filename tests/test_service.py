@@ -1,6 +1,7 @@
 """The streaming service: frames in, frames out, on python-can's virtual bus and from logs."""
 
 import dataclasses
+import io
 import json
 import os
 import random
@@ -51,8 +52,8 @@ def test_service_on_virtual_bus_end_to_end(tmp_path):
     channel = f"test-e2e-{os.getpid()}"
     settings = Settings(bus=BusSettings(interface="virtual", channel=channel),
                         state=StateSettings(directory=str(tmp_path)))
-    svc = Service(settings, bus_factory=lambda: CanBus("virtual", channel, preserve_timestamps=True),
-                  log=open(os.devnull, "w"))
+    log = io.StringIO()
+    svc = Service(settings, bus_factory=lambda: CanBus("virtual", channel, preserve_timestamps=True), log=log)
     consumer = CanBus("virtual", channel)
     sender = CanBus("virtual", channel, preserve_timestamps=True)
     status = {}
@@ -82,6 +83,17 @@ def test_service_on_virtual_bus_end_to_end(tmp_path):
     counters = [ENC.decode(i, d)["OidEstimateCounter"] for i, d in out if i == 0x300]
     assert all((b - a) % 16 == 1 for a, b in zip(counters, counters[1:]))  # alive counter steps by one
     assert (tmp_path / "online-id-state.json").exists()  # state saved on stop
+    # each OidEstimate is sent first, before the rest of its publication was made, and the rest follows in order
+    ids = [i for i, _ in out]
+    assert all(ids[k + 1:k + 4] == [0x301, 0x302, 0x303] for k, i in enumerate(ids) if i == 0x300)
+    # the loop measured its own work on every frame that published, in wall and CPU time and by phase (the frames'
+    # stamps are the simulation's, so the wait before the loop is not measurable here)
+    n = len(counters)
+    text = log.getvalue()
+    assert f"over {n} outputs; its CPU time: processing CPU p50" in text and text.count(f"over {n} outputs") == 5
+    phases = next(ln for ln in text.splitlines() if "the loop on a frame that publishes, by phase" in ln)
+    assert "pipeline CPU p50" in phases and "encoding CPU p50" in phases and "sending CPU p50" in phases
+    assert "waiting time not measured" in phases
 
 
 # --- replay = offline recursive identification, within 1 % of the truth ---------------------------
