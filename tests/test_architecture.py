@@ -20,6 +20,7 @@ ALLOWED = {
     "pipeline": {"errors", "records", "analysis", "estimation", "monitoring", "excitation", "assembly", "config",
                  "offload", "diagnose"},
     "offload": {"scheduling"},
+    "evaluation": {"errors", "records", "bench"},  # judges the diagnosis from outside: through its CLI only
     "scheduling": set(),
 }
 

@@ -29,6 +29,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "evaluate-diagnose-rig": ("evaluate_rig",
                               "diagnose randomised multi-shaft rigs (order on each shaft, clean)"),
     "simulate-rig": ("evaluate_rig", "write a randomised multi-shaft rig as two CSV files"),
+    "evaluate-diagnose-chain": ("evaluate_chain",
+                                "judge the diagnosis on independently built drivetrains and rigs, run as a user"),
     "convert": ("convert", "convert a bench CSV or MDF 4 signal recording into a CAN log of input frames, or a "
                            "CAN log into bench signals"),
     "ack": ("command", "acknowledge the latched alerts (they clear and detection restarts)"),
