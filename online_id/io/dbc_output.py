@@ -44,33 +44,44 @@ class _Packer:
     a float or a multiplexed signal have no packer (:func:`_packer` returns None).
     """
 
-    __slots__ = ("fields",)
+    __slots__ = ("values", "counter")
 
     def __init__(self, fields: tuple) -> None:
-        # per signal: (name, what, lo, hi, to_raw, lo_raw, hi_raw, shift, mask, bit positions or None)
-        self.fields = fields
+        # per signal: (name, what, lo, hi, to_raw, lo_raw, hi_raw, shift, mask, bit positions or None); the CRC's
+        # bits are left 0 (the caller writes byte 7)
+        self.values = tuple(f for f in fields if f[1] == VALUE)
+        self.counter = next((f for f in fields if f[1] == COUNTER), None)
 
     def pack(self, values: Mapping[str, float], count: int) -> int | None:
         """The frame with alive counter ``count`` and a zero CRC as a little-endian integer (byte k is
         bits 8k..8k+7), None where cantools must encode it."""
         word = 0
         isfinite = math.isfinite
-        for name, what, lo, hi, to_raw, lo_raw, hi_raw, shift, mask, bits in self.fields:
-            if what == VALUE:
-                v = float(values.get(name, 0.0))
-                raw = to_raw(min(max(v, lo), hi) if isfinite(v) else min(max(0.0, lo), hi))
-            else:
-                raw = to_raw(count) if what == COUNTER else to_raw(0)
+        for name, _what, lo, hi, to_raw, lo_raw, hi_raw, shift, mask, bits in self.values:
+            v = float(values.get(name, 0.0))
+            raw = to_raw((lo if v < lo else hi if v > hi else v) if isfinite(v) else min(max(0.0, lo), hi))
             if not lo_raw <= raw <= hi_raw:
                 return None
-            raw &= mask  # two's complement of a negative raw value within the signal's width
             if bits is None:
-                word |= raw << shift
+                word |= (raw & mask) << shift  # (& mask: two's complement of a negative raw value)
             else:
-                for k, pos in enumerate(bits):
-                    if raw >> k & 1:
-                        word |= 1 << pos
+                word |= _scatter(raw & mask, bits)
+        if self.counter is not None:
+            _name, _what, _lo, _hi, to_raw, lo_raw, hi_raw, shift, mask, bits = self.counter
+            raw = to_raw(count)
+            if not lo_raw <= raw <= hi_raw:
+                return None
+            word |= (raw & mask) << shift if bits is None else _scatter(raw & mask, bits)
         return word
+
+
+def _scatter(raw: int, bits: tuple[int, ...]) -> int:
+    """Bit k of ``raw`` at bit ``bits[k]``."""
+    word = 0
+    for k, pos in enumerate(bits):
+        if raw >> k & 1:
+            word |= 1 << pos
+    return word
 
 
 def _packer(message: Any, counter: str, crc: str, bounds: Mapping[str, tuple[float, float]]) -> _Packer | None:
@@ -97,6 +108,7 @@ class _OutSpec:
     wrap: int
     bounds: dict[str, tuple[float, float]]
     packer: _Packer | None = None
+    frame_id: int = 0
 
 
 def _encodable_range(sig: Any) -> tuple[float, float]:
@@ -140,7 +152,7 @@ class OutputEncoder:
                                f"length {crc.length}.")
             bounds = {s.name: _encodable_range(s) for s in msg.signals}
             spec = _OutSpec(msg, counter.name, crc.name, 1 << counter.length, bounds,
-                            _packer(msg, counter.name, crc.name, bounds))
+                            _packer(msg, counter.name, crc.name, bounds), int(msg.frame_id))
             self._specs[key] = spec
             self._by_id[int(msg.frame_id)] = spec
             self._count[key] = 0
@@ -215,7 +227,7 @@ class OutputEncoder:
             except (cantools.database.Error, ValueError, KeyError) as err:
                 raise DbcError(f'Cannot encode message "{spec.message.name}" from {dict(values)}: {err}') from err
         data[7] = crc8_j1850(data[:7])
-        return int(spec.message.frame_id), bytes(data)
+        return spec.frame_id, bytes(data)
 
     def verify(self, arbitration_id: int, data: bytes | bytearray) -> bool:
         """True when ``data`` is an 8-byte output frame of this DBC with a correct CRC."""
