@@ -281,6 +281,12 @@ class Pipeline:
         """:meth:`on_signal` with ``split`` left the rest of a publication for :meth:`finish`."""
         return self._rest is not None
 
+    @property
+    def publishes_next(self) -> bool:
+        """With a worker process: the next sample publishes (the live loop readies the publication's encoding)."""
+        return (self.worker.asynchronous and self._next_publish is not None
+                and 0.0 <= self._next_publish - self.t_s <= self.assembler.dt)
+
     def publication_near(self, t_s: float) -> bool:
         """With a worker process: a publication falls due within ``QUIET_S`` of stream time ``t_s`` (or fell due
         less than that ago and waits for its sample), and no slow work starts (see ``QUIET_S``).  Always False

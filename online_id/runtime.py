@@ -133,6 +133,8 @@ class Runtime:
             if pipeline.split_pending:
                 self._rest = res[k + 1:]
                 break
+        if not pubs and pipeline.publishes_next:
+            self.encoder.rehearse()  # the next sample publishes: its OidEstimate's encoding into the caches now
         return pubs
 
     def finish(self) -> list[Publication]:

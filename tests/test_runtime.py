@@ -149,3 +149,38 @@ def test_poles_computed_before_the_publication_give_the_same_estimates() -> None
                 if job is not None:
                     est.complete(job, *solve_or_error(job))
     assert compared > 100 and hits > 10 and a.window.n_fits > 3
+
+
+class _AsyncInline(InlineWorker):
+    """Runs jobs inline, scheduled as for a worker process (the live service's schedule)."""
+
+    asynchronous = True
+
+    def wait(self, timeout_s: float) -> bool:
+        return True
+
+
+def test_the_estimate_frame_is_rehearsed_just_before_a_publication_and_changes_nothing() -> None:
+    """With a worker process, the frames of the sample before a publication pack a throwaway OidEstimate (into the
+    caches): on those frames only, and every frame is the one made without it."""
+    record = _record(4, seconds=8.0)
+    frames = encode_inputs(record.time_s, record.dyno_speed_rpm, record.engine_speed_rpm, record.dyno_torque_nm,
+                           db=load_dbc(None))
+    settings = _settings(record.truth)
+    runs = []
+    for rehearse in (True, False):
+        rt = Runtime(settings, worker=_AsyncInline())
+        seen: list[int] = []
+        i = 0
+        rt.encoder.rehearse = (lambda f=rt.encoder.rehearse: (seen.append(i), f())) if rehearse else lambda: None
+        out = []
+        for i, (t, ident, payload) in enumerate(frames):
+            out += [(i, fid) + (data,) for fid, data in rt.on_frame(t, ident, payload)]
+        runs.append((out, seen))
+    (out, seen), (plain, _) = runs
+    assert out == plain
+    publishing = sorted({i for i, fid, _ in out if fid == 0x300})
+    assert len(publishing) > 300 and len(seen) >= 2 * (len(publishing) - 1)
+    # only on the frames of the sample or two before one (the schedule's float sum may put it a sample later; the
+    # stream's last sample is never completed)
+    assert all(any(0 < p - s <= 6 for p in publishing) for s in seen if s < len(frames) - 6)
