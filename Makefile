@@ -20,15 +20,16 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(VENV)/bin/online-id demo
 
-## Debian packages of the vcan tier (User-Mode Linux, can-utils): installed
-## when root, else only reported (the vcan tests then skip, saying why).
+## Debian packages of the vcan tier (QEMU, User-Mode Linux, can-utils ...) and its guest kernel:
+## installed when root, else only reported (the vcan tier then skips, saying why in one line).
 system-deps:
 	scripts/install-system-deps
 
 ## Run the whole test suite: everything but the live and vcan tiers natively on both cores (pytest-xdist),
 ## then, side by side, the live tier (the service as its own process over kernel sockets, at real time) and
-## the vcan tier on a real SocketCAN vcan0 (natively, or inside User-Mode Linux when this kernel has no vcan).
-## Fails if any part fails (scripts/test-all).
+## the vcan tier on a real SocketCAN vcan0 (natively, or inside another kernel when this one has no vcan:
+## scripts/vm-run). Lists the slowest tests and each tier's time; fails if any part fails (scripts/test-all,
+## docs/testing.md).
 test: system-deps $(STAMP)
 	scripts/test-all $(PY) $(PYTEST_ARGS)
 

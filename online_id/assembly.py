@@ -17,7 +17,9 @@ regressor history instead of bridging the gap.
 
 Time is checked, never trusted:
 
-* a NaN or infinite timestamp is a bad frame (``FrameFault.BAD_TIME``);
+* a NaN or infinite timestamp, or one beyond :data:`MAX_TIME_S` either way
+  (``1e300``), is a bad frame (``FrameFault.BAD_TIME``), the first frame's
+  too;
 * a frame stamped before the last one of its role is dropped
   (``TIME_BACKWARDS``);
 * a frame stamped more than ``max_jump_s`` after the stream clock (the newest
@@ -84,6 +86,8 @@ plus the least lateness over this many seconds of the role's frames (see module 
 
 JUMP_CONFIRM = 2 * len(ROLES)
 """Frames in a row that must agree before a jump of the clock is believed."""
+MAX_TIME_S = 1e10
+"""A timestamp beyond this (Unix time of the year 2286; a stream's own time from 0) is no time."""
 
 
 @dataclass
@@ -233,7 +237,7 @@ class SampleAssembler:
     def push(self, s: SignalSample) -> list[AssembledSample]:
         """Add one decoded value; returns the samples that became complete."""
         t = s.t_s
-        if not math.isfinite(t):
+        if not -MAX_TIME_S <= t <= MAX_TIME_S:  # NaN too
             self.counters.count(FrameFault.BAD_TIME)
             return []
         if self._clock is not None:

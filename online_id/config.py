@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import types
 import typing
 from dataclasses import dataclass, field
@@ -22,7 +23,8 @@ import yaml
 from online_id.estimation.settings import IdentificationSettings, InertiaSettings
 from online_id.errors import ConfigError, FieldError
 
-OUTPUT_MESSAGE_NAMES = ("OidEstimate", "OidShaft", "OidQuality", "OidStatus", "OidAlert", "OidExcitation")
+OUTPUT_MESSAGE_NAMES = ("OidEstimate", "OidShaft", "OidQuality", "OidStatus", "OidAlert", "OidExcitation",
+                        "OidFreshness")
 """Output messages whose IDs ``publish.frame_ids`` may change (those of ``online_id.io.dbc_output``)."""
 
 __all__ = [
@@ -89,7 +91,8 @@ class MappingSettings:
     dyno_torque: RoleSettings = field(default_factory=lambda: RoleSettings("DynoTorque", "DynoTorque", "Nm", "braking", "DynoTorqueCounter"))
     command_message: str = "OidCommand"
     command_signal: str = "Command"
-    command_counter: str | None = "CommandCounter"
+    command_freshness: str | None = "CommandFreshness"
+    command_mac: str | None = "CommandMac"
     command_crc: str | None = "OidCommandCRC"
 
 
@@ -181,16 +184,20 @@ class DetectionSettings:
 
 @dataclass(frozen=True)
 class CommandSettings:
-    """What the OidCommand frame may do.
+    """What the OidCommand frame may do, and how it is authenticated.
 
     ``relearn``: ``confirm`` (default: RELEARN acts only when a second RELEARN
-    frame with a new counter follows within ``confirm_s``), ``allow`` (one
+    frame with a new freshness value follows within ``confirm_s``), ``allow`` (one
     frame acts) or ``disabled`` (only ``online-id relearn`` on the service's
-    own state, never from the bus).
+    own state, never from the bus).  ``key_file``: the file holding the key
+    (hex) of authenticated mode (a relative name is looked up in
+    ``$CREDENTIALS_DIRECTORY``, systemd's ``LoadCredential=``); without it
+    commands are not authenticated (plain mode).  See ``docs/security.md``.
     """
 
     relearn: Literal["confirm", "allow", "disabled"] = "confirm"
     confirm_s: float = 1.0
+    key_file: str | None = None
 
 
 @dataclass(frozen=True)
@@ -466,9 +473,6 @@ def _check_service(s: Settings, file: str) -> None:
     nonnegative("detection", d, "min_freq_change_pct", "min_damping_change_pct", "settle_s", "settle_detect_s",
                 "settle_min_freq_change_pct",
                 "pool_tolerance_pct", "damping_tie_pct", "frequency_tie_pct", "backlash_gain_pct")
-    if not (d.backlash_test_s == 0 or 10.0 <= d.backlash_test_s <= 30.0):
-        raise ConfigError(f"{file}: detection.backlash_test_s: expected 0 (no backlash test) or 10 to 30 s of "
-                          f"steady samples, got {d.backlash_test_s!r}")
     if d.min_count < 2:
         raise ConfigError(f"{file}: detection.min_count: expected an integer >= 2, got {d.min_count!r}")
     if d.h_fault < d.h_warning:
@@ -489,15 +493,181 @@ def _check_service(s: Settings, file: str) -> None:
                           f"got {list(e.speed_window_rpm)!r}")
 
 
+# --- upper bounds ---------------------------------------------------------------------------------------
+# Every numeric key has one, from physics or resources: a value beyond it is a typing error (a unit, a
+# power of ten), never a bench. tests/test_hardening_config.py fails for a numeric key that has none.
+
+_SPEED = (1e5, " rpm", "beyond any engine bench, the bound of the input signals too")
+_TORQUE = (1e5, " Nm", "beyond any engine bench's dynamometer")
+_PCT = (100.0, " %", "a percentage")
+_HOUR = (3600.0, " s", "an hour")
+_DAY = (86400.0, " s", "a day")
+_RATE = (1e4, " Hz", "a CAN bus carries at most about 8,000 frames a second at 1 Mbit/s")
+_ORDER = (40, "", "model orders beyond 40 only fit noise")
+_DELAY = (100, " samples", "a dead time beyond 100 samples is no driveline's")
+_PULSES = (64.0, "", "cylinders / 2 of a 128-cylinder engine")
+_BAND = (5000.0, " Hz", "beyond any driveline's torsional modes")
+_INERTIA = (1e5, " kg m^2", "beyond any engine or dynamometer on a test bench")
+
+BOUNDS: dict[str, tuple[float, str, str]] = {
+    "inertias.J1": _INERTIA, "inertias.J2": _INERTIA, "inertias.J_total": _INERTIA,
+    "identification.sample_rate_hz": _RATE,
+    "identification.na": _ORDER, "identification.nb": _ORDER, "identification.nc": _ORDER,
+    "identification.nk": _DELAY, "identification.pulses_per_rev": _PULSES,
+    "identification.min_plateau_s": _HOUR, "identification.plateau_tol_rpm": _SPEED,
+    "identification.operating_points": (2.0 ** 32, " s", "a time beyond 2106 (32-bit Unix time)"),
+    "identification.min_operating_points": (100, "", "a bench run holds fewer steady operating points"),
+    "identification.band_hz": _BAND, "identification.invariant_tol_pct": _PCT,
+    "bus.bitrate": (1_000_000, " bit/s", "CAN's nominal bit rate is at most 1 Mbit/s (ISO 11898-1)"),
+    "bus.reopen_max_s": _DAY,
+    "input.sample_rate_hz": _RATE, "input.timeout_s": (60.0, " s", "a minute without frames is a timeout"),
+    "input.max_time_jump_s": _DAY,
+    "model.sample_rate_hz": _RATE, "model.na": _ORDER, "model.nb": _ORDER, "model.nc": _ORDER,
+    "model.nk": _DELAY, "model.forgetting": (1.0, "", "a forgetting factor"),
+    "model.p0": (1e8, "", "the first update takes differences of numbers of p0^2: beyond 1e8 they pass 1e16, "
+                          "where double precision has no digit left for the covariance"),
+    "model.min_excitation_nm": _TORQUE, "model.learning_s": _HOUR, "model.pulses_per_rev": _PULSES,
+    "model.band_hz": _BAND,
+    "model.window_s": (600.0, " s", "ten minutes: no operating point of a bench stays one steady window longer"),
+    "model.min_window_s": (600.0, " s", "model.window_s's bound"),
+    "model.settle_guard_s": (600.0, " s", "model.window_s's bound"),
+    "model.refit_s": (600.0, " s", "model.window_s's bound"),
+    "model.max_speed_span_rpm": _SPEED,
+    "publish.rate_hz": (100.0, " Hz", "six output frames a publication: 600 frames a second, most of what "
+                                      "a bench's bus has left"),
+    "publish.frame_ids": (0x1FFFFFFF, "", "the largest 29-bit CAN ID"),
+    "publish.physical_interval_s": _HOUR,
+    "state.save_interval_s": _DAY,
+    "excitation.amplitude_nm": _TORQUE, "excitation.max_amplitude_nm": _TORQUE, "excitation.period_s": _HOUR,
+    "excitation.n_bits": (20, "", "a PRBS of 2^20 bits already takes days"),
+    "excitation.speed_window_rpm": _SPEED,
+    "detection.band_rpm": _SPEED, "detection.load_band_nm": _TORQUE,
+    "detection.min_count": (1_000_000, " estimates", "more than a week of estimates at one a second"),
+    "detection.pool_tolerance_pct": _PCT, "detection.k": (100.0, "", "an allowance of 100 standard deviations"),
+    "detection.h_warning": (1e6, "", "a CUSUM threshold no change ever reaches"),
+    "detection.h_fault": (1e6, "", "a CUSUM threshold no change ever reaches"),
+    "detection.min_excitation_nm": _TORQUE, "detection.min_freq_change_pct": _PCT,
+    "detection.min_damping_change_pct": (1000.0, " %", "ten times the damping"),
+    "detection.damping_tie_pct": _PCT, "detection.frequency_tie_pct": _PCT,
+    "detection.settle_s": _HOUR, "detection.settle_detect_s": _HOUR, "detection.settle_min_freq_change_pct": _PCT,
+    "detection.backlash_test_s": (30.0, " s", "the backlash test takes at most 30 s"),
+    "detection.backlash_gain_pct": _PCT,
+    "alerts.command_timeout_s": _HOUR,
+    "commands.confirm_s": (60.0, " s", "an operator confirms within a minute"),
+    "mqtt.port": (65535, "", "a TCP port"), "mqtt.qos": (2, "", "MQTT's highest QoS"),
+    "mqtt.keepalive_s": (65535.0, " s", "MQTT's keep-alive is a 16-bit number of seconds"),
+    "mqtt.buffer_messages": (1_000_000, " messages", "about 1 GB of queued messages"),
+    "mqtt.reconnect_max_s": _DAY,
+}
+"""Config key -> (upper bound, unit, why)."""
+
+MAX_OPERATING_POINT_S = 86400.0
+"""The longest operating point window ``identification.operating_points`` may give (a day)."""
+
+
+def _numbers(value: Any, key: str) -> list[tuple[str, float]]:
+    """The numbers of a config value with their key (``band_hz[1]``, ``frame_ids.OidEstimate``)."""
+    if isinstance(value, bool) or value is None or isinstance(value, str):
+        return []
+    if isinstance(value, (int, float)):
+        return [(key, value)]
+    if isinstance(value, dict):
+        return [n for k, v in value.items() for n in _numbers(v, f"{key}.{k}")]
+    if isinstance(value, (tuple, list)):
+        return [n for i, v in enumerate(value) for n in _numbers(v, f"{key}[{i}]")]
+    return []
+
+
+def _check_bounds(settings: Settings, file: str) -> None:
+    """Every number of the config at most its key's bound in :data:`BOUNDS` (one line naming key and bound)."""
+    for section in dataclasses.fields(settings):
+        obj = getattr(settings, section.name)
+        if not dataclasses.is_dataclass(obj):
+            continue
+        for f in dataclasses.fields(obj):
+            key = f"{section.name}.{f.name}"
+            bound = BOUNDS.get(key)
+            if bound is None:
+                continue
+            limit, unit, why = bound
+            for where, value in _numbers(getattr(obj, f.name), key):
+                if value > limit:
+                    raise ConfigError(f"{file}: {where}: expected at most {limit:g}{unit} ({why}), got {value!r}")
+    for i, (t0, t1) in enumerate(settings.identification.operating_points):
+        if t1 - t0 > MAX_OPERATING_POINT_S:
+            raise ConfigError(f"{file}: identification.operating_points[{i}]: expected a window of at most "
+                              f"{MAX_OPERATING_POINT_S:g} s (a day), got {t0:g} to {t1:g} s")
+
+
+# --- memory -----------------------------------------------------------------------------------------------
+
+FIT_BYTES_PER_SAMPLE_PARAM = 64
+"""Peak bytes of a window refit per sample and model parameter (regressors and their copies, measured)."""
+
+
+def machine_memory_bytes() -> int | None:
+    """The memory this process may have: the machine's, or its cgroup's limit (systemd's MemoryMax=) if lower."""
+    try:
+        total = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError):
+        return None
+    try:
+        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+        if limit.isdigit():
+            total = min(total, int(limit))
+    except OSError:
+        pass
+    return total
+
+
+def memory_needed(settings: Settings) -> list[tuple[str, float, str]]:
+    """The largest allocations the config asks for: ``(key, bytes, what)``, largest first (estimates)."""
+    m, inp = settings.model, settings.input
+    n_params = m.na + m.nb + m.nc + 1
+    n_window = max(m.window_s * m.sample_rate_hz, 4.0 * n_params)
+    factor = max(1.0, inp.sample_rate_hz / m.sample_rate_hz)
+    needs = [
+        ("model.window_s", n_window * (n_params * FIT_BYTES_PER_SAMPLE_PARAM + 16 * 8),
+         f"a window of {n_window:.3g} samples at model.sample_rate_hz = {m.sample_rate_hz:g} Hz, fitted with "
+         f"{n_params} parameters"),
+        ("model.sample_rate_hz", (8.0 * factor + 1.0) * 8 * 8,
+         f"a decimation filter of {8.0 * factor + 1.0:.3g} taps (input.sample_rate_hz / model.sample_rate_hz)"),
+        ("input.sample_rate_hz", 30.0 * inp.sample_rate_hz * 160,
+         f"30 s of raw samples at {inp.sample_rate_hz:g} Hz for the backlash test"),
+        ("mqtt.buffer_messages", settings.mqtt.buffer_messages * 1024.0 if settings.mqtt.host else 0.0,
+         f"{settings.mqtt.buffer_messages} queued MQTT messages"),
+    ]
+    return sorted(needs, key=lambda n: -n[1])
+
+
+def _check_memory(settings: Settings, file: str, available: int | None = None) -> None:
+    """Refuse a config that needs more memory than the machine has, before anything is allocated."""
+    available = machine_memory_bytes() if available is None else available
+    if available is None:
+        return
+    needs = memory_needed(settings)
+    total = sum(n[1] for n in needs)
+    if total > available:
+        key, _, what = needs[0]
+        raise ConfigError(f"{file}: {key}: the config needs about {total / 2**30:.3g} GiB ({what}), more than "
+                          f"the {available / 2**30:.3g} GiB this machine has")
+
+
 def settings_from_dict(data: Any, file: str = "<config>") -> Settings:
     """Validate a parsed YAML document into :class:`Settings`."""
     settings = build(Settings, data, "", file)
+    d = settings.detection
+    if not (d.backlash_test_s == 0 or 10.0 <= d.backlash_test_s <= 30.0):  # its own bounds, both named
+        raise ConfigError(f"{file}: detection.backlash_test_s: expected 0 (no backlash test) or 10 to 30 s of "
+                          f"steady samples, got {d.backlash_test_s!r}")
+    _check_bounds(settings, file)
     _check_identification(settings.identification, file)
     _check_service(settings, file)
     for name in ("J1", "J2", "J_total"):
         value = getattr(settings.inertias, name)
         if value is not None and value <= 0:
             raise ConfigError(f"{file}: inertias.{name}: expected a number > 0, got {value!r}")
+    _check_memory(settings, file)
     return settings
 
 

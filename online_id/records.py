@@ -98,7 +98,7 @@ class FrameFault(IntEnum):
     TIME_BACKWARDS = 7  # timestamp older than the last sample of that role
     BAD_TIME = 8  # timestamp NaN, infinite, or far ahead of the stream clock and not confirmed
     BAD_CRC = 9  # input CRC (where the mapping has one) does not match the payload
-    COMMAND_REFUSED = 10  # command frame with a bad CRC, or a repeated or stale counter
+    COMMAND_REFUSED = 10  # command frame with a bad CRC, a freshness value that is not new, or a wrong MAC
 
 
 @dataclass(frozen=True)
@@ -165,4 +165,14 @@ class ExcitationOut:
     active: bool
 
 
-Publication = EstimateOut | QualityOut | StatusOut | AlertOut | ExcitationOut
+@dataclass(frozen=True)
+class FreshnessOut:
+    """The command freshness value: the last one accepted (the next command carries this + 1 .. + 64), and
+    whether commands must carry a MAC (see :mod:`online_id.commands`)."""
+
+    t_s: float
+    freshness: int
+    authenticated: bool
+
+
+Publication = EstimateOut | QualityOut | StatusOut | AlertOut | ExcitationOut | FreshnessOut

@@ -2,8 +2,9 @@
 
 Each case simulates a rig (:mod:`online_id.bench.rig`: 2-3 gear stages,
 two recorders on drifting clocks, encoder angles, jitter), puts the records
-through the same path as ``online-id diagnose --second-file`` (resampling,
-clock alignment, shafts from angles, decimation) and diagnoses the motor
+through the same path as ``online-id diagnose --second-file``
+(:func:`online_id.layouts.assemble`: resampling, clocks estimated where they
+plainly differ, shafts from angles, torsion, decimation) and diagnoses the motor
 speed from the torque demand.  True effects: a rotation-order disturbance on
 each shaft in turn, at an order that is identifiable (no faster shaft turns
 at an integer fraction of it, see :func:`identifiable_orders`); clean rigs
@@ -14,6 +15,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
@@ -21,11 +23,10 @@ from pathlib import Path
 import numpy as np
 
 from online_id.bench.rig import OrderDisturbance, RigSpec, random_rig, simulate_rig
-from online_id.diagnose import diagnose
+from online_id.diagnose import DiagnoseData, diagnose
 from online_id.diagnose.align import resample_uniform
-from online_id.diagnose.records import RecordSpec, build_data
 from online_id.diagnose.residual_tests import RIG_LINE_RATIO, RIG_SPLIT_RATIO
-from online_id.diagnose.shafts import ShaftSource
+from online_id.layouts import Column, Layout, ShaftColumn, assemble
 
 SAMPLE_RATE_HZ = 200.0
 SIM_HORIZON_S = 0.1  # the load loop's set point is unmeasured: longer simulations judge it, not the model
@@ -48,42 +49,53 @@ def identifiable_orders(spec: RigSpec, shaft: int) -> list[int]:
     return out
 
 
-def rig_spec(seed: int, shaft: int | None, magnitude: float) -> RigSpec:
+def rig_spec(seed: int, shaft: int | None, magnitude: float, order: int | None = None) -> RigSpec:
     """The randomised rig of one case; ``shaft=None`` is a clean rig.
 
     ``magnitude`` scales the disturbance torque against the PRBS torque
-    reflected to that shaft (``torque_prbs * prod(ratios up to it)``).
+    reflected to that shaft (``torque_prbs * prod(ratios up to it)``);
+    ``order`` overrides the order drawn (the rest of the case is unchanged).
     """
     rng = np.random.default_rng(seed)
     spec = random_rig(rng)
     if shaft is None:
         return spec
     shaft = min(shaft, spec.n_shafts - 1)
-    order = int(rng.choice(identifiable_orders(spec, shaft)))
+    drawn = int(rng.choice(identifiable_orders(spec, shaft)))
+    order = drawn if order is None else int(order)
     reflect = 1.0 / spec.speed_factors()[shaft]
     dist = OrderDisturbance(shaft, float(order), magnitude * spec.torque_prbs_nm * reflect,
                             float(rng.uniform(0, 2 * np.pi)))
     return replace(spec, disturbance=dist)
 
 
-def record_spec(spec: RigSpec) -> RecordSpec:
-    """The options a user would give ``online-id diagnose`` for this rig (angles, no ratios)."""
-    shafts = tuple(ShaftSource(n, "angle", f"{n}_angle_rad") for n in spec.names)
-    return RecordSpec("torque_demand_nm", f"{spec.names[0]}_angle_rad", shafts,
-                      differentiate_output=True, sample_rate_hz=SAMPLE_RATE_HZ)
+def rig_layout(spec: RigSpec, clock: str = "auto") -> Layout:
+    """The layout a user would give ``online-id diagnose`` for this rig's two files (angles, no ratios,
+    the clocks estimated where they plainly differ): what :func:`online_id.layouts.assemble` reads."""
+    shafts = tuple(ShaftColumn(n, "angle", Column(0 if i == 0 else 1, f"{n}_angle_{spec.angle_suffix}"),
+                               1.0 / spec.angle_scale, spec.angle_suffix) for i, n in enumerate(spec.names))
+    return Layout(Column(0, "torque_demand_nm"), shafts[0].column, shafts, differentiate_output=True,
+                  clock=clock, sample_rate_hz=SAMPLE_RATE_HZ)
+
+
+def rig_data(spec: RigSpec, seed: int, clock: str = "auto") -> DiagnoseData:
+    """Simulate the rig and read its two records as ``online-id diagnose --second-file`` does."""
+    rec = simulate_rig(spec, seed)
+    drive, sensor = dict(rec.drive), dict(rec.sensor)
+    r1 = resample_uniform(drive.pop("time_s"), drive, "drive", "time_s")
+    r2 = resample_uniform(sensor.pop("time_s"), sensor, "sensor", "time_s")
+    return assemble([r1, r2], rig_layout(spec, clock), ["drive", "sensor"])
 
 
 def run_case(seed: int, shaft: int | None, magnitude: float, na: int | None = None, nb: int | None = None,
-             nc: int = NC, max_effects: int = 2, plateau_s: float | None = None) -> dict:
-    """Simulate, assemble, diagnose and score one case (``plateau_s`` shortens the plateaus, for tests)."""
+             nc: int = NC, max_effects: int = 2, plateau_s: float | None = None, order: int | None = None) -> dict:
+    """Simulate, assemble, diagnose and score one case (``plateau_s`` shortens the plateaus and ``order``
+    sets the disturbance's order, for tests)."""
     t0 = time.perf_counter()
-    spec = rig_spec(seed, shaft, magnitude)
+    spec = rig_spec(seed, shaft, magnitude, order)
     if plateau_s is not None:
         spec = replace(spec, plateau_s=float(plateau_s))
-    rec = simulate_rig(spec, seed)
-    r1 = resample_uniform(rec.drive.pop("time_s"), rec.drive, "drive", "time_s")
-    r2 = resample_uniform(rec.sensor.pop("time_s"), rec.sensor, "sensor", "time_s")
-    data = build_data(r1, r2, record_spec(spec), f"rig seed {seed}")
+    data = rig_data(spec, seed)
     d = diagnose(data, na=na, nb=nb, nc=nc, nk=1, max_effects=max_effects, sim_horizon_s=SIM_HORIZON_S)
     clock = data.notes["clock"]
     truth = spec.disturbance
@@ -101,6 +113,7 @@ def run_case(seed: int, shaft: int | None, magnitude: float, na: int | None = No
            "fit_before": d.error_before.fit_pct, "fit_after": d.error_after.fit_pct,
            "offset_true_s": spec.clock_offset_s, "offset_est_s": clock["offset_s"],
            "drift_true_ppm": spec.clock_drift_ppm, "drift_est_ppm": clock["drift_ppm"],
+           "clock_mode": clock["mode"], "torsion": data.notes["layout"]["torsion"],
            "max_line_ratio": rig_test.curve.get("max_ratio", 0.0) if rig_test else None,
            "max_split_ratio": rig_test.curve.get("max_split_ratio", 0.0) if rig_test else None,
            "baseline": [d.baseline.na, d.baseline.nb + d.baseline.delay, d.baseline.nc],
@@ -123,15 +136,28 @@ def _task(args: tuple) -> dict:
     return run_case(*args)
 
 
-def _run_all(tasks: list[tuple], jobs: int) -> list[dict]:
-    """``_task`` of every task, in order, on ``jobs`` processes (in this one when ``jobs`` is 1)."""
+def _run_all(tasks: list[tuple], jobs: int, progress: Callable[[int, int, dict], None] | None = None) -> list[dict]:
+    """``_task`` of every task, in order, on ``jobs`` processes (in this one when ``jobs`` is 1);
+    ``progress(done, total, case)`` after each."""
+    out: list[dict] = []
+
+    def done(r: dict) -> None:
+        out.append(r)
+        if progress is not None:
+            progress(len(out), len(tasks), r)
+
     if jobs > 1:
         with ProcessPoolExecutor(jobs) as pool:
-            return list(pool.map(_task, tasks))
-    return [_task(t) for t in tasks]
+            for r in pool.map(_task, tasks):
+                done(r)
+    else:
+        for t in tasks:
+            done(_task(t))
+    return out
 
 
-def evaluate(cases: int, seed: int, magnitude: float, jobs: int = 1, out: Path | None = None) -> dict:
+def evaluate(cases: int, seed: int, magnitude: float, jobs: int = 1, out: Path | None = None,
+             progress: Callable[[int, int, dict], None] | None = None) -> dict:
     """``cases`` clean rigs and ``cases`` rigs per disturbed shaft position (motor, second, last)."""
     tasks = []
     for i in range(cases):
@@ -139,7 +165,7 @@ def evaluate(cases: int, seed: int, magnitude: float, jobs: int = 1, out: Path |
         tasks.append((s, None, magnitude))
         for shaft in range(rig_spec(s, None, magnitude).n_shafts):
             tasks.append((s, shaft, magnitude))
-    rows = [r for r in _run_all(tasks, jobs) if r["true_kind"] == "clean" or r["true_shaft"] is not None]
+    rows = [r for r in _run_all(tasks, jobs, progress) if r["true_kind"] == "clean" or r["true_shaft"] is not None]
     # shaft index 3 on a 3-shaft rig is the load again: keep each (seed, shaft) once
     seen, uniq = set(), []
     for r in rows:
@@ -155,14 +181,15 @@ def evaluate(cases: int, seed: int, magnitude: float, jobs: int = 1, out: Path |
     return summary
 
 
-def calibrate(cases: int, seed: int, jobs: int = 1, out: Path | None = None) -> dict:
+def calibrate(cases: int, seed: int, jobs: int = 1, out: Path | None = None,
+              progress: Callable[[int, int, dict], None] | None = None) -> dict:
     """Largest line ratio on the order grid of the baseline residual of ``cases`` clean rigs.
 
     The rig line test (:data:`online_id.diagnose.residual_tests.RIG_LINE_RATIO`) is set above the
     95th percentile of these maxima (no effect is fitted: ``max_effects=0``).  Use seeds apart from the
     evaluation's.
     """
-    rows = _run_all([(seed + i, None, 0.0, None, None, NC, 0) for i in range(cases)], jobs)
+    rows = _run_all([(seed + i, None, 0.0, None, None, NC, 0) for i in range(cases)], jobs, progress)
     r = np.array([x["max_line_ratio"] for x in rows if x["max_line_ratio"] is not None], dtype=float)
     r2 = np.array([x["max_split_ratio"] for x in rows if x["max_split_ratio"] is not None], dtype=float)
 
@@ -212,6 +239,8 @@ def summarise(rows: list[dict]) -> dict:
     return {"rotation_order": rates(dist), "by_position": {k: rates(v) for k, v in sorted(by_pos.items())},
             "clean": {"cases": len(clean),
                       "false_effect_pct": 100.0 * sum(r["found_kind"] != "clean" for r in clean) / max(len(clean), 1)},
-            "clock": {"offset_err_max_ms": 1e3 * max(off), "offset_err_median_ms": 1e3 * float(np.median(off)),
+            "clock": {"estimated_pct": 100.0 * sum(r.get("clock_mode", "estimated") == "estimated" for r in rows)
+                      / max(len(rows), 1),
+                      "offset_err_max_ms": 1e3 * max(off), "offset_err_median_ms": 1e3 * float(np.median(off)),
                       "drift_err_max_ppm": max(drift), "drift_err_median_ppm": float(np.median(drift))},
             "seconds_per_case": float(np.mean([r["seconds"] for r in rows]))}

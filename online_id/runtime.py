@@ -12,10 +12,12 @@ from typing import Any
 
 from online_id.commands import CommandGate
 from online_id.config import MappingSettings, RoleSettings, Settings
+from online_id.errors import ConfigError
+from online_id.io.auth import read_key
 from online_id.io.dbc import CommandSample, CommandSignal, InputDecoder, RoleMapping, RoleSignal, load_dbc
 from online_id.io.dbc_output import OutputEncoder
 from online_id.pipeline import Pipeline
-from online_id.records import FrameFault, Publication
+from online_id.records import FrameFault, FreshnessOut, Publication
 
 OutFrame = tuple[int, bytes]
 ACCEPTED, AWAITING_CONFIRMATION, REFUSED = 1, 2, 3
@@ -35,7 +37,8 @@ def role_mapping(m: MappingSettings) -> RoleMapping:
         return RoleSignal(r.message, r.signal, r.unit, _sign(role, r), r.counter, r.crc)
 
     return RoleMapping(rs("dyno_speed"), rs("engine_speed"), rs("dyno_torque"),
-                       CommandSignal(m.command_message, m.command_signal, m.command_counter, m.command_crc))
+                       CommandSignal(m.command_message, m.command_signal, m.command_freshness, m.command_mac,
+                                     m.command_crc))
 
 
 def input_decoder(s: Settings, db: Any = None) -> InputDecoder:
@@ -60,7 +63,14 @@ class Runtime:
         self.decoder = input_decoder(s, db)
         self.encoder = OutputEncoder(db, source=self.decoder.source)
         self.pipeline = Pipeline(s, worker=self.worker)
-        self.commands = CommandGate(s.commands)  # what a command frame may do (online_id.commands)
+        key = None
+        if s.commands.key_file is not None:
+            if not self.decoder.command_mac_bytes:
+                raise ConfigError("commands.key_file: authenticated commands need a MAC signal in the command "
+                                  "message (mapping.command_mac)")
+            key = read_key(s.commands.key_file)
+        # what a command frame may do, its freshness and MAC (online_id.commands)
+        self.commands = CommandGate(s.commands, key, self.decoder.command_freshness_bits)
         ids = {}
         for key, name in self.encoder.names.items():
             if name in s.publish.frame_ids:
@@ -83,12 +93,14 @@ class Runtime:
         self.frames_out += len(out)
         return out
 
-    def first_frame(self, pub: Publication) -> OutFrame:
-        """The first frame of ``pub`` alone (of an :class:`EstimateOut`, its OidEstimate); ``frames(pubs,
-        skip_first=True)`` gives the rest."""
-        ident, data = self.encoder.encode_first(pub)
+    def first_frame(self, pub: Publication) -> OutFrame | None:
+        """The first frame of ``pub`` alone (of an :class:`EstimateOut`, its OidEstimate; None for an output the
+        DBC lacks); ``frames(pubs, skip_first=True)`` gives the rest."""
+        frame = self.encoder.encode_first(pub)
+        if frame is None:
+            return None
         self.frames_out += 1
-        return self._remap.get(ident, ident), data
+        return self._remap.get(frame[0], frame[0]), frame[1]
 
     def on_frame(self, t_s: float, arbitration_id: int, data: bytes, is_extended: bool = False,
                  is_error: bool = False) -> list[OutFrame]:
@@ -120,12 +132,17 @@ class Runtime:
         if isinstance(res, CommandSample):
             awaiting = self.commands.awaiting
             if not self.commands.admit(res, arbitration_id, data):
-                if int(res.command) == 0:
-                    return []
-                result = AWAITING_CONFIRMATION if self.commands.awaiting > awaiting else REFUSED
-                return self._answer(t_s, int(res.command), result, res.counter)
+                if int(res.command) == 0:  # a request for the freshness value
+                    return [self._freshness(t_s)]
+                if self.commands.awaiting > awaiting:
+                    result = AWAITING_CONFIRMATION
+                else:
+                    result = REFUSED
+                    if self.commands.faulty:  # stale, forged ...: a bad frame; the policy's refusals are not
+                        self.pipeline.on_fault(FrameFault.COMMAND_REFUSED)
+                return self._answer(t_s, int(res.command), result, res.freshness)
             done = self.pipeline.on_command(int(res.command), t_s)
-            return done + self._answer(t_s, int(res.command), ACCEPTED, res.counter)
+            return done + self._answer(t_s, int(res.command), ACCEPTED, res.freshness)
         pubs: list[Publication] = []
         pipeline = self.pipeline
         for k, sample in enumerate(res):
@@ -148,10 +165,20 @@ class Runtime:
             pubs.extend(pipeline.on_signal(sample))
         return pubs
 
-    def _answer(self, t_s: float, command: int, result: int, counter: int | None) -> list[Publication]:
-        """A status frame at once, answering a command frame (signals LastCommand, CommandResult, CommandCounterEcho)."""
-        self.encoder.answer_command(command, result, counter)
-        return [self.pipeline.status(t_s)]
+    def _answer(self, t_s: float, command: int, result: int, freshness: int | None) -> list[Publication]:
+        """A status frame at once, answering a command frame (signals LastCommand, CommandResult,
+        CommandCounterEcho), and the freshness value a next command needs."""
+        self.encoder.answer_command(command, result, freshness)
+        return [self.pipeline.status(t_s), self._freshness(t_s)]
+
+    def _freshness(self, t_s: float) -> FreshnessOut:
+        return FreshnessOut(t_s, self.commands.current(t_s), self.commands.authenticated)
+
+    @property
+    def stream_clock(self) -> float:
+        """The stream time of the newest input the pipeline took (NaN before one): what the service's loop
+        ticks from; a frame judged bad (a time far ahead held or refused, a bad frame) never moves it."""
+        return self.pipeline.assembler.now_s
 
     def tick_worker(self) -> list[OutFrame]:
         """No stream clock yet: only adopt finished slow work."""

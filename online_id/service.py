@@ -3,8 +3,11 @@
 ``run_service(settings)`` opens the bus, restores the saved state, and loops:
 receive a frame (with a short timeout), run it through the :class:`Runtime`,
 send what it publishes, and between frames advance the stream clock so that
-silence is detected.  SIGTERM and SIGINT end the loop cleanly: the excitation
-request is withdrawn, the state is saved, the bus closed, exit status 0.
+silence is detected (from the time of the last frame the pipeline took,
+never from a frame judged bad).  SIGTERM and SIGINT end the loop cleanly: the
+excitation request is withdrawn, the state is saved, the bus closed, exit
+status 0; 1 when that last save failed (the state on disk is then older than
+the service's), so that systemd sees it.
 
 Nothing slow runs in the receive loop: the window refits, multi-start
 checks and physical fits go to a worker process at the lowest CPU priority
@@ -38,6 +41,7 @@ import time
 from pathlib import Path
 from typing import Callable, TextIO
 
+from online_id.commands import FRESHNESS_FILE, keep_freshness
 from online_id.config import Settings
 from online_id.errors import BusError
 from online_id.io.bus import CanBus
@@ -91,6 +95,8 @@ class Service:
         self.phases = {what: ReactionTimes() for what in ("pipeline CPU", "encoding CPU", "sending CPU", "waiting")}
         self._last_state = None
         self._restore()
+        if self.state_file is not None:  # a command's freshness value outlives a restart (online_id.commands)
+            keep_freshness(self.runtime.commands, self.state_file.with_name(FRESHNESS_FILE), self.say)
         self._n_alerts = self.runtime.pipeline.alerts_total
         self.runtime.pipeline.warm_up()  # compiled code loaded before the bus opens, not on the first frames
         self.telemetry = None
@@ -111,11 +117,11 @@ class Service:
             pipeline.worker = self.runtime.pipeline.worker  # the restored pipeline's slow work goes where ours did
             self.runtime.pipeline = pipeline
 
-    def save(self, final: bool = False) -> None:
+    def save(self, final: bool = False) -> bool:
         """Save the state: in the worker process while running (the write and fsync take tens of ms),
-        here and now at the end (``final``)."""
+        here and now at the end (``final``); False when a save here failed (said)."""
         if self.state_file is None:
-            return
+            return True
         state = self.runtime.pipeline.get_state()  # a snapshot (about 0.5 ms)
         worker = self.runtime.pipeline.worker
         if final or not worker.asynchronous:
@@ -123,8 +129,10 @@ class Service:
                 save_state(self.state_file, state)
             except OSError as err:
                 self.say(f"cannot save state to {self.state_file}: {err}")
+                return False
         elif not worker.busy("state"):
             worker.submit("state", save_state, (self.state_file, state), self._saved)
+        return True
 
     def _saved(self, _result, error: str | None) -> None:
         if error is not None:
@@ -214,6 +222,11 @@ class Service:
             self.say(f"state {text}")
             self.notifier.status(text)
 
+    def _commands_text(self) -> str:
+        gate = self.runtime.commands
+        why = ", ".join(f"{n} {reason}" for reason, n in sorted(gate.refusals.items()))
+        return f"{gate.accepted} commands accepted, {gate.refused} rejected" + (f" ({why})" if why else "")
+
     def _close_telemetry(self) -> None:
         if self.telemetry is not None:
             self.telemetry.close(self.runtime.pipeline.state.name)
@@ -248,6 +261,7 @@ class Service:
         rcvbuf = getattr(bus, "receive_buffer_bytes", None)
         self.say(f"listening on {s.bus.interface}:{s.bus.channel}"
                  + (f" (kernel receive buffer {rcvbuf} bytes)" if rcvbuf else ""))
+        self.say(self.runtime.commands.mode_text())  # authenticated or not
         self.say(request_short_slice())  # this thread preempts the worker and other work when a frame comes
         self.notifier.ready(f"listening on {s.bus.interface}:{s.bus.channel}")
         next_drops = time.monotonic() + 1.0
@@ -269,26 +283,30 @@ class Service:
                     c_recv = cpu()
                     now = monotonic()
                     if frame is not None:
-                        self.last_frame_wall = now
-                        self.last_frame_ts = frame.t_s
+                        before = runtime.stream_clock
                         pubs = runtime.publications(frame.t_s, frame.arbitration_id, frame.data,
                                                     frame.is_extended, frame.is_error)
+                        clock = runtime.stream_clock
+                        if clock != before and clock == clock:  # this frame moved it (and it is not NaN)
+                            # the loop's clock follows the frames the pipeline took, never a bad one's time
+                            self.last_frame_ts, self.last_frame_wall = clock, now
                         if pubs:
                             # a publication's first frame is its OidEstimate: encoded and sent before anything
                             # else is encoded, and before the rest of the publication is made
                             c_made = cpu()
                             first = runtime.first_frame(pubs[0])
                             c_encoded = cpu()
-                            bus.send(*first)
-                            t_sent = wall()
-                            c_sent = cpu()
-                            reaction.add(t_sent - frame.t_s)
-                            processing.add(t_sent - t_recv)
-                            processing_cpu.add(c_sent - c_recv)
-                            pipeline_cpu.add(c_made - c_recv)
-                            encoding_cpu.add(c_encoded - c_made)
-                            sending_cpu.add(c_sent - c_encoded)
-                            waiting.add(t_recv - frame.t_s)
+                            if first is not None:  # (None: an output the DBC lacks)
+                                bus.send(*first)
+                                t_sent = wall()
+                                c_sent = cpu()
+                                reaction.add(t_sent - frame.t_s)
+                                processing.add(t_sent - t_recv)
+                                processing_cpu.add(c_sent - c_recv)
+                                pipeline_cpu.add(c_made - c_recv)
+                                encoding_cpu.add(c_encoded - c_made)
+                                sending_cpu.add(c_sent - c_encoded)
+                                waiting.add(t_recv - frame.t_s)
                             for ident, data in runtime.frames(pubs, skip_first=True):
                                 bus.send(ident, data)
                             more = runtime.finish()
@@ -299,7 +317,7 @@ class Service:
                     elif draining_until is not None:
                         break
                     elif self.last_frame_ts is not None:
-                        # the stream's clock: the last frame's timestamp plus the wall time since it came
+                        # the stream's clock: the last good frame's time plus the wall time since it came
                         # (frame timestamps may be kernel time, a replayed log's or a simulator's)
                         out = runtime.tick(self.last_frame_ts + now - self.last_frame_wall)
                     else:
@@ -354,12 +372,13 @@ class Service:
             bus.close()
             self.runtime.pipeline.worker.close()
             self._close_telemetry()
-        self.save(final=True)
+        saved = self.save(final=True)
         c = self.runtime.pipeline.counters
         self.say(f"stopped: {self.runtime.frames_in} frames in, {self.runtime.frames_out} frames out, "
                  f"{c.samples} samples, {c.bad_frames} bad frames, {c.missing_frames} missing frames, "
                  f"{self.runtime.pipeline.dropped_frames} dropped by the kernel, "
-                 f"{c.faults[FrameFault.UNKNOWN_ID]} foreign frames, state {self.runtime.pipeline.state.name}; "
+                 f"{c.faults[FrameFault.UNKNOWN_ID]} foreign frames, {self._commands_text()}, "
+                 f"state {self.runtime.pipeline.state.name}; "
                  f"{self.reaction.summary()}"
                  + (f" (the loop's own work on the frame: {self.processing.summary('processing')}; "
                     f"its CPU time: {self.processing_cpu.summary('processing CPU')})"
@@ -367,6 +386,9 @@ class Service:
         if self.processing.n:
             self.say("the loop on a frame that publishes, by phase: "
                      + "; ".join(times.summary(what) for what, times in self.phases.items()))
+        if not saved:  # systemd sees it: the state on disk is older than the service's
+            self.say(f"exit status 1: the last save of the state failed ({self.state_file})")
+            return 1
         return 0
 
 

@@ -11,6 +11,7 @@ from online_id.estimation.preprocess import angle_to_speed, check_uniform
 from online_id.errors import InputDataError
 from online_id.io.table_csv import LINE_KEY, read_csv_columns
 from online_id.records import BenchData
+from online_id.units import MAX_PLAUSIBLE_RAD_S, SPEED_UNITS, angle_factor, implausible_speed, unit_hint
 
 MIN_SAMPLES = 200
 MAX_SPEED_RPM = 1e5
@@ -74,20 +75,39 @@ def bench_data_from_columns(
     speeds = []
     for role in ("dyno_speed", "engine_speed"):
         raw = _own(columns[getattr(names, role)])
-        if units.speed == "rpm":
-            raw *= np.pi / 30.0
+        if units.speed in SPEED_UNITS:
+            raw *= SPEED_UNITS[units.speed]
             speeds.append(raw)
-        elif units.speed == "rad/s":
-            speeds.append(raw)
-        else:
-            speeds.append(angle_to_speed(raw, time_s, unit=units.speed))
+        else:  # cumulative angles (deg, rad, rev, countsN)
+            raw *= angle_factor(units.speed, "units.speed")
+            speeds.append(angle_to_speed(raw, time_s, unit="rad"))
     torque = _own(columns[names.dyno_torque])
     if units.torque_sign != "braking":
         np.negative(torque, out=torque)
     for role, x in zip(("dyno_speed", "engine_speed"), speeds):
-        _check_range(x, MAX_SPEED_RPM, getattr(names, role), "rpm", lines, source, scale=30.0 / np.pi)
+        try:
+            _check_range(x, MAX_SPEED_RPM, getattr(names, role), "rpm", lines, source, scale=30.0 / np.pi)
+        except InputDataError as err:
+            w = float(np.nanmedian(np.abs(x)))
+            hint = unit_hint(w, units.speed, _kind(units.speed)) if w > MAX_PLAUSIBLE_RAD_S else ""
+            raise InputDataError(f"{err}" + (f" ({hint})" if hint else "")) from None
     _check_range(torque, MAX_TORQUE_NM, names.dyno_torque, "Nm", lines, source)
     return BenchData(time_s, speeds[0], speeds[1], torque, source)
+
+
+def _kind(unit: str) -> str:
+    return "speed" if unit in SPEED_UNITS else "angle"
+
+
+def speed_warnings(data: BenchData, names: ColumnSettings, units: UnitSettings) -> list[str]:
+    """One line per speed column that turns faster than any rig in the unit it was read in (likely a unit
+    error: degrees read as radians), naming the likely unit (:func:`online_id.units.implausible_speed`)."""
+    out = []
+    for role, x in (("dyno_speed", data.dyno_speed_rad_s), ("engine_speed", data.engine_speed_rad_s)):
+        text = implausible_speed(x, getattr(names, role), units.speed, _kind(units.speed))
+        if text:
+            out.append(f"{data.source}: {text}")
+    return out
 
 
 def read_bench_csv(path: str | Path, names: ColumnSettings | None = None, units: UnitSettings | None = None) -> BenchData:

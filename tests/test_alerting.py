@@ -62,20 +62,41 @@ def test_alert_goes_to_journal_and_hook(tmp_path, monkeypatch):
 
 
 def test_ack_and_relearn_send_the_command_frame(capsys):
+    import threading
+
     from online_id.cli import main
     from online_id.io.bus import CanBus
     from online_id.io.dbc import BenchCommand, InputDecoder, load_dbc
+    from online_id.runtime import Runtime
 
     channel = f"ack-{os.getpid()}"
-    listener = CanBus("virtual", channel)
     dec = InputDecoder(load_dbc(None))
-    for k, (name, cmd) in enumerate((("ack", BenchCommand.ACK_ALERT), ("relearn", BenchCommand.RELEARN_BASELINE))):
-        assert main([name, "--interface", "virtual", "--channel", channel, "--wait", "0"]) == 0
-        # relearn sends the frame twice (confirmation), with consecutive counters
-        for j in range(1 + (cmd == BenchCommand.RELEARN_BASELINE)):
-            f = listener.recv(2.0)
-            assert f is not None and f.arbitration_id == 0x120
-            out = dec.decode(f.arbitration_id, f.data, 10.0 * k + 0.2 * j)  # CRC and counter checked
-            assert out.command == cmd
-    listener.close()
+    runtime = Runtime(Settings())  # answers the senders' requests for the freshness value
+    frames, stop, ready = [], threading.Event(), threading.Event()
+
+    def listen():
+        with CanBus("virtual", channel) as bus:
+            ready.set()
+            while not stop.is_set():
+                f = bus.recv(0.05)
+                if f is not None and f.arbitration_id == 0x120 and f.data[0]:
+                    frames.append(f)
+                elif f is not None:
+                    for ident, data in runtime.on_frame(time.time(), f.arbitration_id, f.data):
+                        bus.send(ident, data)
+
+    thread = threading.Thread(target=listen)
+    thread.start()
+    try:
+        assert ready.wait(10)
+        for name in ("ack", "relearn"):
+            assert main([name, "--interface", "virtual", "--channel", channel, "--wait", "0"]) == 0
+        time.sleep(0.3)
+    finally:
+        stop.set()
+        thread.join()
+    # relearn sends the frame twice (confirmation), with consecutive freshness values; CRC checked
+    out = [dec.decode(f.arbitration_id, f.data, 10.0) for f in frames]
+    assert [o.command for o in out] == [BenchCommand.ACK_ALERT] + [BenchCommand.RELEARN_BASELINE] * 2
+    assert out[2].freshness == out[1].freshness + 1
     assert "sent RELEARN_BASELINE" in capsys.readouterr().out

@@ -82,7 +82,7 @@ def test_dbc_loads_strictly_and_packaged_copy_is_identical(db):
     assert {m.name: m.frame_id for m in strict.messages} == {
         "DynoSpeed": 0x101, "EngineSpeed": 0x102, "DynoTorque": 0x103, "OidCommand": 0x120,
         "OidEstimate": 0x300, "OidShaft": 0x301, "OidQuality": 0x302, "OidStatus": 0x303,
-        "OidAlert": 0x304, "OidExcitation": 0x305,
+        "OidAlert": 0x304, "OidExcitation": 0x305, "OidFreshness": 0x306,
     }
     for msg in db.messages:
         assert msg.length == 8 and not msg.is_extended_frame
@@ -264,8 +264,8 @@ def test_decode_sample_command_and_every_fault(db, bench_db):
     dec = InputDecoder(db)
     (s,) = dec.decode(0x101, _speed(12_345_678, 9), 2.5)
     assert s == SignalSample("dyno_speed", 1234.5678 * RPM, 2.5, 9)
-    cmd = dec.decode(0x120, _crc(bytes([3, 17, 0, 0, 0, 0, 0])), 3.0)
-    assert cmd == CommandSample(BenchCommand.RESET_ESTIMATOR, 3.0, 17)
+    cmd = dec.decode(0x120, _crc(bytes([3, 17, 0, 1, 2, 3, 4])), 3.0)
+    assert cmd == CommandSample(BenchCommand.RESET_ESTIMATOR, 3.0, 17, bytes([1, 2, 3, 4]))  # freshness, MAC
     rng = np.random.default_rng(3)
     for fid in rng.integers(0, 0x800, 200):
         if int(fid) not in (0x101, 0x102, 0x103, 0x120):

@@ -12,11 +12,10 @@ from online_id.cli import main
 from online_id.diagnose import DiagnoseData, diagnose
 from online_id.diagnose.align import resample_uniform
 from online_id.diagnose.diagnosis import _guard, ErrorFigures
-from online_id.diagnose.records import build_data
 from online_id.diagnose.shafts import assign_order, parse_shafts, snap_ratio
 from online_id.errors import ConfigError, InputDataError
 from online_id.io.table_csv import write_csv_columns
-from online_id.rig_evaluation import identifiable_orders, record_spec, run_case
+from online_id.rig_evaluation import identifiable_orders, rig_data, rig_spec, run_case
 
 
 def _records(seed: int, **overrides):
@@ -28,7 +27,7 @@ def _records(seed: int, **overrides):
     return spec, rec, r1, r2
 
 
-@pytest.mark.parametrize("seed", [3, 7])
+@pytest.mark.parametrize("seed", [11300, 11301])
 def test_rig_shafts_turn_at_their_gear_ratios_and_clock_drifts(seed):
     spec, rec, _, _ = _records(seed)
     assert spec.n_shafts >= 3
@@ -42,11 +41,12 @@ def test_rig_shafts_turn_at_their_gear_ratios_and_clock_drifts(seed):
     np.testing.assert_allclose(a / q, np.round(a / q), atol=1e-6)
 
 
-@pytest.mark.parametrize("seed", [0, 2, 5, 11, 17])
+@pytest.mark.parametrize("seed", [11302, 11303, 11304, 11305, 11306])
 def test_alignment_recovers_offset_and_drift(seed):
-    spec, _, r1, r2 = _records(seed)
-    data = build_data(r1, r2, record_spec(spec), f"seed {seed}")
+    spec = random_rig(np.random.default_rng(seed))
+    data = rig_data(spec, seed)
     c = data.notes["clock"]
+    assert c["mode"] == "estimated"  # the clocks plainly differ: the sensor lags by 0.1-2 s
     assert abs(c["offset_s"] - spec.clock_offset_s) < 1e-3  # 1 ms
     assert abs(c["drift_ppm"] - spec.clock_drift_ppm) < 5.0  # 5 ppm
     assert data.notes is not None and set(data.shaft_rates) == set(spec.names)
@@ -85,7 +85,7 @@ def test_shaft_options_are_checked():
 
 
 def test_identifiable_orders_leave_out_orders_of_a_faster_shaft():
-    spec = random_rig(np.random.default_rng(0), ratios=(2.0, 3.0), inertias_kgm2=(0.03, 0.1, 1.0),
+    spec = random_rig(np.random.default_rng(11307), ratios=(2.0, 3.0), inertias_kgm2=(0.03, 0.1, 1.0),
                       stiffness_nm_rad=(400.0, 4000.0), damping_nms_rad=(0.2, 1.0))
     assert identifiable_orders(spec, 0) == [1, 2, 3, 4, 5]
     assert identifiable_orders(spec, 1) == [1, 3, 5]  # 2, 4 of the middle shaft are orders 1, 2 of the motor
@@ -119,11 +119,21 @@ def test_guard_in_the_loop_refuses_an_overfitting_step():
     assert doc["baseline"]["modes"] and all("stable" in m for m in doc["baseline"]["modes"])
 
 
+WEAK_INTERMEDIATE = pytest.mark.xfail(strict=True, reason=(
+    "order 1 of an intermediate shaft turning at half the motor's rate (4-9 Hz): with 15 s plateaus its line "
+    "reaches 7.8x the order-grid floor, under the 16x threshold; the same line at one plateau (a 7.2 Hz Welch "
+    "peak) is refused by the guard (simulation fit 99.1 % -> 92.1 %)"))
+WEAK_LOAD = pytest.mark.xfail(strict=True, reason=(
+    "order 5 of a load turning at 1/16 of the motor (2.5-5.5 Hz, within the load PI loop's 2-4 Hz band): with "
+    "15 s plateaus its line reaches 9.1x the order-grid floor, under the 16x threshold"))
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("seed, shaft", [(7005, 0), (7014, 1), (7015, 2), (7009, 2)])
+@pytest.mark.parametrize("seed, shaft", [(11310, 0), pytest.param(11311, 1, marks=WEAK_INTERMEDIATE), (11312, 2),
+                                         pytest.param(11313, 3, marks=WEAK_LOAD)])
 def test_order_on_a_shaft_is_named_first_against_that_shaft(seed, shaft):
-    # motor, intermediate, intermediate of four shafts and load, on four rigs (orders 1, 5, 5, 5), with
-    # 15 s plateaus (the evaluation's are 30 s; docs/diagnose.md gives its rates, 57 % on the load)
+    # motor, intermediate, intermediate and load (orders 3, 1, 5, 5 as drawn), on the first four seeds of the
+    # tests' block, with 15 s plateaus (the evaluation's are 30 s; docs/diagnose.md gives its rates)
     r = run_case(seed, shaft, 0.3, plateau_s=15.0)
     assert r["effects"], r["candidates"]
     e = r["effects"][0]
@@ -135,17 +145,34 @@ def test_order_on_a_shaft_is_named_first_against_that_shaft(seed, shaft):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", [7002, 7005])
+@pytest.mark.parametrize("seed", [11320, 11321, 11322])
+@pytest.mark.xfail(strict=True, reason=(
+    "the known limit: orders 1-2 of the load (0.3-2 Hz) are rejected by the load's PI speed loop (2-4 Hz); "
+    "their line in the motor speed stays at 2-8x the local floor, under the 16x a clean rig reaches by chance "
+    "(docs/diagnose.md); on 11320-11323 none was named, 11321 named an additional mode instead"))
+def test_load_orders_1_2_are_named_first(seed):
+    spec = rig_spec(seed, None, 0.3)
+    load = spec.n_shafts - 1
+    order = 2 if 2 in identifiable_orders(spec, load) else 1
+    r = run_case(seed, load, 0.3, plateau_s=15.0, order=order)
+    assert r["effects"], r["candidates"]
+    e = r["effects"][0]
+    assert (e["kind"], e["params"].get("shaft"), e["params"].get("order")) == (
+        "rotation_order_disturbance", r["true_shaft"], order)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [11314, 11315])
 def test_clean_rig_reports_no_effect(seed):
     r = run_case(seed, None, 0.0, plateau_s=15.0)
     assert r["found_kind"] == "clean", r["effects"]
 
 
 def test_cli_diagnose_two_files_with_shafts(tmp_path, capsys):
-    spec = random_rig(np.random.default_rng(1), n_stages=2)
+    spec = random_rig(np.random.default_rng(11316), n_stages=2)
     spec = replace(spec, disturbance=OrderDisturbance(0, 2.0, 0.5), load_speed_rad_s=spec.load_speed_rad_s,
                    plateau_s=12.0)
-    rec = simulate_rig(spec, 1)
+    rec = simulate_rig(spec, 11316)
     fmt = {n: "%.9f" if n == "time_s" else "%.7f" for n in (*rec.drive, *rec.sensor)}
     write_csv_columns(tmp_path / "drive.csv", rec.drive, fmt)
     write_csv_columns(tmp_path / "sensor.csv", rec.sensor, fmt)

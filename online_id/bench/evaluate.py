@@ -140,18 +140,27 @@ class RunResult:
         return dataclasses.asdict(self)
 
 
-def random_plant(rng: np.random.Generator) -> dict[str, Any]:
-    """Scenario fields of a random bench (see module notes)."""
+def random_driveline(rng: np.random.Generator, f0_hz: tuple[float, float] = (16.0, 34.0),
+                     zeta: tuple[float, float] = (0.03, 0.08)) -> tuple[dict[str, Any], float]:
+    """Scenario fields ``J1, J2, c_s, d_s, n_cyl, noise`` of a random two-mass driveline (inertias 0.5-1.2 and
+    0.2-0.6 kg m^2, resonance and damping ratio uniform in ``f0_hz`` and ``zeta``, 4 or 6 cylinders,
+    measurement noise), and its resonance [Hz] as drawn."""
     J1 = rng.uniform(0.5, 1.2)
     J2 = rng.uniform(0.2, 0.6)
-    f0 = rng.uniform(16.0, 34.0)
-    zeta = rng.uniform(0.03, 0.08)
+    f0 = rng.uniform(*f0_hz)
+    z = rng.uniform(*zeta)
     J = J1 * J2 / (J1 + J2)
     c_s = (2.0 * math.pi * f0) ** 2 * J
-    d_s = 2.0 * zeta * math.sqrt(c_s * J)
+    d_s = 2.0 * z * math.sqrt(c_s * J)
     n_cyl = int(rng.choice([4, 6]))
     noise = Noise(dyno_speed_rpm=rng.uniform(0.02, 0.1), engine_speed_rpm=rng.uniform(0.05, 0.2),
                   torque_nm=rng.uniform(0.1, 0.5))
+    return {"J1": J1, "J2": J2, "c_s": c_s, "d_s": d_s, "n_cyl": n_cyl, "noise": noise}, f0
+
+
+def random_plant(rng: np.random.Generator) -> dict[str, Any]:
+    """Scenario fields of a random bench (see module notes)."""
+    plant, f0 = random_driveline(rng)
     friction = Friction(b0=rng.uniform(3.0, 8.0), b1=rng.uniform(0.01, 0.03), b2=2e-5,
                         drift=rng.uniform(-0.4, 0.2), drift_tau_s=rng.uniform(300.0, 1800.0))
     fx: dict[str, Any] = {}
@@ -169,8 +178,8 @@ def random_plant(rng: np.random.Generator) -> dict[str, Any]:
         fx["structural_resonance"] = StructuralResonance(freq_hz=rng.uniform(2.5, 4.0) * f0, zeta=0.02,
                                                          amplitude_nm=rng.uniform(0.2, 1.0))
     return {
-        "J1": J1, "J2": J2, "c_s": c_s, "d_s": d_s, "n_cyl": n_cyl, "noise": noise, "friction": friction,
-        "effects": Effects(**fx), "prbs": PrbsSettings(amplitude_nm=rng.uniform(30.0, 50.0), period_s=1.0),
+        **plant, "friction": friction, "effects": Effects(**fx),
+        "prbs": PrbsSettings(amplitude_nm=rng.uniform(30.0, 50.0), period_s=1.0),
     }
 
 
@@ -406,6 +415,7 @@ def summarize(results: list[RunResult]) -> dict[str, Any]:
         "fault_free": {
             "hours": hours, "runs": len(free), "false_alarms": n_false, "false_fault_alarms": n_false_fault,
             "false_alarms_per_hour": n_false / hours if hours else None,
+            **rate_per_1000h(n_false, hours),
             "valid_fraction": float(np.mean([r.valid_fraction for r in free])) if free else None,
             "f0_error_pct_p50_abs": float(np.median(np.abs(errs))) if errs.size else None,
             "f0_error_pct_p99_abs": float(np.quantile(np.abs(errs), 0.99)) if errs.size else None,
@@ -451,6 +461,27 @@ def summarize(results: list[RunResult]) -> dict[str, Any]:
                                       "p90": float(np.quantile(back, 0.9)), "max": float(max(back))}
                                      if back else None)
     return out
+
+
+def rate_per_1000h(events: int, hours: float, level: float = 0.95) -> dict[str, Any]:
+    r"""False alarms per 1,000 hours with its exact (Garwood) Poisson interval at ``level``.
+
+    Notes
+    -----
+    For :math:`n` events in :math:`T` hours the interval of the rate is
+    :math:`[\chi^2_{2n}(\alpha/2) / 2T,\ \chi^2_{2n+2}(1-\alpha/2) / 2T]`
+    (the lower end 0 for :math:`n = 0`): with no false alarm in 3,000 hours the
+    upper end is 1.23 per 1,000 hours.
+    """
+    if not hours > 0:
+        return {"false_alarms_per_1000h": None, "false_alarms_per_1000h_ci": None}
+    from scipy.stats import chi2
+
+    a = 1.0 - level
+    lo = 0.0 if events == 0 else float(chi2.ppf(a / 2.0, 2 * events)) / 2.0
+    hi = float(chi2.ppf(1.0 - a / 2.0, 2 * events + 2)) / 2.0
+    k = 1000.0 / hours
+    return {"false_alarms_per_1000h": events * k, "false_alarms_per_1000h_ci": [lo * k, hi * k]}
 
 
 def _withheld(rs: list[RunResult], name: str) -> dict[str, int] | None:

@@ -37,7 +37,7 @@ sampling instants may jitter (timestamps are the true instants of that clock).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.linalg import expm
@@ -45,6 +45,9 @@ from scipy.linalg import expm
 from online_id.errors import ConfigError
 
 SIM_HZ = 2000.0
+LAYOUTS = ("shafts", "loggers")
+"""``shafts``: drive file with the torque demand and the motor angle, sensor file with the other shafts'
+angles.  ``loggers``: as two loggers of a measured rig write it (see :func:`simulate_rig`)."""
 
 
 @dataclass(frozen=True)
@@ -72,6 +75,14 @@ class RigSpec:
         ``c_i``, ``d_i`` of the shaft after each gear (N-1 values).
     names
         Shaft names (N values).
+    layout
+        What the recorders write (:data:`LAYOUTS`, see :func:`simulate_rig`).
+    sensor_start_s
+        The sensor recorder starts this long after the drive recorder (true time).
+    angle_scale, angle_suffix
+        Encoder angles are written as ``angle_scale`` units per radian (1: rad,
+        ``180/pi``: deg, ``counts_per_rev/(2 pi)``: counts); ``shafts`` column
+        names end in ``angle_suffix``.
     """
 
     inertias_kgm2: tuple[float, ...]
@@ -94,6 +105,10 @@ class RigSpec:
     clock_offset_s: float = 0.5
     clock_drift_ppm: float = 100.0
     jitter_s: float = 0.0
+    layout: str = "shafts"
+    sensor_start_s: float = 0.0
+    angle_scale: float = 1.0
+    angle_suffix: str = "rad"
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -112,6 +127,11 @@ class RigSpec:
             object.__setattr__(self, "names", tuple(_default_names(n)))
         if len(self.names) != n:
             raise ConfigError(f"rig names needs {n} values, got {len(self.names)}")
+        if self.layout not in LAYOUTS:
+            raise ConfigError(f"rig layout must be one of {', '.join(LAYOUTS)}, got {self.layout!r}")
+        if not (self.angle_scale > 0 and 0 <= self.sensor_start_s < self.duration_s()):
+            raise ConfigError(f"rig angle_scale must be > 0 and sensor_start_s in [0, duration), got "
+                              f"{self.angle_scale!r}, {self.sensor_start_s!r}")
         d = self.disturbance
         if d is not None and not 0 <= d.shaft < n:
             raise ConfigError(f"disturbance shaft {d.shaft} is not one of 0..{n - 1}")
@@ -166,6 +186,57 @@ def random_rig(rng: np.random.Generator, n_stages: int | None = None, **override
     return RigSpec(**base)
 
 
+def loggers_rig(rng: np.random.Generator, speeds: tuple[float, ...] = (1.0,), **overrides) -> RigSpec:
+    """A rig laid out like a measured two-logger drivetrain (layout ``loggers``).
+
+    Motor near 3200 rpm (one speed drawn in 3000-3400 rpm held for 60 s, or
+    plateaus of 30 s at ``speeds`` times it), gear stages 3 and 4, the lowest mode drawn in 15-21 Hz, a
+    strong once-per-revolution torque on the motor shaft (as large as the PRBS
+    torque), both loggers on one clock with the sensor logger starting 0.8-1.2 s
+    after the drive logger, encoders of 3600, 4096 or 10000 counts per
+    revolution written in degrees, jitter up to 50 us.
+    """
+    ratios = (3.0, 4.0)
+    j0 = float(rng.uniform(0.01, 0.03))
+    inertias = (j0, j0 * 9.0 * float(rng.uniform(0.5, 2.0)), j0 * 144.0 * float(rng.uniform(0.5, 2.0)))
+    f_low, f_high = float(rng.uniform(15.0, 21.0)), float(rng.uniform(40.0, 60.0))
+    c = [inertias[1] * (2 * np.pi * f_low) ** 2, inertias[2] * (2 * np.pi * f_high) ** 2]
+    motor = float(rng.uniform(3000.0, 3400.0)) * np.pi / 30.0
+    kp = float(inertias[2] * 2 * np.pi * rng.uniform(2.0, 4.0))
+    prbs = float(rng.uniform(0.5, 1.5))
+    cpr = int(rng.choice([3600, 4096, 10000]))
+    base = dict(inertias_kgm2=inertias, ratios=ratios, stiffness_nm_rad=tuple(c), damping_nms_rad=(1.0, 1.0),
+                load_kp=kp, load_ki=float(kp * 2 * np.pi * 0.5),
+                load_speed_rad_s=tuple(float(x) for x in motor * np.asarray(speeds) / 12.0),
+                plateau_s=60.0 if len(speeds) == 1 else 30.0, torque_mean_nm=float(rng.uniform(1.0, 3.0)), torque_prbs_nm=prbs,
+                disturbance=OrderDisturbance(0, 1.0, prbs, float(rng.uniform(0, 2 * np.pi))),
+                counts_per_rev=cpr, clock_offset_s=0.0, clock_drift_ppm=0.0,
+                jitter_s=float(rng.uniform(0.0, 5e-5)), layout="loggers",
+                sensor_start_s=float(rng.uniform(0.8, 1.2)), angle_scale=180.0 / np.pi, angle_suffix="deg")
+    base.update(overrides)
+    spec = RigSpec(**base)
+    if "stiffness_nm_rad" in overrides:
+        return spec
+    # the chain's lowest mode at f_low: stiffnesses scaled (twice: the load loop moves it a little)
+    for _ in range(2):
+        s = (f_low / lowest_mode_hz(spec)) ** 2
+        c = [x * s for x in spec.stiffness_nm_rad]
+        spec = replace(spec, stiffness_nm_rad=tuple(c),
+                       damping_nms_rad=tuple(2 * 0.03 * np.sqrt(ci * j) for ci, j in zip(c, inertias[1:])))
+    return spec
+
+
+def lowest_mode_hz(spec: RigSpec, above_hz: float = 5.0) -> float:
+    """The lowest resonance of the rig (its load loop closed) above ``above_hz``."""
+    A, _ = _system(spec)
+    lam = np.linalg.eigvals(A)
+    f = np.abs(lam[lam.imag > 0]) / (2 * np.pi)
+    f = f[f > above_hz]
+    if not f.size:
+        raise ConfigError(f"the rig has no resonance above {above_hz:g} Hz")
+    return float(np.min(f))
+
+
 def _system(spec: RigSpec) -> tuple[np.ndarray, np.ndarray]:
     """Continuous ``x' = A x + B [u, omega_ref, T_0..T_{N-1}]``, ``x = [theta, omega, z]``."""
     n = spec.n_shafts
@@ -208,6 +279,7 @@ class RigRecording:
     spec: RigSpec
     truth_time_s: np.ndarray
     truth_speed_rad_s: np.ndarray  # (n_sim, N) on the simulation grid
+    truth_angle_rad: np.ndarray | None = None  # (n_sim, N) on the simulation grid
 
 
 def simulate_rig(spec: RigSpec, seed: int = 0) -> RigRecording:
@@ -242,24 +314,67 @@ def simulate_rig(spec: RigSpec, seed: int = 0) -> RigRecording:
     theta = xs[:, :n]
     q = 2.0 * np.pi / spec.counts_per_rev
 
-    def sample(t_true: np.ndarray, col: int) -> np.ndarray:
-        return np.floor(np.interp(t_true, t, theta[:, col]) / q) * q
+    def sample(t_true: np.ndarray, angle: np.ndarray) -> np.ndarray:  # whole counts, in the written unit
+        return np.floor(np.interp(t_true, t, angle) / q) * q * spec.angle_scale
 
     # drive side: clock 1 = true time
     t1 = _instants(rng, spec.duration_s(), spec.fs_hz, spec.jitter_s)
-    drive = {"time_s": t1,
-             "torque_demand_nm": np.interp(t1, t, u, ) + spec.torque_noise_nm * rng.standard_normal(t1.size),
-             f"{spec.names[0]}_angle_rad": sample(t1, 0)}
-    # sensor side: instants uniform (plus jitter) on clock 2
+    noise = spec.torque_noise_nm
+    if spec.layout == "shafts":
+        drive = {"time_s": t1, "torque_demand_nm": np.interp(t1, t, u) + noise * rng.standard_normal(t1.size),
+                 f"{spec.names[0]}_angle_{spec.angle_suffix}": sample(t1, theta[:, 0])}
+    else:  # torque set-points and measurements (through a 1 ms current loop)
+        load_set = -spec.load_kp * (xs[:, 2 * n - 1] - ref) - spec.load_ki * xs[:, 2 * n]
+        drive = {"time_s": t1}
+        for name, x in (("drive", u), ("load", load_set)):
+            drive[f"{name}_torque_set_nm"] = np.interp(t1, t, x)
+            drive[f"{name}_torque_nm"] = np.interp(t1, t, _lag(x, 1e-3)) + noise * rng.standard_normal(t1.size)
+    # sensor side: instants uniform (plus jitter) on clock 2, from sensor_start_s on
     drift = spec.clock_drift_ppm * 1e-6
-    t2_clock = spec.clock_offset_s + _instants(rng, spec.duration_s() * (1 + drift), spec.fs_hz, spec.jitter_s)
+    t2_clock = spec.clock_offset_s + (1 + drift) * spec.sensor_start_s + _instants(
+        rng, (spec.duration_s() - spec.sensor_start_s) * (1 + drift), spec.fs_hz, spec.jitter_s)
     t2_true = (t2_clock - spec.clock_offset_s) / (1.0 + drift)
     keep = (t2_true >= 0) & (t2_true <= t[-1])
     t2_clock, t2_true = t2_clock[keep], t2_true[keep]
     sensor = {"time_s": t2_clock}
-    for i in range(1, n):
-        sensor[f"{spec.names[i]}_angle_rad"] = sample(t2_true, i)
-    return RigRecording(drive, sensor, spec, t, xs[:, n:2 * n])
+    if spec.layout == "shafts":
+        for i in range(1, n):
+            sensor[f"{spec.names[i]}_angle_{spec.angle_suffix}"] = sample(t2_true, theta[:, i])
+        return RigRecording(drive, sensor, spec, t, xs[:, n:2 * n], theta)
+    # loggers: encoders at both ends of every compliant shaft and the shaft torques
+    omega = xs[:, n:2 * n]
+    for k, angle in enumerate(encoder_angles(spec, theta), 1):
+        sensor[f"encoder{k}"] = sample(t2_true, angle)
+    for i, (r, c, d) in enumerate(zip(spec.ratios, spec.stiffness_nm_rad, spec.damping_nms_rad)):
+        tau = c * (theta[:, i] / r - theta[:, i + 1]) + d * (omega[:, i] / r - omega[:, i + 1])
+        sensor[f"shaft{i + 1}_torque_nm"] = np.interp(t2_true, t, tau) + noise * rng.standard_normal(t2_true.size)
+    return RigRecording(drive, sensor, spec, t, omega, theta)
+
+
+def encoder_angles(spec: RigSpec, theta: np.ndarray) -> list[np.ndarray]:
+    """Angles at the encoders of the ``loggers`` layout: the motor, then per stage the gear's output
+    (``theta_i / n_i``, the near end of the compliant shaft) and the next shaft (its far end)."""
+    out = [theta[:, 0]]
+    for i, r in enumerate(spec.ratios):
+        out += [theta[:, i] / r, theta[:, i + 1]]
+    return out
+
+
+def encoder_shafts(spec: RigSpec) -> list[tuple[str, float]]:
+    """Per encoder of the ``loggers`` layout: a shaft name and its rate relative to the motor."""
+    f = spec.speed_factors()
+    out = [(spec.names[0], 1.0)]
+    for i in range(len(spec.ratios)):
+        out += [(f"stage{i + 1}", f[i + 1]), (spec.names[i + 1], f[i + 1])]
+    return out
+
+
+def _lag(x: np.ndarray, tau_s: float) -> np.ndarray:
+    """``x`` through a first-order lag of time constant ``tau_s`` (on the simulation grid)."""
+    from scipy.signal import lfilter
+
+    a = np.exp(-1.0 / (SIM_HZ * tau_s))
+    return lfilter([1.0 - a], [1.0, -a], x, zi=[a * x[0]])[0]
 
 
 def _instants(rng: np.random.Generator, duration_s: float, fs_hz: float, jitter_s: float) -> np.ndarray:

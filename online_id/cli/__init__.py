@@ -28,7 +28,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "evaluate-diagnose": ("evaluate_diagnose", "measure the diagnosis on randomised benches (confusion matrix)"),
     "evaluate-diagnose-rig": ("evaluate_rig",
                               "diagnose randomised multi-shaft rigs (order on each shaft, clean)"),
-    "simulate-rig": ("evaluate_rig", "write a randomised multi-shaft rig as two CSV files"),
+    "simulate-rig": ("evaluate_rig", "write a multi-shaft rig as two CSV files (randomised, or as two loggers "
+                                     "of a measured rig)"),
     "evaluate-diagnose-chain": ("evaluate_chain",
                                 "judge the diagnosis on independently built drivetrains and rigs, run as a user"),
     "convert": ("convert", "convert a bench CSV or MDF 4 signal recording into a CAN log of input frames, or a "
@@ -37,6 +38,9 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "relearn": ("command", "forget the learned baselines and learn them anew (after a planned shaft change)"),
     "fleet": ("fleet", "table of the benches publishing to an MQTT broker (needs the [mqtt] extra)"),
     "monitor": ("monitor", "watch the service's output frames and health live, decoded with the DBC"),
+    "archive": ("archive", "identify or diagnose an archive of recordings on a Dask cluster into one table "
+                           "(needs the [archive] extra)"),
+    "trend": ("trend", "resonance and damping per bench against the date: baseline, drift per month, alerts"),
 }
 """Subcommand -> (module in ``online_id.cli``, one-line help).  A module is imported only when its command
 runs: ``online-id --help`` and a command that reads a CSV do not load python-can, cantools, asammdf or
@@ -80,22 +84,38 @@ def _command_of(argv: list[str]) -> str | None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``online-id`` console script; returns the exit status."""
+    """Entry point of the ``online-id`` console script; returns the exit status.
+
+    SIGINT and SIGTERM at any moment, the import of the command's modules included, end it with one line,
+    nothing left behind and status 130 or 143; the service (``run``) with 0, as from its loop
+    (:mod:`online_id.interrupt`).
+    """
+    from online_id.interrupt import Interrupted, interruptible
+
+    process_ends = argv is None  # the console script: a signal after the work is done changes nothing
     argv = sys.argv[1:] if argv is None else list(argv)
-    parser = build_parser(_command_of(argv))
-    args = parser.parse_args(argv)
-    try:
-        return int(args.func(args) or 0)
-    except OnlineIdError as err:
-        if args.debug:
-            raise
-        print(f"error: {printable(str(err))}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
-    except BrokenPipeError:
-        # the reader went away (e.g. `| head`): not an error of ours
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-        return 141
+    args = None
+    with interruptible(process_ends):
+        try:
+            parser = build_parser(_command_of(argv))
+            args = parser.parse_args(argv)
+            return int(args.func(args) or 0)
+        except OnlineIdError as err:
+            if args is not None and args.debug:
+                raise
+            print(f"error: {printable(str(err))}", file=sys.stderr)
+            return 2
+        except Interrupted as err:
+            if _command_of(argv) == "run":  # the service: a stop is its normal end, in its start-up too
+                print(f"online-id: stopped by {err.name} during start-up", file=sys.stderr)
+                return 0
+            print(f"interrupted by {err.name}", file=sys.stderr)
+            return err.exit_status
+        except KeyboardInterrupt:
+            print("interrupted", file=sys.stderr)
+            return 130
+        except BrokenPipeError:
+            # the reader went away (e.g. `| head`): not an error of ours
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+            return 141

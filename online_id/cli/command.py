@@ -1,12 +1,14 @@
 """``online-id ack`` and ``online-id relearn``: send a command frame to the running service.
 
 The service listens for the ``OidCommand`` frame on its bus (a bench PC or
-operator panel can send the same frame); these commands open the bus of the
-configuration, send the frame and exit.  ``relearn`` sends it twice, 0.2 s
-apart with consecutive counters: the service's default policy
-(``commands.relearn: confirm``) acts only on a confirmed RELEARN.  The
-counter follows the clock (20 per second), so that commands sent one after
-another never repeat a counter the service has just accepted.
+operator panel can send the same frame, see the DBC and docs/security.md);
+these commands open the bus of the configuration, ask the service for its
+command freshness value (a ``NONE`` command frame, answered at once with
+``OidFreshness``), send the command with the next freshness value and, with
+``--key-file`` (or ``commands.key_file`` of the config), its MAC, and exit.
+``relearn`` sends it twice, 0.2 s apart with consecutive freshness values:
+the service's default policy (``commands.relearn: confirm``) acts only on a
+confirmed RELEARN.
 
 Both then wait (``--wait``, 2 s) for the service's answer: the status
 frame it sends at once after a command frame, whose ``CommandResult`` says
@@ -31,10 +33,13 @@ from pathlib import Path
 from online_id.cli import command_help
 from online_id.config import load_config
 from online_id.errors import ConfigError, DbcError
+from online_id.io.auth import read_key
 from online_id.io.bus import CanBus
 from online_id.io.dbc import BenchCommand, encode_command, load_dbc
 
 COMMANDS = {"ack": BenchCommand.ACK_ALERT, "relearn": BenchCommand.RELEARN_BASELINE}
+FRESHNESS_WAIT_S = 2.0
+"""How long to wait for the service's freshness value with ``--wait 0``."""
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
@@ -44,6 +49,8 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
         p.add_argument("--config", metavar="FILE", help="the service's YAML configuration (bus, DBC, mapping)")
         p.add_argument("--interface", help="override bus.interface")
         p.add_argument("--channel", help="override bus.channel")
+        p.add_argument("--key-file", metavar="FILE",
+                       help="the key (hex) of authenticated commands (default: commands.key_file of the config)")
         p.add_argument("--wait", type=float, default=2.0, metavar="S",
                        help="wait up to S seconds for the service's answer on its status frame (default 2; 0: "
                             "send only)")
@@ -56,9 +63,6 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
         p.set_defaults(func=run, command_name=name)
 
 
-_last_counter: int | None = None  # the last alive counter this process sent (see run)
-
-
 def run(args: argparse.Namespace) -> int:
     s = load_config(args.config)
     if getattr(args, "from_log", None):
@@ -67,28 +71,37 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("relearn: --state needs --from LOG (a running service keeps its own state)")
     command = COMMANDS[args.command_name]
     db = load_dbc(s.dbc)
-    global _last_counter
+    key_file = args.key_file or s.commands.key_file
+    key = read_key(key_file, "--key-file" if args.key_file else "commands.key_file") if key_file else None
+    m = s.mapping
     repeats = 2 if command == BenchCommand.RELEARN_BASELINE else 1
-    # the clock's counter, but never one this process has used: two commands within one 50 ms tick (a
-    # script, or `ack` then `relearn` in one process) would repeat it, and the service refuses a repeat
-    counter = int(time.time() * 20)
-    if _last_counter is not None:
-        counter = max(counter, _last_counter + 1)
-    _last_counter = counter + repeats - 1
-    frames = [encode_command(db, s.mapping.command_message, s.mapping.command_signal, command, counter + k,
-                             crc=s.mapping.command_crc) for k in range(repeats)]
     interface = args.interface or s.bus.interface
     channel = args.channel or s.bus.channel
     with CanBus(interface, channel, s.bus.bitrate) as bus:
+        wait_s = args.wait if args.wait > 0 else FRESHNESS_WAIT_S
+        fresh = ask_freshness(bus, s, db, wait_s)
+        if fresh is None:
+            print(f"no answer from the service within {wait_s:g} s on {interface}:{channel} (is it running "
+                  f"there? it answers a NONE command frame with its freshness value, message OidFreshness)")
+            return 1
+        last, authenticated = fresh
+        if authenticated and key is None:
+            raise ConfigError("the service expects authenticated commands: give --key-file FILE (or "
+                              "commands.key_file in the config) with its key")
+        frames = [encode_command(db, m.command_message, m.command_signal, command, last + 1 + k, m.command_crc,
+                                 key=key, freshness_signal=m.command_freshness, mac_signal=m.command_mac)
+                  for k in range(repeats)]
         for k, (ident, data) in enumerate(frames):
             if k:
                 time.sleep(0.2)
             bus.send(ident, data)
         sent = ", ".join(data.hex().upper() for _, data in frames)
-        print(f"sent {command.name} (ID 0x{frames[0][0]:X} data {sent}) on {interface}:{channel}")
+        print(f"sent {command.name} (ID 0x{frames[0][0]:X} data {sent}, freshness {last + 1}"
+              f"{'' if repeats == 1 else f'..{last + repeats}'}, {'with a MAC' if key else 'no MAC'}) on "
+              f"{interface}:{channel}")
         if not args.wait > 0:
             return 0
-        answer = await_answer(bus, s, (counter + repeats - 1) % 256, args.wait)
+        answer = await_answer(bus, s, last + repeats, args.wait)
     if answer is None:
         print(f"no answer from the service within {args.wait:g} s on {interface}:{channel} (is it running there? "
               f"it answers on its status frame, signal CommandCounterEcho)")
@@ -98,24 +111,51 @@ def run(args: argparse.Namespace) -> int:
     return 0 if answer["CommandResult"] == "ACCEPTED" else 1
 
 
-def await_answer(bus: CanBus, s, counter: int, wait_s: float) -> dict | None:
-    """The service's status frame answering the command frame of alive counter ``counter``, or None."""
+def _codec(s, db=None):
     from online_id.io.dbc_output import OutputEncoder
 
-    codec = OutputEncoder(load_dbc(s.dbc), source=s.dbc or "online_id.dbc")
-    status_id = next(fid for fid, name in codec.output_ids(s.publish.frame_ids).items() if name == "OidStatus")
+    codec = OutputEncoder(db if db is not None else load_dbc(s.dbc), source=s.dbc or "online_id.dbc")
+    return codec, {name: fid for fid, name in codec.output_ids(s.publish.frame_ids).items()}
+
+
+def _await(bus: CanBus, codec, frame_id: int, name: str, wanted, wait_s: float) -> dict | None:
+    """The values of the first frame of output ``name`` (ID ``frame_id``) within ``wait_s`` that ``wanted``
+    accepts, or None."""
     end = time.monotonic() + wait_s
     while time.monotonic() < end:
         frame = bus.recv(0.05)
-        if frame is None or frame.arbitration_id != status_id:
+        if frame is None or frame.arbitration_id != frame_id:
             continue
         try:
-            values, _ = codec.decode_named("OidStatus", frame.data)
+            values, _ = codec.decode_named(name, frame.data)
         except DbcError:
             continue
-        if values.get("CommandCounterEcho") == counter % 64 and values.get("CommandResult") != "NONE":
+        if wanted(values):
             return values
     return None
+
+
+def ask_freshness(bus: CanBus, s, db, wait_s: float = FRESHNESS_WAIT_S) -> tuple[int, bool] | None:
+    """Send a NONE command frame and read the service's answer: (last accepted freshness value, whether it
+    expects a MAC), or None when no answer came within ``wait_s``."""
+    codec, ids = _codec(s, db)
+    if "OidFreshness" not in ids:
+        raise ConfigError(f"{s.dbc or 'online_id.dbc'}: no OidFreshness message: the service cannot tell a "
+                          f"sender its command freshness value (add it from the packaged online_id.dbc)")
+    m = s.mapping
+    bus.send(*encode_command(db, m.command_message, m.command_signal, BenchCommand.NONE, 0, m.command_crc,
+                             freshness_signal=m.command_freshness, mac_signal=m.command_mac))
+    values = _await(bus, codec, ids["OidFreshness"], "OidFreshness", lambda v: True, wait_s)
+    return None if values is None else (int(values["FreshnessValue"]), values["Authenticated"] != "PLAIN")
+
+
+def await_answer(bus: CanBus, s, freshness: int, wait_s: float) -> dict | None:
+    """The service's status frame answering the command frame of freshness value ``freshness``, or None
+    (the echo: the frame's freshness bits modulo 64)."""
+    codec, ids = _codec(s)
+    return _await(bus, codec, ids["OidStatus"], "OidStatus",
+                  lambda v: v.get("CommandCounterEcho") == freshness % 64 and v.get("CommandResult") != "NONE",
+                  wait_s)
 
 
 def relearn_from(log: str, directory: Path | None, settings) -> int:

@@ -45,6 +45,9 @@ def run(args: argparse.Namespace) -> int:
         from online_id.errors import ConfigError
 
         raise ConfigError(f"--speed: expected a number > 0, got {args.speed!r}")
+    from online_id.io.outfile import check_output
+
+    check_output(args.out, "demo output", directory=True)  # before the demo, not after it
     if not args.offline:
         from online_id.cli.demo_live import run_live
 

@@ -284,8 +284,8 @@ def recording_lines(d: Diagnosis) -> list[str]:
                        f"(max {1e6 * f['jitter_max_s']:.1f} us)" + (", resampled" if f["resampled"] else ""))
     if "clock" in notes:
         c = notes["clock"]
-        out.append(f"clock of the second file: offset {c['offset_s']:+.4f} s, drift {c['drift_ppm']:+.1f} ppm "
-                   f"(misfit {c['misfit']:.3f}, on {c['aligned_on']})")
+        out.append(c.get("text") or f"clock of the second file: offset {c['offset_s']:+.4f} s, drift "
+                   f"{c['drift_ppm']:+.1f} ppm (misfit {c['misfit']:.3f}, on {c['aligned_on']})")
     if d.data.shaft_rates:
         out.append("shafts (rate relative to the first): "
                    + ", ".join(f"{n} {r:.4g}" for n, r in d.data.shaft_rates.items()))

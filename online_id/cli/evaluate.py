@@ -34,6 +34,13 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    help="random plants on which every fault case runs (default 4)")
     p.add_argument("--seed", type=int, default=1, help="seed of the random plants and conditions (default 1)")
     p.add_argument("--jobs", type=int, default=None, help="parallel processes (default: all cores)")
+    d = p.add_mutually_exclusive_group()
+    d.add_argument("--dask", action="store_true",
+                   help="run the cases as Dask tasks on a local cluster of --jobs worker processes (needs the "
+                        "archive extra); the results are those of the process pool")
+    d.add_argument("--scheduler", metavar="tcp://HOST:8786",
+                   help="run the cases as Dask tasks on this scheduler's workers (thousands of simulated hours "
+                        "on a cluster); a case that fails is reported and left out")
     p.add_argument("--out", type=Path, metavar="DIR", help="write results.json, table.md and evaluation.png here")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON document")
     p.add_argument("--families", default="c", metavar="LIST",
@@ -57,7 +64,10 @@ def table(summary: dict) -> str:
     f = summary["fault_free"]
     lines = [
         f"Fault-free: {f['hours']:.1f} h in {f['runs']} runs, {f['false_alarms']} false alarms "
-        f"({fmt(f['false_alarms_per_hour'], '.2f')} per hour, {f['false_fault_alarms']} at fault level); "
+        f"({fmt(f['false_alarms_per_hour'], '.2f')} per hour, {f['false_fault_alarms']} at fault level"
+        + (f"; {fmt(f['false_alarms_per_1000h'], '.1f')} per 1,000 h, 95 % interval "
+           f"{fmt(f['false_alarms_per_1000h_ci'][0], '.1f')}-{fmt(f['false_alarms_per_1000h_ci'][1], '.1f')}"
+           if f.get("false_alarms_per_1000h_ci") else "") + "); "
         f"estimate valid {100 * (f['valid_fraction'] or 0):.0f} % of the time; "
         f"|f0 error| against the linear truth (runs without backlash) median "
         f"{fmt(f['f0_error_pct_p50_abs'], '.3f')} %, 99th percentile {fmt(f['f0_error_pct_p99_abs'], '.3f')} %.",
@@ -193,8 +203,9 @@ def run(args: argparse.Namespace) -> int:
     specs = ev.plan(args.hours, args.fault_plants, args.seed, args.families, args.cases, args.plant_type)
     specs.sort(key=lambda s: -s.scenario.duration_s)  # longest first: the pool finishes together
     total_s = sum(s.scenario.duration_s for s in specs)
-    print(f"online-id evaluate: {len(specs)} runs, {total_s / 3600:.1f} simulated hours, {args.jobs} processes",
-          file=sys.stderr)
+    where = (f"Dask scheduler {args.scheduler}" if args.scheduler else
+             f"a local Dask cluster of {args.jobs} processes" if args.dask else f"{args.jobs} processes")
+    print(f"online-id evaluate: {len(specs)} runs, {total_s / 3600:.1f} simulated hours, {where}", file=sys.stderr)
     t0 = time.monotonic()
     results: list[ev.RunResult] = []
     done_s = 0.0
@@ -203,25 +214,51 @@ def run(args: argparse.Namespace) -> int:
                 "families": list(args.families), "cases": list(args.cases) if args.cases else None,
                 "jobs": args.jobs,
                 "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"}
-    ctx = multiprocessing.get_context("fork")
-    with ctx.Pool(args.jobs) as pool:
-        for r in pool.imap_unordered(ev.run, specs):
-            results.append(r)
-            done_s += r.duration_s
-            if args.out is not None:  # a long evaluation that is stopped keeps the runs so far
-                _write_results(args.out, results, dict(settings, elapsed_s=round(time.monotonic() - t0, 1)),
-                               complete=len(results) == len(specs))
-            what = (f"{r.false_alarms} false alarms" if r.case == "fault-free"
-                    else f"alarm after {fmt(r.warning_delay_s, '.1f')} s")
-            print(f"[{len(results):3d}/{len(specs)}] {100 * done_s / total_s:5.1f}%  ({r.family}) {r.case:16s} "
-                  f"seed {r.seed:5d}  "
-                  f"{r.duration_s / 60:5.1f} min simulated in {r.elapsed_s:5.1f} s  {what}", file=sys.stderr)
+    failed: list[str] = []
+
+    def record(r: ev.RunResult) -> None:
+        nonlocal done_s
+        results.append(r)
+        done_s += r.duration_s
+        if args.out is not None:  # a long evaluation that is stopped keeps the runs so far
+            _write_results(args.out, results, dict(settings, elapsed_s=round(time.monotonic() - t0, 1)),
+                           complete=len(results) == len(specs))
+        what = (f"{r.false_alarms} false alarms" if r.case == "fault-free"
+                else f"alarm after {fmt(r.warning_delay_s, '.1f')} s")
+        print(f"[{len(results):3d}/{len(specs)}] {100 * done_s / total_s:5.1f}%  ({r.family}) {r.case:16s} "
+              f"seed {r.seed:5d}  "
+              f"{r.duration_s / 60:5.1f} min simulated in {r.elapsed_s:5.1f} s  {what}", file=sys.stderr)
+
+    if args.dask or args.scheduler:
+        from online_id.archive.runner import cluster, map_tasks
+
+        settings["dask"] = args.scheduler or f"local cluster, {args.jobs} workers"
+
+        def done(o) -> None:
+            if o.ok:
+                record(o.value)
+                return
+            spec = specs[o.index]
+            failed.append(f"({spec.family}) {spec.case} seed {spec.seed}: {o.error}")
+            print(f"[failed] ({spec.family}) {spec.case} seed {spec.seed}: {o.error}", file=sys.stderr)
+
+        with cluster(args.scheduler, args.jobs) as client:
+            map_tasks(client, ev.run, specs, label="evaluate", on_done=done, quiet=True)
+    else:
+        ctx = multiprocessing.get_context("fork")
+        with ctx.Pool(args.jobs) as pool:
+            for r in pool.imap_unordered(ev.run, specs):
+                record(r)
     elapsed = time.monotonic() - t0
     settings["elapsed_s"] = round(elapsed, 1)
-    _write(args, results, settings)
+    _write(args, results, settings, complete=not failed)
     if not args.json:
         print(f"\n{total_s / 3600:.1f} simulated hours in {elapsed / 60:.1f} min"
               + (f"; results in {args.out}/ (results.json, table.md, evaluation.png)" if args.out else ""))
+    if failed:
+        print(f"{len(failed)} of {len(specs)} runs failed and are left out of the summary; first: {failed[0]}",
+              file=sys.stderr)
+        return 1
     return 0
 
 

@@ -67,6 +67,9 @@ def run(args: argparse.Namespace) -> int:
     from online_id import diagnose_evaluation as ev
     from online_id.bench.diagnose_cases import KINDS
 
+    from online_id.io.outfile import check_output
+
+    check_output(args.out, "output", directory=True)  # before the benches, not after them
     n_test, n_cal = (3, 6) if args.quick else (args.cases, args.calibration_cases)
     if n_test < (0 if args.include else 1) or n_cal < 0 or args.jobs < 1:
         raise ConfigError("--cases (0 only with --include) and --jobs must be >= 1, "

@@ -12,8 +12,12 @@ import json
 import time
 from pathlib import Path
 
+from dataclasses import replace
+
+from online_id.bench.rig import LAYOUTS, RigRecording, RigSpec
 from online_id.errors import ConfigError
 from online_id.io.outfile import check_output
+from online_id.progress import Progress, add_quiet_option
 from online_id.io.table_csv import write_csv_columns
 from online_id.cli import command_help
 
@@ -33,13 +37,28 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    help="clean rigs only, baseline only: the largest order-grid line ratio per rig (sets the "
                    "line threshold; use seeds apart from the evaluation's); writes rig-calibration.json")
     p.add_argument("--out", metavar="DIR", required=True, help="write rig-evaluation.json here")
+    add_quiet_option(p)
     p.set_defaults(func=run)
     s = subparsers.add_parser("simulate-rig", help=command_help("simulate-rig"),
-                              description="Simulate a rig and write DIR/drive.csv (time_s, torque_demand_nm, "
-                              "motor_angle_rad) and DIR/sensor.csv (time_s, the other shafts' angles) on "
-                              "two clocks; prints the truth as JSON.")
+                              description="Simulate a rig and write it as two files, DIR/drive.csv and "
+                              "DIR/sensor.csv; prints the truth as JSON. Layout 'shafts' (the evaluation's "
+                              "randomised rigs): drive.csv time_s, torque_demand_nm, motor_angle_<unit>; "
+                              "sensor.csv time_s and the other shafts' angles, on a clock offset and drifting. "
+                              "Layout 'loggers' (as two loggers of a measured rig write it): drive.csv time_s, "
+                              "drive and load torque set-points and measurements; sensor.csv time_s, "
+                              "encoder1..encoderK (cumulative angles at both ends of every compliant shaft) and "
+                              "the shaft torques; one clock, the sensor logger starting about 1 s later; a "
+                              "strong once-per-revolution torque on the motor shaft.")
     s.add_argument("--seed", type=int, default=1)
-    s.add_argument("--order-shaft", type=int, metavar="I", help="disturbed shaft (0 = motor); none = clean")
+    s.add_argument("--layout", choices=LAYOUTS, default="shafts", help="what the two files hold (default shafts)")
+    s.add_argument("--angle-unit", metavar="UNIT",
+                   help="unit the encoder angles are written in: deg, rad, rev or counts (the encoder's own "
+                   "counts) (default: rad for shafts, deg for loggers)")
+    s.add_argument("--speeds", type=int, choices=(1, 3), default=1,
+                   help="loggers: one motor speed for 60 s, or three plateaus of 30 s (default 1)")
+    s.add_argument("--plateau-s", type=float, metavar="S", help="length of each speed plateau (default 30; "
+                   "loggers with one speed 60)")
+    s.add_argument("--order-shaft", type=int, metavar="I", help="shafts: disturbed shaft (0 = motor); none = clean")
     s.add_argument("--magnitude", type=float, default=0.3)
     s.add_argument("--out", metavar="DIR", required=True)
     s.set_defaults(func=run_simulate)
@@ -52,30 +71,71 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--cases and --jobs must be >= 1, got {args.cases} and {args.jobs}")
     check_output(args.out, "out", directory=True)
     t0 = time.perf_counter()
-    if args.calibrate:
-        summary = calibrate(args.cases, args.seed, args.jobs, Path(args.out))
-    else:
-        summary = evaluate(args.cases, args.seed, args.magnitude, args.jobs, Path(args.out))
+    with Progress("evaluate-diagnose-rig", quiet=args.quiet) as bar:
+        def progress(i: int, n: int, r: dict) -> None:
+            bar.count(i, n, f"{i}/{n} cases (seed {r['seed']}, {r['true_shaft'] or 'clean'})")
+
+        if args.calibrate:
+            summary = calibrate(args.cases, args.seed, args.jobs, Path(args.out), progress)
+        else:
+            summary = evaluate(args.cases, args.seed, args.magnitude, args.jobs, Path(args.out), progress)
     summary["wall_s"] = time.perf_counter() - t0
     print(json.dumps(summary, indent=1, default=float))
     return 0
 
 
+def written_angles(spec: RigSpec, unit: str) -> tuple[RigSpec, str]:
+    """``spec`` writing its encoder angles in ``unit`` (deg, rad, rev, countsN, or counts: the encoder's
+    own), and the unit's full name."""
+    from online_id.units import angle_factor
+
+    unit = unit.strip().lower()
+    if unit == "counts":
+        unit = f"counts{spec.counts_per_rev}"
+    scale = 1.0 / angle_factor(unit, "--angle-unit")
+    return replace(spec, angle_scale=scale, angle_suffix="counts" if unit.startswith("counts") else unit), unit
+
+
+def write_rig(out: Path, rec: RigRecording) -> tuple[Path, Path]:
+    """The two records as ``out/drive.csv`` and ``out/sensor.csv`` (times to the ns, counts whole)."""
+    counts = rec.spec.angle_suffix == "counts"
+    fmt = {n: "%.9f" if n == "time_s" else ("%.7f" if "torque" in n else ("%.0f" if counts else "%.10g"))
+           for n in (*rec.drive, *rec.sensor)}
+    out.mkdir(parents=True, exist_ok=True)
+    files = out / "drive.csv", out / "sensor.csv"
+    write_csv_columns(files[0], rec.drive, fmt)
+    write_csv_columns(files[1], rec.sensor, fmt)
+    return files
+
+
 def run_simulate(args: argparse.Namespace) -> int:
-    from online_id.bench.rig import simulate_rig
+    import numpy as np
+
+    from online_id.bench.rig import encoder_shafts, loggers_rig, lowest_mode_hz, simulate_rig
     from online_id.rig_evaluation import rig_spec
 
     out = Path(args.out)
     check_output(args.out, "out", directory=True)
-    out.mkdir(parents=True, exist_ok=True)
-    spec = rig_spec(args.seed, args.order_shaft, args.magnitude)
-    rec = simulate_rig(spec, args.seed)
-    fmt = {n: "%.9f" if n == "time_s" else "%.7f" for n in (*rec.drive, *rec.sensor)}  # us, encoder counts
-    write_csv_columns(out / "drive.csv", rec.drive, fmt)
-    write_csv_columns(out / "sensor.csv", rec.sensor, fmt)
+    if args.layout == "loggers":
+        spec = loggers_rig(np.random.default_rng(args.seed), speeds=(1.0,) if args.speeds == 1 else (0.9, 1.0, 1.1))
+    else:
+        spec = rig_spec(args.seed, args.order_shaft, args.magnitude)
+    if args.plateau_s is not None:
+        if not args.plateau_s > 2.0:
+            raise ConfigError(f"--plateau-s must be > 2, got {args.plateau_s}")
+        spec = replace(spec, plateau_s=args.plateau_s)
+    spec, unit = written_angles(spec, args.angle_unit or ("deg" if args.layout == "loggers" else "rad"))
+    write_rig(out, simulate_rig(spec, args.seed))
     d = spec.disturbance
-    print(json.dumps({"names": list(spec.names), "ratios": list(spec.ratios),
-                      "clock_offset_s": spec.clock_offset_s, "clock_drift_ppm": spec.clock_drift_ppm,
-                      "disturbance": None if d is None else {"shaft": spec.names[d.shaft], "order": d.order,
-                                                             "amplitude_nm": d.amplitude_nm}}, indent=1))
+    truth = {"layout": spec.layout, "names": list(spec.names), "ratios": list(spec.ratios),
+             "angle_unit": unit, "counts_per_rev": spec.counts_per_rev,
+             "clock_offset_s": spec.clock_offset_s, "clock_drift_ppm": spec.clock_drift_ppm,
+             "sensor_start_s": spec.sensor_start_s, "lowest_mode_hz": lowest_mode_hz(spec),
+             "motor_speed_rpm": [w * 30.0 / np.pi / spec.speed_factors()[-1] for w in spec.load_speed_rad_s],
+             "disturbance": None if d is None else {"shaft": spec.names[d.shaft], "order": d.order,
+                                                    "amplitude_nm": d.amplitude_nm}}
+    if spec.layout == "loggers":
+        truth["encoders"] = {f"encoder{k}": {"shaft": name, "rate": rate}
+                             for k, (name, rate) in enumerate(encoder_shafts(spec), 1)}
+    print(json.dumps(truth, indent=1))
     return 0

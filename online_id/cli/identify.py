@@ -13,6 +13,8 @@ from online_id.estimation.identification import IdentificationResult, identify
 from online_id.errors import ConfigError, EstimationError
 from online_id.io.outfile import check_output
 from online_id.progress import Progress, add_quiet_option, progress_for
+from online_id.signals import speed_warnings
+from online_id.units import ANGLE_UNIT_HELP, angle_factor, is_angle_unit
 from online_id.report import figures_text, fmt, identification_document, identification_table
 from online_id.cli import command_help
 
@@ -47,8 +49,11 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     g.add_argument("--engine-speed-col", metavar="NAME")
     g.add_argument("--torque-col", metavar="NAME")
     g.add_argument("--time-unit", choices=["s", "ms"])
-    g.add_argument("--speed-unit", choices=["rpm", "rad/s", "deg", "rad"],
-                   help="rpm or rad/s for speeds; deg or rad when the columns hold cumulative angles")
+    g.add_argument("--speed-unit", choices=["rpm", "rad/s", "hz", "deg", "rad"],
+                   help="rpm, rad/s or hz (revolutions per second) for speeds; deg or rad when the columns hold "
+                   "cumulative angles (as --angle-unit)")
+    g.add_argument("--angle-unit", metavar="UNIT",
+                   help=f"the speed columns hold cumulative angles in UNIT: {ANGLE_UNIT_HELP}")
     g.add_argument("--torque-sign", choices=["braking", "driving"], help="what positive torque does")
     m = p.add_argument_group("identification (override the config)")
     m.add_argument("--J1", type=float, metavar="KGM2", help="dyno inertia from the data sheet")
@@ -83,7 +88,14 @@ def settings_from_args(args: argparse.Namespace) -> Settings:
     s = load_config(args.config)
     cols = {k: v for k, v in dict(time=args.time_col, dyno_speed=args.dyno_speed_col,
                                   engine_speed=args.engine_speed_col, dyno_torque=args.torque_col).items() if v}
-    units = {k: v for k, v in dict(time=args.time_unit, speed=args.speed_unit, torque_sign=args.torque_sign).items() if v}
+    speed = args.speed_unit
+    if args.angle_unit:
+        if speed and not is_angle_unit(speed):
+            raise ConfigError(f"--angle-unit {args.angle_unit} says the speed columns hold angles; --speed-unit "
+                              f"{speed} says speeds: give one")
+        angle_factor(args.angle_unit, "--angle-unit")
+        speed = args.angle_unit.strip().lower()
+    units = {k: v for k, v in dict(time=args.time_unit, speed=speed, torque_sign=args.torque_sign).items() if v}
     inert = {k: v for k, v in dict(J1=args.J1, J2=args.J2, J_total=args.J_total).items() if v is not None}
     for name, v in inert.items():
         if v <= 0:
@@ -118,6 +130,8 @@ def run_identification(path: str, s: Settings, label: str = "identify", *, fit_s
     with Progress(label, quiet=quiet) as progress:
         progress(0.0, f"reading {path}")
         data = read_bench(path, s, _note)
+        for text in speed_warnings(data, s.columns, s.units):
+            _note(f"warning: {text}")
         return identify(data, s.identification, s.inertias, progress=progress, fit_s=fit_s, refine_s=refine_s)
 
 
@@ -132,6 +146,8 @@ def run_recursive(args: argparse.Namespace, s: Settings) -> int:
     from online_id.pipeline import run_bench_data
 
     data = read_bench(args.path, s, _note)
+    for text in speed_warnings(data, s.columns, s.units):
+        _note(f"warning: {text}")
     with progress_for(args, "identify --recursive") as progress:
         pipe = run_bench_data(data, s, progress)
     result = pipe.result()

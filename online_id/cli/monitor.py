@@ -4,8 +4,11 @@ Like ``cantools monitor`` or ``can.viewer`` for the frames the service
 publishes (OidEstimate, OidShaft, OidQuality, OidStatus, OidAlert,
 OidExcitation; the config's DBC and ``publish.frame_ids``), on any
 python-can interface.  Every frame is checked as a consumer would check it
-(CRC-8 in byte 7, the 4-bit alive counter without jumps), and the view says
-when the service has gone silent.
+(CRC-8 in byte 7, the 4-bit alive counter without jumps, every value within
+its DBC range and, for an enumeration, one of its defined values), and the
+view says when the service has gone silent.  An 8-bit CRC passes one random
+frame in 256: a frame that passes it with a value the DBC does not allow
+(``State 238``) is marked suspect, counted, and its values are not shown.
 
 On a terminal the view is redrawn in place twice a second; otherwise (a
 pipe, a log file) or with ``--json`` it prints one line per received frame,
@@ -19,11 +22,12 @@ import json
 import sys
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 from online_id.config import load_config
 from online_id.errors import ConfigError, DbcError
 from online_id.io.bus import CanBus
-from online_id.io.dbc import load_dbc
+from online_id.io.dbc import load_dbc, signal_bounds
 from online_id.io.dbc_output import OutputEncoder
 from online_id.cli import command_help
 
@@ -55,17 +59,40 @@ class Seen:
     values: dict = field(default_factory=dict)
     counter: int | None = None
     counter_jumps: int = 0
+    suspect: int = 0  # frames with a valid CRC but values the DBC does not allow
+
+
+def _limits(message: Any) -> dict[str, tuple[float, float, dict[int, str] | None]]:
+    """Signal -> (lowest, highest physical value allowed, defined values or None), from the DBC."""
+    return {sig.name: (*signal_bounds(sig), {int(k): str(v) for k, v in sig.choices.items()} if sig.choices else None)
+            for sig in message.signals}
+
+
+def suspect_values(values: dict, limits: dict[str, tuple[float, float, dict[int, str] | None]]) -> list[str]:
+    """What in a decoded frame the DBC does not allow: a value outside its range, an undefined enumeration."""
+    bad = []
+    for name, value in values.items():
+        if isinstance(value, str) or name not in limits:  # an enumeration's name: a defined value
+            continue
+        lo, hi, choices = limits[name]
+        if choices is not None:
+            bad.append(f"{name} {value:g} is not a defined value ({', '.join(f'{k} {v}' for k, v in choices.items())})")
+        elif not lo <= value <= hi:
+            bad.append(f"{name} {value:g} is outside its DBC range [{lo:g}, {hi:g}]")
+    return bad
 
 
 class Watch:
     """Decode and check the service's output frames (no I/O: :meth:`take` gets frames, returns records)."""
 
-    def __init__(self, codec: OutputEncoder, ids: dict[int, str]) -> None:
+    def __init__(self, codec: OutputEncoder, ids: dict[int, str], db: Any) -> None:
         self.codec = codec
         self.ids = ids
         self.seen: dict[str, Seen] = {name: Seen() for name in ids.values()}
+        self.limits = {name: _limits(db.get_message_by_name(name)) for name in ids.values()}
         self.alerts: list[dict] = []
         self.crc_errors = 0
+        self.suspect = 0
         self.frames = 0
 
     def take(self, t_s: float, arbitration_id: int, data: bytes) -> dict | None:
@@ -82,6 +109,12 @@ class Watch:
             record["error"] = f"bad CRC or length: data {bytes(data).hex().upper()}"
             return record
         s = self.seen[name]
+        bad = suspect_values(values, self.limits[name])
+        if bad:  # a frame that passed the CRC by chance, or a sender that is not the service: values not shown
+            self.suspect += 1
+            s.suspect += 1
+            record["suspect"] = f"{'; '.join(bad)}: data {bytes(data).hex().upper()}, values not shown"
+            return record
         if s.counter is not None and counter != (s.counter + 1) % 16:
             s.counter_jumps += 1
             record["counter_jump"] = [s.counter, counter]
@@ -101,6 +134,8 @@ def line(record: dict) -> str:
     head = f"{record['t_s']:.3f} {record['id']} {record['message']}"
     if "error" in record:
         return f"{head}: {record['error']}"
+    if "suspect" in record:
+        return f"{head}: SUSPECT: {record['suspect']}"
     jump = f"  (alive counter jumped {record['counter_jump'][0]} -> {record['counter_jump'][1]})" \
         if "counter_jump" in record else ""
     return f"{head}  {_fmt(record['signals'])}{jump}"
@@ -114,10 +149,12 @@ def screen(watch: Watch, now: float, where: str) -> str:
                                                  "the whole time") if silent else "alive")
     rows = [f"online-id monitor  {where}  {now:6.1f} s  {watch.frames} frames  service {health}",
             f"checks: {watch.crc_errors} CRC errors, "
-            f"{sum(s.counter_jumps for s in watch.seen.values())} alive-counter jumps", ""]
+            f"{sum(s.counter_jumps for s in watch.seen.values())} alive-counter jumps, "
+            f"{watch.suspect} suspect frames (values outside the DBC)", ""]
     for name, s in watch.seen.items():
         age = f"{now - s.t_s:5.1f} s ago" if s.count else "never seen"
-        rows.append(f"{name:<14} {s.count:7d} frames  {age}  {_fmt(s.values)}")
+        rows.append(f"{name:<14} {s.count:7d} frames  {age}  {_fmt(s.values)}"
+                    + (f"  ({s.suspect} suspect)" if s.suspect else ""))
     rows += ["", f"last alerts ({len(watch.alerts)}):"]
     rows += [f"  {a['t_s']:7.1f} s  {_fmt({k: v for k, v in a.items() if k != 't_s'})}" for a in watch.alerts]
     return "\n".join(rows)
@@ -126,10 +163,11 @@ def screen(watch: Watch, now: float, where: str) -> str:
 def open_watch(args: argparse.Namespace):
     """The config, a :class:`Watch` of its outputs, and the bus description."""
     s = load_config(args.config)
-    codec = OutputEncoder(load_dbc(s.dbc), source=s.dbc or "online_id.dbc")
+    db = load_dbc(s.dbc)
+    codec = OutputEncoder(db, source=s.dbc or "online_id.dbc")
     interface = args.interface or s.bus.interface
     channel = args.channel or s.bus.channel
-    return s, Watch(codec, codec.output_ids(s.publish.frame_ids)), interface, channel
+    return s, Watch(codec, codec.output_ids(s.publish.frame_ids), db), interface, channel
 
 
 def run(args: argparse.Namespace) -> int:

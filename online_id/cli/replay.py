@@ -11,6 +11,7 @@ from pathlib import Path
 from online_id.config import load_config
 from online_id.errors import EstimationError, InputDataError
 from online_id.io.canlog import count_frames, read_log
+from online_id.io.outfile import check_output
 from online_id.io.statefile import load_state, save_state
 from online_id.progress import Progress, add_quiet_option, progress_for
 from online_id.records import FrameFault
@@ -45,6 +46,7 @@ def state_file(directory: Path) -> Path:
 
     if directory.exists() and not directory.is_dir():
         raise InputDataError(f"{directory}: --state expects a directory, but this is a file")
+    check_output(directory, "state", directory=True)  # before the replay, not after it
     return directory / STATE_FILE
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 from pathlib import Path
@@ -101,12 +102,13 @@ def run(args: argparse.Namespace) -> int:
     with progress_for(args, "simulate") as progress:
         record = simulate_bench(scenario, progress=progress)
     # every output under a temporary name, all renamed only when all are written
-    with atomic_output(out) as out_tmp, atomic_output(truth_path) as truth_tmp:
+    can_log = atomic_output(args.can_log) if args.can_log is not None else contextlib.nullcontext()
+    with atomic_output(out) as out_tmp, atomic_output(truth_path) as truth_tmp, can_log as can_tmp:
         write_csv(record, out_tmp, demand=args.with_demand)
         truth_tmp.write_text(json.dumps(record.truth, indent=2) + "\n", encoding="utf-8")
         can_note = ""
-        if args.can_log is not None:
-            count = write_can_log(record, Path(args.can_log))
+        if can_tmp is not None:
+            count = write_can_log(record, can_tmp)
             can_note = f" Wrote {count} CAN frames to {args.can_log}."
     t = record.truth
     print(

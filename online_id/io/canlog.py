@@ -168,10 +168,10 @@ def count_frames(path: str | Path) -> int | None:
         if suffix == ".mf4":
             from asammdf import MDF
 
-            from online_id.io.mdf import _quiet
+            from online_id.io.mdf import _quiet, opened
 
             with _quiet():
-                mdf = MDF(path)
+                mdf = opened(lambda: MDF(path), path)
                 try:
                     return sum(int(g.channel_group.cycles_nr) for g in mdf.groups
                                if any(ch.name.startswith("CAN_") for ch in g.channels)) or None
@@ -292,17 +292,14 @@ def read_log(path: str | Path, on_truncated: Callable[[str], None] | None = None
 
 def _read_mf4(path: Path) -> Iterator[LoggedFrame]:
     """Frames of an MDF 4 bus logging file (python-can's ``MF4Reader``); one-line errors for bad files."""
-    from online_id.io.mdf import _quiet, is_bus_log, read_error
+    from online_id.io.mdf import _quiet, is_bus_log, opened, read_error
 
     if not is_bus_log(path):
         raise InputDataError(f"{path}: an MDF 4 signal recording, not CAN bus logging (no CAN_DataFrame "
                              f"channel group); identify and diagnose read its channels")
     with _quiet():
-        try:
-            reader = can.io.MF4Reader(path)
-            messages = iter(reader)
-        except Exception as err:  # asammdf raises MdfException, ValueError, ... on a bad file
-            raise read_error(path, err, "CAN log") from None
+        reader = opened(lambda: can.io.MF4Reader(path), path, "CAN log")
+        messages = opened(lambda: iter(reader), path, "CAN log")
     count = 0
     try:
         for msg in messages:

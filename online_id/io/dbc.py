@@ -17,14 +17,13 @@ Checks of the frames' integrity, as far as CAN allows:
   0..6 (:mod:`online_id.io.crc`); else ``BAD_CRC`` (inputs) or
   ``COMMAND_REFUSED`` (the command).  The command's CRC is on by default,
   the inputs' is optional (``mapping.<role>.crc``).
-* A command whose alive counter repeats the last accepted one, or is one of
-  the :data:`STALE_COUNTERS` before it, within :data:`COMMAND_REPEAT_WINDOW_S`
-  of stream time, is ``COMMAND_REFUSED`` (a repeated or replayed frame);
-  so is a command with a non-finite timestamp.
+* A command with a non-finite timestamp is ``COMMAND_REFUSED``.
 
 A CRC is no signature: any node on the bus can compute it.  It catches
-corrupt and random frames; what a command may do is the policy of
-:mod:`online_id.commands`.
+corrupt and random frames.  A command's freshness value and MAC (the
+``CommandFreshness`` and ``CommandMac`` signals, :mod:`online_id.io.auth`)
+are read here and judged by :mod:`online_id.commands`, which keeps the
+freshness and the key, with what a command may do.
 
 Output frames: :class:`~online_id.io.dbc_output.OutputEncoder` (that module imports this one, never
 the reverse).
@@ -44,14 +43,11 @@ import cantools
 import numpy as np
 
 from online_id.errors import ConfigError, DbcError, InputDataError, printable
+from online_id.io.auth import command_mac
 from online_id.io.crc import crc8_j1850
 from online_id.records import ROLES, FrameFault, SignalSample
 
 RAD_S_PER_RPM = math.pi / 30.0
-STALE_COUNTERS = 16
-"""A command counter equal to the last accepted one or up to 15 before it is a repeat."""
-COMMAND_REPEAT_WINDOW_S = 5.0
-"""How long (stream time) an accepted command counter blocks its repeats."""
 SPEED_UNITS = ("rpm", "rad/s")
 TORQUE_UNITS = ("Nm",)
 # DBC unit spellings we recognise; an unknown spelling is accepted as is.
@@ -115,11 +111,13 @@ class RoleSignal:
 
 @dataclass(frozen=True)
 class CommandSignal:
-    """Where the service command lives in the DBC."""
+    """Where the service command lives in the DBC: the command, its freshness value (the low bits of it),
+    its MAC (authenticated mode) and its CRC."""
 
     message: str = "OidCommand"
     signal: str = "Command"
-    counter: str | None = "CommandCounter"
+    freshness: str | None = "CommandFreshness"
+    mac: str | None = "CommandMac"
     crc: str | None = "OidCommandCRC"
 
 
@@ -160,11 +158,12 @@ class BenchCommand(IntEnum):
 
 @dataclass(frozen=True)
 class CommandSample:
-    """A command frame received at ``t_s``."""
+    """A command frame received at ``t_s``: its freshness value's low bits and its MAC bytes, as sent."""
 
     command: BenchCommand
     t_s: float
-    counter: int | None = None
+    freshness: int | None = None
+    mac: bytes | None = None
 
 
 # --- DBC look-ups with errors that list what exists ------------------------------------
@@ -186,6 +185,18 @@ def _signal(msg: Any, name: str, source: str, what: str) -> Any:
         raise DbcError(
             f'{source}: expected a signal "{name}" ({what}) in message "{msg.name}", but it has: {have}.'
         ) from None
+
+
+def _mac_signal(msg: Any, name: str, source: str) -> int:
+    """Check that signal ``name`` of ``msg`` can hold a truncated MAC (whole bytes, 3 to 8, little-endian
+    unsigned, on byte boundaries: its bytes are the MAC's, in order); returns its length in bits."""
+    sig = _signal(msg, name, source, "MAC of the command")
+    if sig.length % 8 or not 24 <= sig.length <= 64 or sig.start % 8 or sig.byte_order != "little_endian" \
+            or sig.is_signed or sig.is_float:
+        raise DbcError(f'{source}: expected signal "{name}" in message "{msg.name}" to be 3 to 8 whole bytes, '
+                       f"unsigned little-endian from a byte boundary (the MAC's bytes in order), but got start "
+                       f"{sig.start} length {sig.length} {sig.byte_order}.")
+    return int(sig.length)
 
 
 def _crc_signal(msg: Any, name: str, source: str) -> None:
@@ -281,6 +292,10 @@ def _bounds(sig: Any) -> tuple[float, float]:
     return lo, hi
 
 
+signal_bounds = _bounds
+"""The physical range a cantools signal allows, widened by half a resolution step (for other modules)."""
+
+
 # --- input decoding ---------------------------------------------------------------------
 
 
@@ -341,8 +356,9 @@ class InputDecoder:
         grouped: dict[str, list[_RolePlan]] = {}
         messages: dict[str, Any] = {}
         with_crc: set[str] = set()
-        self._command_last: tuple[int, float] | None = None  # the last accepted command counter and its time
-        self._command_wrap = 256
+        self.command_freshness_bits = 0  # the width of the command's freshness signal (0: none mapped)
+        self.command_mac_bytes = 0  # the bytes of the command's MAC signal (0: none mapped)
+        self._command_mac: str | None = None
         for role in ROLES:
             rs = self.mapping.role(role)
             what = f"role {role}"
@@ -370,12 +386,15 @@ class InputDecoder:
             cs = self.mapping.command
             msg = _message(db, cs.message, source, "service command")
             sig = _signal(msg, cs.signal, source, "service command")
-            if cs.counter is not None:
-                self._command_wrap = 1 << _signal(msg, cs.counter, source, "alive counter of the command").length
+            if cs.freshness is not None:
+                self.command_freshness_bits = _signal(msg, cs.freshness, source, "freshness of the command").length
+            if cs.mac is not None:
+                self.command_mac_bytes = _mac_signal(msg, cs.mac, source) // 8
+                self._command_mac = cs.mac
             if cs.crc is not None:
                 _crc_signal(msg, cs.crc, source)
                 with_crc.add(msg.name)
-            command = _RolePlan("command", sig.name, *_bounds(sig), 1.0, cs.counter, bool(sig.is_float),
+            command = _RolePlan("command", sig.name, *_bounds(sig), 1.0, cs.freshness, bool(sig.is_float),
                                 *_scaling(sig), _limits(sig))
             messages.setdefault(msg.name, msg)
         self._plans: dict[tuple[int, bool], _FramePlan] = {}
@@ -445,20 +464,13 @@ class InputDecoder:
             return self._fault(FrameFault.NOT_FINITE, f'signal "{rp.signal}" in message "{plan.message}": got {value}')
         if not rp.lo <= value <= rp.hi or value not in BenchCommand._value2member_map_:
             return self._fault(FrameFault.OUT_OF_RANGE, self._range_text(rp, plan, value))
-        counter = values.get(rp.counter) if rp.counter is not None else None
         if not math.isfinite(t_s):
             return self._fault(FrameFault.COMMAND_REFUSED, f'message "{plan.message}": timestamp {t_s} is not finite')
-        if counter is not None:
-            counter = int(counter)
-            if self._command_last is not None:
-                last, t_last = self._command_last
-                if (last - counter) % self._command_wrap < STALE_COUNTERS and \
-                        abs(t_s - t_last) < COMMAND_REPEAT_WINDOW_S:
-                    return self._fault(FrameFault.COMMAND_REFUSED,
-                                       f'message "{plan.message}": counter {counter} repeats or precedes the last '
-                                       f"accepted {last} ({t_s - t_last:.3f} s ago)")
-            self._command_last = (counter, t_s)
-        return CommandSample(BenchCommand(int(value)), t_s, counter)
+        freshness = values.get(rp.counter) if rp.counter is not None else None  # the command plan's "counter"
+        mac = None
+        if self._command_mac is not None:
+            mac = int(values[self._command_mac]).to_bytes(self.command_mac_bytes, "little")
+        return CommandSample(BenchCommand(int(value)), t_s, None if freshness is None else int(freshness), mac)
 
     @staticmethod
     def _range_text(rp: _RolePlan, plan: _FramePlan, value: float) -> str:
@@ -576,22 +588,32 @@ def encode_inputs(
     return frames
 
 
-def encode_command(db: Any, message: str, signal: str, command: int, counter: int = 0,
-                   crc: str | None = "OidCommandCRC") -> tuple[int, bytes]:
-    """The service command frame ``(arbitration_id, data)``: the signal set, the counter (signals ending
-    in "counter") set, other signals 0, and byte 7 the CRC-8 of bytes 0..6 when the message has signal ``crc``."""
+def encode_command(db: Any, message: str, signal: str, command: int, freshness: int = 0,
+                   crc: str | None = "OidCommandCRC", *, key: bytes | None = None,
+                   freshness_signal: str | None = "CommandFreshness",
+                   mac_signal: str | None = "CommandMac") -> tuple[int, bytes]:
+    """The service command frame ``(arbitration_id, data)``: the command, the low bits of the 32-bit
+    ``freshness`` value, with ``key`` its MAC (:func:`online_id.io.auth.command_mac`; without, 0), other signals
+    0, and byte 7 the CRC-8 of bytes 0..6 when the message has signal ``crc``."""
     msg = _message(db, message, "the DBC", "service command")
     _signal(msg, signal, "the DBC", "service command")
+    names = {s.name for s in msg.signals}
     values = {s.name: 0 for s in msg.signals}
     values[signal] = int(command)
-    for s in msg.signals:
-        if s.name != signal and s.name.lower().endswith("counter"):
-            values[s.name] = counter % (1 << s.length)
+    if freshness_signal in names:
+        values[freshness_signal] = int(freshness) % (1 << msg.get_signal_by_name(freshness_signal).length)
+    if key is not None:
+        if mac_signal not in names:
+            raise DbcError(f'Cannot authenticate command {command}: message "{message}" has no MAC signal '
+                           f'"{mac_signal}".')
+        n_bytes = _mac_signal(msg, mac_signal, "the DBC") // 8
+        mac = command_mac(key, int(msg.frame_id), int(command), int(freshness), n_bytes)
+        values[mac_signal] = int.from_bytes(mac, "little")
     try:
         data = bytes(msg.encode(values, scaling=True, padding=True, strict=True))
     except (cantools.database.Error, ValueError, KeyError) as err:
         raise DbcError(f'Cannot encode command {command} in message "{message}": {err}') from err
-    if crc is not None and crc in {s.name for s in msg.signals}:
+    if crc is not None and crc in names:
         _crc_signal(msg, crc, "the DBC")
         data = data[:7] + bytes([crc8_j1850(data[:7])])
     return int(msg.frame_id), data

@@ -13,7 +13,7 @@ import cantools
 from online_id.errors import ConfigError, DbcError
 from online_id.io.crc import crc8_j1850
 from online_id.io.dbc import _message, _signal, load_dbc, signal_bits
-from online_id.records import AlertOut, EstimateOut, ExcitationOut, Publication, QualityOut, StatusOut
+from online_id.records import AlertOut, EstimateOut, ExcitationOut, FreshnessOut, Publication, QualityOut, StatusOut
 
 OUTPUT_MESSAGES = {
     "estimate": "OidEstimate",
@@ -22,8 +22,11 @@ OUTPUT_MESSAGES = {
     "status": "OidStatus",
     "alert": "OidAlert",
     "excitation": "OidExcitation",
+    "freshness": "OidFreshness",
 }
 """Default message name of each output (key -> DBC message)."""
+OPTIONAL_OUTPUTS = ("freshness",)
+"""Outputs a DBC may lack (a bench's DBC from before them): never sent then."""
 
 
 _REHEARSAL = {"ResonanceFreq": 20.0, "DampingRatio": 0.05, "Valid": True}  # see OutputEncoder.rehearse
@@ -143,6 +146,8 @@ class OutputEncoder:
         self._by_id: dict[int, _OutSpec] = {}
         self._count: dict[str, int] = {}
         for key, name in self.names.items():
+            if key in OPTIONAL_OUTPUTS and name not in {m.name for m in db.messages}:
+                continue
             msg = _message(db, name, source, f"{key} output")
             counter = _signal(msg, f"{name}Counter", source, "alive counter")
             crc = _signal(msg, f"{name}CRC", source, "CRC-8 over bytes 0..6")
@@ -172,7 +177,8 @@ class OutputEncoder:
         same either way)."""
         if isinstance(pub, EstimateOut):
             return [self._shaft(pub)] if skip_first else [self._estimate(pub), self._shaft(pub)]
-        return [] if skip_first else [self.encode_first(pub)]
+        first = None if skip_first else self.encode_first(pub)
+        return [] if first is None else [first]
 
     def _estimate(self, pub: EstimateOut) -> tuple[int, bytes]:
         ok = bool(pub.valid) and math.isfinite(pub.f0_hz) and math.isfinite(pub.zeta)
@@ -192,8 +198,9 @@ class OutputEncoder:
             if word is not None:
                 crc8_j1850(word.to_bytes(8, "little")[:7])
 
-    def encode_first(self, pub: Publication) -> tuple[int, bytes]:
-        """The first frame of one publication (of an EstimateOut, its OidEstimate)."""
+    def encode_first(self, pub: Publication) -> tuple[int, bytes] | None:
+        """The first frame of one publication (of an EstimateOut, its OidEstimate); None for an output the DBC
+        lacks (:data:`OPTIONAL_OUTPUTS`), which is never sent."""
         if isinstance(pub, EstimateOut):
             return self._estimate(pub)
         if isinstance(pub, QualityOut):
@@ -212,7 +219,11 @@ class OutputEncoder:
                                           "DriftPct": pub.value_pct, "SpeedRpm": pub.speed_rpm})
         if isinstance(pub, ExcitationOut):
             return self._encode("excitation", {"TorqueOffset": pub.torque_offset_nm, "Active": bool(pub.active)})
-        raise TypeError(f"Expected EstimateOut, QualityOut, StatusOut, AlertOut or ExcitationOut, "
+        if isinstance(pub, FreshnessOut):
+            if "freshness" not in self._specs:
+                return None
+            return self._encode("freshness", {"FreshnessValue": pub.freshness, "Authenticated": pub.authenticated})
+        raise TypeError(f"Expected EstimateOut, QualityOut, StatusOut, AlertOut, ExcitationOut or FreshnessOut, "
                         f"but got {type(pub).__name__}.")
 
     def _encode(self, key: str, values: Mapping[str, float]) -> tuple[int, bytes]:

@@ -29,9 +29,10 @@ import gc
 import logging
 import sys
 import warnings
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -56,7 +57,8 @@ def is_mdf(path: str | Path) -> bool:
 def _quiet() -> Iterator[None]:
     """Silence asammdf's warnings, log records and the noise of its half-built objects on a bad file."""
     hook = sys.unraisablehook
-    sys.unraisablehook = lambda _info: None  # asammdf's MDF4.__del__ fails on a file it could not open
+    # asammdf's MDF4.__del__ fails on a file it could not open; an interrupt (SIGINT, SIGTERM) passes on
+    sys.unraisablehook = lambda info: hook(info) if isinstance(info.exc_value, KeyboardInterrupt) else None
     level = logging.getLogger("asammdf").level
     logging.getLogger("asammdf").setLevel(logging.CRITICAL)
     try:
@@ -77,6 +79,24 @@ def read_error(path: Path, err: BaseException, what: str = "MDF 4 file") -> Inpu
     return InputDataError(f"{path}: cannot read the {what}: {text}")
 
 
+def opened(factory: Callable[[], Any], path: Path, what: str = "MDF 4 file") -> Any:
+    """``factory()`` (asammdf's ``MDF(path)``, python-can's ``MF4Reader(path)``), or the one-line error of
+    :func:`read_error`; call it inside :func:`_quiet`.
+
+    The error is raised outside the ``except`` block, so that it carries neither asammdf's exception
+    as its context nor, through that exception's traceback, the half-built ``MDF4`` object: that object
+    is collected here, while :func:`_quiet` silences its failing ``__del__``, not at the interpreter's exit
+    (where it printed a traceback after the one-line error).
+    """
+    error = None
+    try:
+        return factory()
+    except Exception as err:  # asammdf raises MdfException, ValueError, struct.error, ... on a bad file
+        error = read_error(path, err, what)
+    gc.collect()
+    raise error
+
+
 def _open(path: Path):
     from asammdf import MDF
 
@@ -84,10 +104,7 @@ def _open(path: Path):
         raise InputDataError(f"{path}: cannot read the MDF 4 file: it is a directory")
     if not path.is_file():
         raise InputDataError(f"{path}: cannot read the MDF 4 file: no such file")
-    try:
-        return MDF(path)
-    except Exception as err:  # asammdf raises MdfException, ValueError, struct.error, ... on a bad file
-        raise read_error(path, err) from None
+    return opened(lambda: MDF(path), path)
 
 
 def is_bus_log(path: str | Path) -> bool:

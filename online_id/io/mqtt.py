@@ -35,10 +35,10 @@ import sys
 import threading
 import time
 from collections import deque
-from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Iterable
 
 from online_id.errors import ConfigError, OnlineIdError
+from online_id.io.auth import credential_path
 from online_id.records import AlertOut, EstimateOut, QualityOut, StatusOut
 
 if TYPE_CHECKING:  # the settings are built by online_id.config (io does not import it)
@@ -68,10 +68,7 @@ def _num(x: float) -> float | None:
 def resolve_password(s: MqttSettings) -> str | None:
     """The password from ``mqtt.password_file``, ``mqtt.password_env`` or ``mqtt.password``."""
     if s.password_file is not None:
-        path = Path(s.password_file)
-        creds = os.environ.get("CREDENTIALS_DIRECTORY")
-        if not path.is_absolute() and creds:
-            path = Path(creds) / path
+        path = credential_path(s.password_file)
         try:
             return path.read_text(encoding="utf-8").rstrip("\r\n")
         except (OSError, UnicodeDecodeError) as err:

@@ -1,8 +1,9 @@
 """CSV tables whose columns are named on the command line or in a header line.
 
-:func:`read_table` reads the wanted columns of a CSV with a header (through
-:func:`online_id.io.table_csv.read_csv_columns`) or of a headerless CSV whose
-columns are named by the caller (``--no-header --columns a,b,c``).
+:func:`read_table` reads the wanted columns of a CSV with a header or of a
+headerless CSV whose columns are named by the caller (``--no-header --columns
+a,b,c``), both through :func:`online_id.io.table_csv.read_csv_columns` (errors
+name file, line and column).
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from online_id.errors import InputDataError
-from online_id.io.table_csv import LINE_KEY, _sniff_delimiter, first_line, read_csv_columns, read_csv_header
+from online_id.io.table_csv import _sniff_delimiter, first_line, read_csv_columns, read_csv_header
 
 
 def _first_line(path: Path) -> str:
@@ -35,21 +36,20 @@ def column_names(path: str | Path, names: list[str] | None = None) -> list[str]:
 
 
 def read_table(path: str | Path, wanted: list[str], names: list[str] | None = None) -> dict[str, np.ndarray]:
-    """Columns ``wanted`` of ``path``; ``names`` given means the file has no header line."""
+    """Columns ``wanted`` of ``path``; ``names`` given means the file has no header line.
+
+    The result also holds, under :data:`~online_id.io.table_csv.LINE_KEY`, the
+    file line of every row (for errors that name the line).
+    """
     path = Path(path)
     if names is None:
-        table = read_csv_columns(path, wanted)
-        table.pop(LINE_KEY, None)
-        return table
+        return read_csv_columns(path, wanted)
     missing = [w for w in wanted if w not in names]
     if missing:
         raise InputDataError(f"{path}: --columns names no column {missing[0]!r} (named: {', '.join(names)})")
-    delim = _sniff_delimiter(_first_line(path))
-    try:
-        data = np.loadtxt(path, delimiter=None if delim == " " else delim, comments="#", ndmin=2)
-    except ValueError as err:
-        raise InputDataError(f"{path}: {err}") from None
-    if data.shape[1] != len(names):
-        raise InputDataError(f"{path}: {data.shape[1]} columns but --columns names {len(names)} "
-                             f"({', '.join(names)})")
-    return {w: data[:, names.index(w)].astype(float) for w in wanted}
+    line = _first_line(path)
+    delim = _sniff_delimiter(line)
+    cells = len(line.split()) if delim == " " else len(line.split(delim))
+    if cells != len(names):
+        raise InputDataError(f"{path}: {cells} columns but --columns names {len(names)} ({', '.join(names)})")
+    return read_csv_columns(path, wanted, names)

@@ -44,18 +44,49 @@ def check_output(path: str | Path, what: str = "output", directory: bool = False
     return path
 
 
+_hold_depth = 0
+_held: list[BaseException] = []
+
+
+def holding() -> bool:
+    """True within a step that must not be cut half-way (a temporary file made but not yet guarded)."""
+    return _hold_depth > 0
+
+
+def hold(exc: BaseException) -> None:
+    """Raise ``exc`` (a signal's, from its handler) at the end of the step :func:`holding` says runs."""
+    if not _held:
+        _held.append(exc)
+
+
+@contextmanager
+def _whole() -> Iterator[None]:
+    """A step that a signal's handler does not cut (it asks :func:`holding` and calls :func:`hold`)."""
+    global _hold_depth
+    _hold_depth += 1
+    try:
+        yield
+    finally:
+        _hold_depth -= 1
+    if not _hold_depth and _held:
+        raise _held.pop()
+
+
 @contextmanager
 def atomic_output(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary path beside ``path``; on a clean exit it is renamed to ``path``, else removed."""
+    """Yield a temporary path beside ``path``; on a clean exit it is renamed to ``path``, else removed.
+
+    A signal (SIGINT, SIGTERM: :mod:`online_id.interrupt`) while the temporary file is made is held
+    until the removal guards it: it never outlives its command.
+    """
     path = check_output(path)
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".partial{path.suffix}", dir=path.parent)
-    except OSError as err:
-        raise InputDataError(f"{path}: cannot write: {err.strerror or err}") from err
-    os.close(fd)
-    tmp_path = Path(tmp)
     done = False
+    tmp_path = None
     try:
+        with _whole():
+            fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".partial{path.suffix}", dir=path.parent)
+            os.close(fd)
+            tmp_path = Path(tmp)
         yield tmp_path
         os.chmod(tmp_path, 0o666 & ~_umask())
         os.replace(tmp_path, path)
@@ -63,7 +94,7 @@ def atomic_output(path: str | Path) -> Iterator[Path]:
     except OSError as err:
         raise InputDataError(f"{path}: cannot write: {err.strerror or err}") from err
     finally:
-        if not done:
+        if not done and tmp_path is not None:
             tmp_path.unlink(missing_ok=True)
 
 

@@ -25,12 +25,14 @@ def _sniff_delimiter(header: str) -> str:
     return " "
 
 
-def read_csv_columns(path: str | Path, columns: Iterable[str]) -> dict[str, np.ndarray]:
-    """Read the named numeric columns of a CSV file with a header line.
+def read_csv_columns(path: str | Path, columns: Iterable[str], names: list[str] | None = None) -> dict[str, np.ndarray]:
+    """Read the named numeric columns of a CSV file with a header line (or, with ``names``, without one).
 
     Lines starting with ``#`` and blank lines are skipped.  The result also
     holds, under :data:`LINE_KEY`, the file line number of every row.  The delimiter is
-    taken from the header line (comma, semicolon, tab or spaces).
+    taken from the header line (comma, semicolon, tab or spaces).  ``names``
+    names the columns of a file that has no header line (its first data line
+    gives the delimiter).
 
     Raises
     ------
@@ -50,14 +52,21 @@ def read_csv_columns(path: str | Path, columns: Iterable[str]) -> dict[str, np.n
             lines = (line for line in handle)
             header_line = None
             header_no = 0
-            for header_no, line in enumerate(lines, start=1):
-                if line.strip() and not line.lstrip().startswith("#"):
-                    header_line = line
-                    break
-            if header_line is None:
-                raise InputDataError(f"{path}: the file is empty (expected a header line with columns {', '.join(wanted)})")
-            delim = _sniff_delimiter(header_line)
-            header = _header_names(header_line)
+            if names is None:
+                for header_no, line in enumerate(lines, start=1):
+                    if line.strip() and not line.lstrip().startswith("#"):
+                        header_line = line
+                        break
+                if header_line is None:
+                    raise InputDataError(f"{path}: the file is empty (expected a header line with columns {', '.join(wanted)})")
+                delim = _sniff_delimiter(header_line)
+                header = _header_names(header_line)
+            else:
+                data_line = first_line(path)
+                if data_line is None:
+                    raise InputDataError(f"{path}: the file is empty")
+                delim = _sniff_delimiter(data_line)
+                header = list(names)
             missing = [name for name in wanted if name not in header]
             if missing:
                 raise InputDataError(

@@ -3,8 +3,9 @@
 Every test in this folder is marked ``vcan`` automatically, so
 ``pytest -m "not vcan"`` leaves them out and ``pytest -m vcan tests/vcan``
 runs them alone. ``make test`` runs them natively where ``vcan0`` exists or
-can be created (a bench PC: ``sudo modprobe vcan``), else inside User-Mode
-Linux (``scripts/uml-run``), whose kernel has CAN.
+can be created (a bench PC: ``sudo modprobe vcan``), else inside another
+kernel that has CAN (``scripts/vm-run``: QEMU with KVM, User-Mode Linux, or
+QEMU emulating the CPU; docs/testing.md).
 
 Without a usable ``vcan0`` the tests skip with the reason; with
 ``ONLINE_ID_VCAN_REQUIRED=1`` (set by ``scripts/test-vcan``, which has made
@@ -28,9 +29,11 @@ online_id_argv
 can_utils
     Skips the test unless can-utils' ``cansend`` and ``candump`` are installed.
 
-User-Mode Linux is slow (every system call is trapped: about 1,000 frames/s
-with python-can) and a fast sender can overrun a slow reader's socket buffer.
-Assert behaviour, never timing, and keep timeouts generous.
+Inside User-Mode Linux every system call is trapped (about 1,000 frames/s
+with python-can); where QEMU emulates the CPU, Python runs 15-25 times
+slower than natively (``VM_RUN_SLOW`` stretches the time-outs). A fast sender
+can overrun a slow reader's socket buffer. Assert behaviour, never timing,
+and keep timeouts generous.
 """
 
 from __future__ import annotations
@@ -49,8 +52,11 @@ import pytest
 VCAN_DIR = Path(__file__).parent
 CHANNEL = "vcan0"
 REQUIRED_ENV = "ONLINE_ID_VCAN_REQUIRED"
+#: How much slower than natively this kernel runs Python (scripts/vm-run sets it: 5 where QEMU
+#: emulates the CPU); every time-out of the tier is stretched by it.
+SLOW = float(os.environ.get("VM_RUN_SLOW", "1"))
 #: Generous default for receive and subprocess timeouts (UML is slow).
-TIMEOUT_S = 30.0
+TIMEOUT_S = 30.0 * SLOW
 
 _probe_result: dict[str, str | None] = {}
 
@@ -71,8 +77,8 @@ def _unusable_reason(channel: str) -> str | None:
         except (OSError, can.CanError) as err:
             _probe_result[channel] = (
                 f'no usable SocketCAN interface "{channel}" ({err}); the vcan tier '
-                f"needs one: run `make test` (it runs this tier in User-Mode Linux "
-                f"when the kernel has no vcan), or `sudo modprobe vcan && sudo ip link "
+                f"needs one: run `make test` (it runs this tier in another kernel "
+                f"when this one has no vcan), or `sudo modprobe vcan && sudo ip link "
                 f"add dev {channel} type vcan && sudo ip link set up {channel}`"
             )
         else:

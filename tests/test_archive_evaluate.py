@@ -1,0 +1,40 @@
+"""`online-id evaluate` as Dask tasks: the same runs as the process pool, and the false-alarm rate per 1,000 hours
+with its interval."""
+
+import json
+
+import pytest
+
+from online_id.bench.evaluate import rate_per_1000h
+from online_id.cli import main
+
+
+@pytest.mark.parametrize("events, hours, low, high", [
+    (0, 3000.0, 0.0, 1.2296),  # no false alarm in 3,000 h: at most 1.23 per 1,000 h (95 %)
+    (5, 1000.0, 1.6235, 11.668),  # Garwood's interval of 5 events
+    (1, 26.0, 0.9738, 214.3),
+])
+def test_the_false_alarm_rate_per_1000_hours_has_the_exact_poisson_interval(events, hours, low, high):
+    got = rate_per_1000h(events, hours)
+    assert got["false_alarms_per_1000h"] == pytest.approx(1000.0 * events / hours)
+    assert got["false_alarms_per_1000h_ci"] == pytest.approx([low, high], rel=1e-3, abs=1e-9)
+    assert rate_per_1000h(0, 0.0)["false_alarms_per_1000h_ci"] is None
+
+
+@pytest.mark.slow
+def test_evaluate_on_a_local_dask_cluster_gives_the_runs_of_the_process_pool(tmp_path, capsys):
+    pytest.importorskip("distributed")
+    args = ["evaluate", "--hours", "0.02", "--fault-plants", "1", "--cases", "stiffness -10 %", "--jobs", "2"]
+    assert main(args + ["--out", str(tmp_path / "pool")]) == 0
+    assert main(args + ["--dask", "--out", str(tmp_path / "dask")]) == 0
+    text = capsys.readouterr().out
+    assert "per 1,000 h, 95 % interval" in text
+    pool, dask = (json.loads((tmp_path / d / "results.json").read_text()) for d in ("pool", "dask"))
+
+    def runs(doc):
+        return [{k: v for k, v in r.items() if k != "elapsed_s"} for r in doc["runs"]]
+
+    assert len(runs(pool)) == 2 and runs(dask) == runs(pool)
+    f = dask["summary"]["fault_free"]
+    assert f["false_alarms_per_1000h"] == pytest.approx(1000.0 * f["false_alarms"] / f["hours"])
+    assert dask["summary"]["settings"]["dask"] == "local cluster, 2 workers"
