@@ -407,6 +407,7 @@ class InputDecoder:
             used = [r.signal for r in roles] + [r.counter for r in roles if r.counter is not None]
             if is_cmd:
                 used += [command.signal] + ([command.counter] if command.counter is not None else [])
+                used += [self._command_mac] if self._command_mac is not None else []
             self._plans[(int(msg.frame_id), bool(msg.is_extended_frame))] = _FramePlan(
                 name, int(msg.length), _raw_reader(msg, used), roles, command if is_cmd else None,
                 name in with_crc,
