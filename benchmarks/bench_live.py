@@ -49,7 +49,6 @@ import argparse
 import dataclasses
 import json
 import os
-import re
 import subprocess
 import sys
 import tempfile
@@ -68,16 +67,14 @@ from online_id.bench.scenario import BenchScenario, OperatingPoint  # noqa: E402
 from online_id.bench.simulate import simulate_bench  # noqa: E402
 from online_id.io.dbc import encode_inputs, load_dbc  # noqa: E402
 from online_id.offload import InlineWorker  # noqa: E402
+from online_id.reaction import read_summaries  # noqa: E402
 from online_id.runtime import Runtime  # noqa: E402
 
 GROUP = "239.74.163.51"
-REACTION = re.compile(r"reaction p50 (?P<p50>[\d.]+) ms, p99 (?P<p99>[\d.]+) ms, max (?P<max>[\d.]+) ms over (?P<n>\d+)")
-PROCESSING = re.compile(r"processing p50 (?P<p50>[\d.]+) ms, p99 (?P<p99>[\d.]+) ms, max (?P<max>[\d.]+) ms over (?P<n>\d+)")
-PHASE = re.compile(r"(?P<phase>pipeline CPU|encoding CPU|sending CPU|waiting) p50 (?P<p50>[\d.]+) ms, "
-                   r"p99 (?P<p99>[\d.]+) ms, max (?P<max>[\d.]+) ms over (?P<n>\d+)")
-PROCESSING_CPU = re.compile(r"processing CPU p50 (?P<p50>[\d.]+) ms, p99 (?P<p99>[\d.]+) ms, max (?P<max>[\d.]+) ms "
-                            r"over (?P<n>\d+)")
-
+# the service's stop lines (online_id.reaction.read_summaries) -> this benchmark's JSON keys
+SERVICE_FIGURES = {"reaction": "service_reaction_ms", "processing": "service_processing_ms",
+                   "processing CPU": "service_processing_cpu_ms"}
+PHASES = ("pipeline CPU", "encoding CPU", "sending CPU", "waiting")
 
 def _bench(seconds: float, seed: int = 3):
     half = max(seconds / 2.0, 5.0)
@@ -117,19 +114,11 @@ def latency(args, work: Path) -> dict:
     got = run.estimates
     out = {"frames": len(frames), "estimates_expected": len(marks), "estimates_received": len(got),
            "counts": run.counts, "service_cpu_s": run.cpu_s, "sender_max_gap_ms": 1e3 * run.sender_max_gap_s}
-    # the service's own measure: kernel arrival of the frame that triggered a publication -> its frames sent
-    reaction = next((m for m in map(REACTION.search, run.log) if m), None)
-    if reaction:
-        out["service_reaction_ms"] = {k: float(v) for k, v in reaction.groupdict().items()}
-    processing = next((m for m in map(PROCESSING.search, run.log) if m), None)
-    if processing:  # of the reaction, the service loop's own work on the trigger frame
-        out["service_processing_ms"] = {k: float(v) for k, v in processing.groupdict().items()}
-    processing_cpu = next((m for m in map(PROCESSING_CPU.search, run.log) if m), None)
-    if processing_cpu:  # ... and its CPU time
-        out["service_processing_cpu_ms"] = {k: float(v) for k, v in processing_cpu.groupdict().items()}
-    phases = next((ln for ln in run.log if "by phase:" in ln), "")
-    out["service_phases_ms"] = {m["phase"]: {k: float(m[k]) for k in ("p50", "p99", "max", "n")}
-                                for m in PHASE.finditer(phases)}
+    # the service's own measures from its stop lines: kernel arrival of the frame that triggered a publication ->
+    # its OidEstimate sent (reaction); of it, the loop's own work (processing) and that work's CPU time, and by phase
+    figures = read_summaries(run.text)
+    out.update({key: figures[what] for what, key in SERVICE_FIGURES.items() if what in figures})
+    out["service_phases_ms"] = {what: figures[what] for what in PHASES if what in figures}
     if 0 < len(got) - len(marks) <= 2:
         # the live service completes the stream's last sample when the bus falls silent (the in-process run
         # has no such tick); an estimate it triggers comes after every matched one

@@ -24,6 +24,7 @@ from online_id.io.bus import CanBus
 from online_id.io.dbc import encode_inputs, load_dbc
 from online_id.io.dbc_output import OutputEncoder
 from online_id.offload import InlineWorker
+from online_id.reaction import read_summaries
 from online_id.records import FrameFault, ServiceState
 from online_id.runtime import Runtime
 from online_id.service import Service
@@ -94,6 +95,13 @@ def test_service_on_virtual_bus_end_to_end(tmp_path):
     phases = next(ln for ln in text.splitlines() if "the loop on a frame that publishes, by phase" in ln)
     assert "pipeline CPU p50" in phases and "encoding CPU p50" in phases and "sending CPU p50" in phases
     assert "waiting time not measured" in phases
+    # ... as benchmarks/bench_live reads them: every figure of every measured one, in order, the whole loop's CPU
+    # time at least its phases' (each histogram's bins are 10 us: p50 rounds up to a bin's upper edge)
+    figures = read_summaries(text)
+    assert sorted(figures) == ["encoding CPU", "pipeline CPU", "processing", "processing CPU", "sending CPU"]
+    assert all(f["n"] == n and 0 <= f["p50"] <= f["p99"] <= f["max"] for f in figures.values())
+    cpu = figures["processing CPU"]
+    assert cpu["max"] >= max(figures[w]["max"] for w in ("pipeline CPU", "encoding CPU", "sending CPU")) - 1e-9
 
 
 # --- replay = offline recursive identification, within 1 % of the truth ---------------------------
