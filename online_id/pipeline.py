@@ -153,7 +153,7 @@ class Pipeline:
         self.t_first: float | None = None
         self._next_publish: float | None = None
         self._poll_deferred = False  # the worker was not polled on the last sample (it published)
-        self._rest: tuple[OnlineEstimate, float, list[AssembledSample]] | None = None  # see on_signal(split=True)
+        self._rest: tuple[OnlineEstimate, list[AssembledSample]] | None = None  # see on_signal(split=True)
         self._quiet_s = min(QUIET_S, 0.25 / s.publish.rate_hz)  # see publication_near
         self._window_since: float | None = None  # stream time the last window job was submitted
         self._next_physical: float | None = None
@@ -244,9 +244,11 @@ class Pipeline:
 
         ``split``: return as soon as a publication's estimate is made, with the
         :class:`EstimateOut` last, whose frame the live service owes the bus at
-        once; the rest of that publication, and of the samples this value
-        completed, come from :meth:`finish`, which must be called next.  The
-        publications and the state are the same as without it.
+        once; the rest of that publication (its sample's update of the model
+        included: a publication's estimate is of the model as its sample finds
+        it), and of the samples this value completed, come from :meth:`finish`,
+        which must be called next.  The publications and the state are the same
+        as without it.
         """
         if self._rest is not None:
             raise RuntimeError("Pipeline.on_signal: the split publication before was not finished (call finish())")
@@ -270,10 +272,10 @@ class Pipeline:
         """What :meth:`on_signal` with ``split`` left: the rest of its publication, then the samples after it."""
         if self._rest is None:
             return []
-        est, t_s, samples = self._rest
+        est, samples = self._rest
         self._rest = None
-        out = self._publish_rest(est, t_s)
-        self._run(samples, out)
+        out: list[Publication] = []
+        self._run(samples, out, made=est)
         return out
 
     @property
@@ -367,9 +369,26 @@ class Pipeline:
         self._run(samples, out, split)
         return out
 
-    def _run(self, samples: list[AssembledSample], out: list[Publication], split: bool = False) -> None:
-        """The samples into the estimator, publications and slow work into ``out`` (``split``: see on_signal)."""
+    def _run(self, samples: list[AssembledSample], out: list[Publication], split: bool = False,
+             made: OnlineEstimate | None = None) -> None:
+        """The samples into the estimator, publications and slow work into ``out`` (``split``: see on_signal;
+        ``made``: the estimate of the publication on ``samples[0]``, which the split made)."""
         for i, a in enumerate(samples):
+            if self._next_publish is None:
+                self._next_publish = a.t_s
+                self._next_physical = a.t_s
+                self._set_state(ServiceState.LEARNING, a.t_s, out)
+            est = made if i == 0 else None
+            if est is None and a.t_s >= self._next_publish:
+                # a publication: the estimate is the model's as this sample finds it (its update comes after,
+                # with the rest of the publication): the live loop sends it before the sample's work
+                self._next_publish += 1.0 / self.settings.publish.rate_hz
+                if self._next_publish <= a.t_s:  # after a gap: no burst of publications
+                    self._next_publish = a.t_s + 1.0 / self.settings.publish.rate_hz
+                est = self._publish_estimate(a.t_s, out)
+                if split:
+                    self._rest = (est, samples[i:])
+                    return
             self.process(a)
             self.t_s = a.t_s
             rels = self.estimator.rels
@@ -382,18 +401,7 @@ class Pipeline:
             exc = self.excitation.step(a.t_s, healthy, self.estimator.speed_rpm)
             if exc:
                 out.append(exc)
-            if self._next_publish is None:
-                self._next_publish = a.t_s
-                self._next_physical = a.t_s
-                self._set_state(ServiceState.LEARNING, a.t_s, out)
-            if a.t_s >= self._next_publish:
-                self._next_publish += 1.0 / self.settings.publish.rate_hz
-                if self._next_publish <= a.t_s:  # after a gap: no burst of publications
-                    self._next_publish = a.t_s + 1.0 / self.settings.publish.rate_hz
-                est = self._publish_estimate(a.t_s, out)
-                if split:
-                    self._rest = (est, a.t_s, samples[i + 1:])
-                    return
+            if est is not None:
                 out.extend(self._publish_rest(est, a.t_s))
             elif self._detect_pending is not None:
                 self._run_pending_detection(out)

@@ -327,10 +327,10 @@ class OnlineDriveline:
     def prepare_estimate(self) -> None:
         """The current model's poles, computed now for an estimate due before the model changes.
 
-        The live service calls it on the sample before a publication: the model changes only on the
-        input samples that complete a model sample (every ``factor``-th), so the publication's estimate
-        often finds its poles done (:meth:`_poles_for`), and otherwise the code and data it needs in the
-        processor's caches.  Nothing else changes: the estimate is the same with or without it.
+        The live service calls it on the sample before a publication: a publication's estimate is of the
+        model as its sample finds it (the pipeline updates the model with that sample after the estimate),
+        so it finds its poles done (:meth:`_poles_for`).  Nothing else changes: the estimate is the same
+        with or without it.
         """
         a, _b, _c, _cov, _V, source = self.polynomials()
         self._poles_for(a, source)
