@@ -214,7 +214,8 @@ def main() -> int:
     (out_dir / "bench-live.json").write_text(json.dumps(result, indent=2))
     if result["rates"]:
         print(f"highest lossless input rate: {result['highest_lossless_frames_per_s']:.0f} frames/s")
-    print(f"(load average {result['machine']['load_avg_start'][0]:.1f} at start"
+    print(f"(load average {result['machine']['load_avg_start'][0]:.1f} at start, "
+          f"{result['machine']['load_avg_end'][0]:.1f} at the end"
           + (f", {args.busy} busy processes" if args.busy else "") + f"); {out_dir / 'bench-live.json'}")
     return 0
 
