@@ -46,7 +46,11 @@ IDENTIFY_UNITS = {
     "zeta_std": "1", "zeta_a": "1", "J1": "kg m^2", "J2": "kg m^2", "c_s": "Nm/rad", "d_s": "Nm s/rad",
     "engine_speed_rpm": "rpm", "t_start_s": "s", "t_end_s": "s", "fit_window_s": "s", "compare_window_s": "s",
     "fpe": "(rad/s)^2", "validation_V": "(rad/s)^2", "order": "1/rev (engine order)", "z_re": "1", "z_im": "1",
-    "fit_simulation_pct": "%", "fit_one_step_pct": "%", "coherence_at_f0": "1",
+    "std": "unit of the parameter", "ci95": "unit of the parameter", "sample_time_s": "s", "noise_variance": "(rad/s)^2",
+    "input_offset": "Nm", "output_offset": "rad/s", "input_delay_samples": "samples",
+    "fit_simulation_pct": "%", "fit_one_step_pct": "%", "coherence_at_f0": "1", "held_out_s": "s", "window_s": "s",
+    "autocorrelation": "1", "cross_correlation": "1", "autocorrelation_bound": "1", "cross_correlation_bound": "1",
+    "lags": "samples at sample_rate_hz", "cross_lags": "samples at sample_rate_hz", "confidence": "1",
 }
 NEAR_NYQUIST = 0.4  # poles above this fraction of the sample rate sit where the anti-alias filter left no signal
 ORDER_MAX_ZETA = 0.02  # an engine-order line is an (almost) undamped oscillator
@@ -93,9 +97,16 @@ def pole_notes(result: IdentificationResult, pulses_per_rev: float | None = None
     return out
 
 
-def identification_document(result: IdentificationResult, pulses_per_rev: float | None = None) -> dict:
-    """``result.as_dict()`` with a note on every pole (see :func:`pole_notes`) and a ``units`` map."""
+def identification_document(result: IdentificationResult, pulses_per_rev: float | None = None,
+                            resid: bool = False) -> dict:
+    """``result.as_dict()`` with a note on every pole (see :func:`pole_notes`) and a ``units`` map.
+
+    With ``resid``, every operating point gets its residual tests (``"resid"``).
+    """
     doc = result.as_dict()
+    if resid:
+        for point, p in zip(doc["operating_points"], result.points):
+            point["resid"] = p.resid.as_dict() if p.resid is not None else None
     for point, notes in zip(doc["operating_points"], pole_notes(result, pulses_per_rev)):
         for pole, note in zip(point["poles"], notes):
             pole["spurious"] = note.startswith("spurious")
@@ -110,17 +121,46 @@ def figures_text(doc: dict) -> list[str]:
     fig = doc.get("figures")
     if not fig:
         return []
-    head = "Model against the data (compare: held-out part of each plateau, or its fit window where it has none)"
-    lines = ["", head] if fig["points"] else [""]
-    for c in fig["points"]:
-        lines.append(f"  {c['engine_speed_rpm']:6.0f} rpm  simulation fit {fmt(c['fit_simulation_pct'], '6.1f')} %  "
-                     f"one-step fit {fmt(c['fit_one_step_pct'], '6.1f')} %  coherence at f0 "
-                     f"{fmt(c['coherence_at_f0'], '.2f')}" + ("" if c["held_out"] else "  (fit window)"))
+    lines = [""]
+    if fig["points"]:
+        lines.append("Coherence of torque and dyno speed at the driveline frequency (Bode figures): "
+                     + ", ".join(f"{c['engine_speed_rpm']:.0f} rpm {fmt(c['coherence_at_f0'], '.2f')}"
+                                 for c in fig["points"]))
     return lines + [f"wrote {f}" for f in fig["files"]]
 
 
+def validation_text(result: IdentificationResult, resid: bool = False) -> list[str]:
+    """The held-out fit per operating point (MATLAB ``compare``) and, with ``resid``, the residual tests."""
+    checks = [(p, p.check) for p in result.points if p.check is not None]
+    if not checks:
+        return ["Validation: no operating point long enough to compare the model with"]
+    fitted = all(c.held_out for _, c in checks)
+    lines = ["Validation (MATLAB compare, NRMSE fit %; " + ("on data held out of every fit)" if fitted else
+             "held-out data where a point has any, else its fit window, marked)")]
+    for p, c in checks:
+        t0 = p.plateau.t_start_s
+        span = f"{t0 + c.span[0] * p.dt:.1f}-{t0 + c.span[1] * p.dt:.1f} s"
+        where = f"held out {span:<15}" if c.held_out else f"FIT WINDOW {span} (no data left)"
+        lines.append(f"  {p.speed_rpm:6.0f} rpm  {where}  simulation fit {fmt(c.fit_sim_pct, '6.1f')} %  "
+                     f"one-step fit {fmt(c.fit_pred_pct, '6.1f')} %")
+    if resid:
+        rs = [(p, p.resid) for p in result.points if p.resid is not None]
+        if rs:
+            r0 = rs[0][1]
+            lines += ["", f"Residual tests (MATLAB resid: one-step residual on the same samples, "
+                      f"{100 * r0.confidence:.0f} % bounds, lags in samples of {1e3 * result.points[0].dt:.3g} ms)"]
+        for p, r in rs:
+            lines.append(f"  {p.speed_rpm:6.0f} rpm  autocorrelation {r.auto_outside:2d}/{r.lags.size - 1} lags "
+                         f"outside +-{r.auto_bound:.3f}   cross-correlation with the torque {r.cross_outside:2d}/"
+                         f"{r.cross_lags.size} outside +-{r.cross_bound:.3f}   ("
+                         + ("white" if r.auto_outside <= max(1, int(0.01 * (r.lags.size - 1))) else "not white")
+                         + ", " + ("independent of the input" if r.cross_outside <= max(1, int(0.01 * r.cross_lags.size))
+                                   else "correlated with the input") + ")")
+    return lines
+
+
 def identification_table(result: IdentificationResult, *, show_real: bool = False, show_spurious: bool = False,
-                         pulses_per_rev: float | None = None) -> str:
+                         pulses_per_rev: float | None = None, resid: bool = False) -> str:
     """Poles per operating point with their class, then the driveline result.
 
     Poles that are certainly spurious (negative damping, near Nyquist) are
@@ -162,6 +202,7 @@ def identification_table(result: IdentificationResult, *, show_real: bool = Fals
         hidden_total += n_hidden
         lines.append("")
     lines.append(driveline_text(result))
+    lines += [""] + validation_text(result, resid)
     if hidden_total:
         lines.append("(spurious poles: listed with a note in --json)")
     for w in result.warnings:
@@ -174,15 +215,27 @@ def driveline_text(result: IdentificationResult) -> str:
     mode = result.sorting.driveline
     if d is None or mode is None:
         return "Driveline: not found (no invariant lightly damped pole pair)"
+    std = result.uncertainty.std if result.uncertainty is not None else {}
+
+    def pm(key: str, spec: str) -> str:
+        """``+- std  [95 % interval]`` of a parameter, or why there is none."""
+        v, sd = getattr(d, key), std.get(key)
+        if v is None:
+            return ""
+        if sd is None:
+            return "  (given)" if key in ("J1", "J2") and d.source != "identified gain and anti-resonance" else ""
+        return f" +- {format(sd, spec)}  [{format(v - 1.96 * sd, spec)}, {format(v + 1.96 * sd, spec)}]"
+
     out = [
-        "Driveline",
-        f"  resonance        f0   = {d.f0_hz:8.3f} Hz   (std {mode.f0_std_hz:.3f} Hz over {mode.n_points} points)",
-        f"  damping ratio    zeta = {d.zeta:8.4f}      (std {mode.zeta_std:.4f})",
+        "Driveline (+- one standard deviation from the fits' covariance, [95 % interval])",
+        f"  resonance        f0   = {d.f0_hz:8.3f} Hz{pm('f0_hz', '.3f')}   (spread over {mode.n_points} points "
+        f"{mode.f0_std_hz:.3f} Hz)",
+        f"  damping ratio    zeta = {d.zeta:8.4f}{pm('zeta', '.4f')}   (spread {mode.zeta_std:.4f})",
         f"  anti-resonance   fa   = {fmt(d.fa_hz, '8.3f')} Hz",
-        f"  dyno inertia     J1   = {fmt(d.J1, '8.4f')} kg m^2",
-        f"  engine inertia   J2   = {fmt(d.J2, '8.4f')} kg m^2",
-        f"  shaft stiffness  c_s  = {fmt(d.c_s, '8.1f')} Nm/rad",
-        f"  shaft damping    d_s  = {fmt(d.d_s, '8.3f')} Nms/rad",
+        f"  dyno inertia     J1   = {fmt(d.J1, '8.4f')} kg m^2{pm('J1', '.4f')}",
+        f"  engine inertia   J2   = {fmt(d.J2, '8.4f')} kg m^2{pm('J2', '.4f')}",
+        f"  shaft stiffness  c_s  = {fmt(d.c_s, '8.1f')} Nm/rad{pm('c_s', '.1f')}",
+        f"  shaft damping    d_s  = {fmt(d.d_s, '8.3f')} Nms/rad{pm('d_s', '.3f')}",
         f"  inertias from: {d.source}",
     ]
     return "\n".join(out)
@@ -270,9 +323,30 @@ def plot_identification(result: IdentificationResult, path: str | Path, title: s
 SEVERITY_COLOR = {0: "tab:gray", 1: "tab:orange", 2: "tab:red"}
 TRACK_STYLE = {
     "driveline": dict(color="tab:red", label="driveline track"),
-    "speed_dependent": dict(color="tab:blue", label="speed-dependent track"),
+    "speed_dependent": dict(color="tab:blue", label="order-line track (moves with engine speed)"),
     "unknown": dict(color="0.55", label="unclassed track"),
+    "far": dict(color="0.55", label="other track (called driveline, far from the driveline estimate)"),
 }
+FAR_FROM_DRIVELINE = 0.10
+"""A track called driveline whose median frequency lies this far (relative) from the driveline's is drawn as another
+track: the driveline is one mode, and a track at several times its frequency is not it."""
+
+
+def driveline_reference_hz(estimates: "EstimateSeries | None", baselines: Sequence[BandStats]) -> float | None:
+    """The driveline frequency the tracks are judged against: the valid estimates' median, else the baselines'."""
+    if estimates is not None and len(estimates) and estimates.valid.any():
+        return float(np.median(estimates.f0_hz[estimates.valid]))
+    means = [b.mean_f for b in baselines if np.isfinite(b.mean_f)]
+    return float(np.median(means)) if means else None
+
+
+def display_class(tr: "TrackSeries", ref_hz: float | None) -> str:
+    """The class a track is drawn with: ``"far"`` for a driveline track far from ``ref_hz`` (see above)."""
+    if tr.cls == "driveline" and ref_hz is not None and tr.f_hz.size:
+        f = float(np.nanmedian(tr.f_hz))
+        if abs(f - ref_hz) > FAR_FROM_DRIVELINE * ref_hz:
+            return "far"
+    return tr.cls if tr.cls in TRACK_STYLE else "unknown"
 
 
 @dataclass(frozen=True)
@@ -300,6 +374,25 @@ class TrackSeries:
     speed_rpm: np.ndarray
     f_hz: np.ndarray
     zeta: np.ndarray
+
+
+@dataclass(frozen=True)
+class EngagedSeries:
+    """Engaged-flank readings of a shaft with backlash (:mod:`online_id.monitoring.engaged`), times from the origin.
+
+    ``alarm`` marks the readings that confirmed a change (raised an alarm);
+    ``ref_f0_hz``, ``ref_zeta``: the learned reference's median (None while it learns).
+    """
+
+    t_s: np.ndarray
+    f0_hz: np.ndarray
+    zeta: np.ndarray
+    alarm: np.ndarray  # bool
+    ref_f0_hz: float | None = None
+    ref_zeta: float | None = None
+
+    def __len__(self) -> int:
+        return int(self.t_s.shape[0])
 
 
 @dataclass(frozen=True)
@@ -376,25 +469,25 @@ def plot_versus_speed(path: str | Path, quantity: str, estimates: EstimateSeries
     def track_y(tr: TrackSeries) -> np.ndarray:
         return tr.f_hz if is_f else tr.zeta
 
+    ref_hz = driveline_reference_hz(estimates, baselines)
     if ax_all is not None:
         seen: set[str] = set()
         for tr in tracks:
-            st = TRACK_STYLE.get(tr.cls, TRACK_STYLE["unknown"])
+            cls = display_class(tr, ref_hz)
+            st = TRACK_STYLE[cls]
             ax_all.scatter(tr.speed_rpm, track_y(tr), s=4, color=st["color"], alpha=0.5, lw=0,
-                           label=st["label"] if tr.cls not in seen else None)
-            seen.add(tr.cls)
+                           label=st["label"] if cls not in seen else None)
+            seen.add(cls)
         speeds = np.concatenate([tr.speed_rpm for tr in tracks])
         speeds = speeds[np.isfinite(speeds)]
         orders = sorted({tr.order for tr in tracks if tr.order is not None and tr.cls == "speed_dependent"})
         if is_f and speeds.size:
             rpm = np.linspace(0.9 * speeds.min(), 1.1 * speeds.max(), 50)
             for k in orders:
-                ax_all.plot(rpm, k * rpm / 60.0, "--", color="tab:blue", lw=0.8, alpha=0.6)
-                ax_all.text(rpm[-1], k * rpm[-1] / 60.0, f" order {k:g}", fontsize=8, color="tab:blue",
-                            va="center", clip_on=True)
+                ax_all.plot(rpm, k * rpm / 60.0, "--", color="tab:blue", lw=0.8, alpha=0.6,
+                            label="engine order lines" if k == orders[0] else None)
         ax_all.set_ylabel(ylabel)
         ax_all.set_title("all tracked poles", fontsize=10)
-        ax_all.legend(loc="best", fontsize=8, markerscale=3)
         ax_all.grid(alpha=0.3)
 
     zoom_values: list[np.ndarray] = []
@@ -407,8 +500,9 @@ def plot_versus_speed(path: str | Path, quantity: str, estimates: EstimateSeries
         zoom_values.append(y[ok])
     have_est = estimates is not None and len(estimates) > 0
     for tr in tracks:  # the speed-dependent tracks; the driveline ones stand in for missing estimates
-        if tr.cls == "speed_dependent" or (tr.cls == "driveline" and not have_est):
-            st = TRACK_STYLE[tr.cls]
+        cls = display_class(tr, ref_hz)
+        if cls == "speed_dependent" or (cls == "driveline" and not have_est):
+            st = TRACK_STYLE[cls]
             ax.scatter(tr.speed_rpm, track_y(tr), s=5, color=st["color"], alpha=0.5, lw=0, marker="^",
                        label=None if tr.cls in seen_low else st["label"])
             seen_low.add(tr.cls)
@@ -436,6 +530,13 @@ def plot_versus_speed(path: str | Path, quantity: str, estimates: EstimateSeries
     ax.set_xlabel("engine speed [rpm]")
     if ax_all is not None:
         ax_all.set_xlim(ax.get_xlim())
+        if is_f:
+            top = ax_all.get_ylim()[1]
+            ax_all.set_ylim(0.0, top)
+            for k in sorted({tr.order for tr in tracks if tr.order is not None and tr.cls == "speed_dependent"}):
+                _label_line(ax_all, k, np.array(ax_all.get_xlim()), k * np.array(ax_all.get_xlim()) / 60.0,
+                            f"order {k:g}", "tab:blue")
+        ax_all.legend(loc="upper left", fontsize=8, markerscale=3)
         ax.set_title("driveline and baselines", fontsize=10)
     if ax.get_legend_handles_labels()[0]:
         ax.legend(loc="best", fontsize=8, markerscale=3)
@@ -479,6 +580,22 @@ def _band_of(baselines: Sequence[BandStats], speed_rpm: np.ndarray) -> list[Band
     return out
 
 
+NEAR_ALERT = 0.25
+"""Alerts within this fraction of the data's time span beyond its ends are drawn (the axis widens to them)."""
+
+
+def _data_span(estimates: EstimateSeries | None, tracks: Sequence[TrackSeries],
+               engaged: EngagedSeries | None) -> tuple[float, float] | None:
+    """First and last time of the estimates, driveline tracks and engaged readings (None without any)."""
+    parts = [estimates.t_s] if estimates is not None and len(estimates) else []
+    parts += [tr.t_s for tr in tracks if tr.cls == "driveline"] or [tr.t_s for tr in tracks]
+    if engaged is not None and len(engaged):
+        parts.append(engaged.t_s)
+    t = np.concatenate(parts) if parts else np.empty(0)
+    t = t[np.isfinite(t)]
+    return (float(t.min()), float(t.max())) if t.size else None
+
+
 def _alert_groups(alerts: Sequence[AlertMark], ax, min_gap: float = 0.025) -> list[list[AlertMark]]:
     """Alerts sorted by time, grouped where they lie closer than ``min_gap`` of the time axis (one label each)."""
     marks = sorted(alerts, key=lambda m: m.t_s)
@@ -498,7 +615,8 @@ def _alert_groups(alerts: Sequence[AlertMark], ax, min_gap: float = 0.025) -> li
 def plot_tracks_over_time(path: str | Path, estimates: EstimateSeries | None, tracks: Sequence[TrackSeries],
                           baselines: Sequence[BandStats], alerts: Sequence[AlertMark], time_label: str,
                           title: str = "", max_labels: int = 12,
-                          learned_t_s: Sequence[float] | None = None) -> None:
+                          learned_t_s: Sequence[float] | None = None,
+                          engaged: EngagedSeries | None = None) -> None:
     """f0 and zeta against time: estimates (or driveline tracks), baselines, alerts, invalid stretches.
 
     The baseline of the band holding the engine speed at each time (the
@@ -506,8 +624,12 @@ def plot_tracks_over_time(path: str | Path, estimates: EstimateSeries | None, tr
     a shaded +- 2 std, drawn from the time the band was learned when
     ``learned_t_s`` (per baseline) gives it; alerts are vertical lines
     (orange warning, red fault, grey info), alerts close in time share one
-    label, at most ``max_labels`` labels; stretches without a valid
-    estimate are greyed.
+    label, at most ``max_labels`` labels, each inside the axes; stretches
+    without a valid estimate are greyed.  The engaged-flank readings of a
+    shaft with backlash (``engaged``) are diamonds, those that raised an
+    alarm filled red.  The time axis spans the data; alerts before or after
+    it are counted in a note at that edge instead of stretching the axis
+    over an empty span.
     """
     plt = pyplot()
     fig, (ax_f, ax_z) = plt.subplots(2, 1, figsize=(10, 7), sharex=True)
@@ -523,7 +645,8 @@ def plot_tracks_over_time(path: str | Path, estimates: EstimateSeries | None, tr
         for k, (a, b) in enumerate(invalid_spans(estimates.t_s, ok)):
             for ax in (ax_f, ax_z):
                 ax.axvspan(a, b, color="0.88", zorder=0, lw=0, label="no valid estimate" if k == 0 else None)
-    for k, tr in enumerate(t for t in tracks if t.cls == "driveline"):
+    ref_hz = driveline_reference_hz(estimates, baselines)
+    for k, tr in enumerate(t for t in tracks if display_class(t, ref_hz) == "driveline"):
         lab = "driveline track" if k == 0 else None
         ax_f.plot(tr.t_s, tr.f_hz, ".", ms=1.5, color="tab:purple", alpha=0.4, label=lab, zorder=1)
         ax_z.plot(tr.t_s, tr.zeta, ".", ms=1.5, color="tab:purple", alpha=0.4, label=lab, zorder=1)
@@ -545,18 +668,50 @@ def plot_tracks_over_time(path: str | Path, estimates: EstimateSeries | None, tr
                         label="baseline +- 2 std")
     zoom_f += _baseline_values(baselines, "f0")
     zoom_z += _baseline_values(baselines, "zeta")
-    for a in alerts:
+    if engaged is not None and len(engaged):
+        for ax, y, ref, zoom in ((ax_f, engaged.f0_hz, engaged.ref_f0_hz, zoom_f),
+                                 (ax_z, engaged.zeta, engaged.ref_zeta, zoom_z)):
+            ok = ~engaged.alarm
+            ax.plot(engaged.t_s[ok], y[ok], "D", ms=4, mfc="none", mec="black", zorder=4,
+                    label="engaged-flank reading (backlash test)")
+            if engaged.alarm.any():
+                ax.plot(engaged.t_s[engaged.alarm], y[engaged.alarm], "D", ms=5, color="tab:red", mec="black",
+                        zorder=5, label="engaged-flank readings that raised an alarm")
+            if ref is not None:
+                ax.axhline(ref, color="black", lw=0.8, ls=":", label="engaged-flank reference (learned median)")
+            zoom.append(y)
+    span = _data_span(estimates, tracks, engaged)
+    if span is not None:  # alerts close to the data widen the axis; far ones would leave an empty span
+        reach = NEAR_ALERT * max(span[1] - span[0], 1.0)
+        near = [a.t_s for a in alerts if span[0] - reach <= a.t_s <= span[1] + reach]
+        span = (min([span[0]] + near), max([span[1]] + near))
+    inside = [a for a in alerts if span is None or span[0] <= a.t_s <= span[1]]
+    for a in inside:
         c = SEVERITY_COLOR.get(a.severity, "tab:gray")
         for ax in (ax_f, ax_z):
             ax.axvline(a.t_s, color=c, lw=1.2, alpha=0.9)
-    for k, group in enumerate(_alert_groups(alerts, ax_f)):
+    if span is not None:
+        pad = 0.02 * max(span[1] - span[0], 1.0)
+        ax_f.set_xlim(span[0] - pad, span[1] + pad)
+        before = [a for a in alerts if a.t_s < span[0]]
+        after = [a for a in alerts if a.t_s > span[1]]
+        for group, x, ha, word in ((before, 0.01, "left", "before"), (after, 0.99, "right", "after")):
+            if group:
+                worst = max(group, key=lambda m: m.severity)
+                ax_f.text(x, 0.02, f"{len(group)} alert(s) {word} the data shown (e.g. {worst.label} at "
+                          f"{worst.t_s:.1f} s)", transform=ax_f.transAxes, ha=ha, va="bottom", fontsize=7,
+                          color=SEVERITY_COLOR.get(worst.severity, "tab:gray"))
+    x_lo, x_hi = ax_f.get_xlim()
+    for k, group in enumerate(_alert_groups(inside, ax_f)):
         if k >= max_labels:
             break
         a = max(group, key=lambda m: m.severity)
         text = a.label + (f" (+{len(group) - 1} within {group[-1].t_s - group[0].t_s:.0f} s)" if len(group) > 1 else "")
+        near_left = (group[0].t_s - x_lo) < 0.04 * (x_hi - x_lo)  # a label left of the line would cross the axis
         ax_f.annotate(text, (group[0].t_s, 1.0), xycoords=("data", "axes fraction"), rotation=90, fontsize=7,
-                      color=SEVERITY_COLOR.get(a.severity, "tab:gray"), ha="right", va="top", xytext=(-2, -2),
-                      textcoords="offset points")
+                      color=SEVERITY_COLOR.get(a.severity, "tab:gray"), ha="left" if near_left else "right",
+                      va="top", xytext=(2 if near_left else -2, -2), textcoords="offset points",
+                      annotation_clip=True)
     for ax, zoom, floor in ((ax_f, zoom_f, 0.5), (ax_z, zoom_z, 0.01)):
         lim = _zoom(zoom, floor)
         if lim is not None:

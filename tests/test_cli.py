@@ -44,7 +44,8 @@ def test_simulate_then_identify_json_and_plot(bench_csv, tmp_path, capsys):
     classes = {q["class"] for p in doc["operating_points"] for q in p["poles"]}
     assert {"driveline", "speed_dependent"} <= classes
     assert set(doc["model"]) >= {"na", "nb", "nc", "fpe"}
-    names = ["poles.png", "bode_1_1000rpm.png", "bode_2_1600rpm.png", "bode_3_2200rpm.png", "compare.png"]
+    names = ["poles.png", "bode_1_1000rpm.png", "bode_2_1600rpm.png", "bode_3_2200rpm.png", "compare.png",
+             "responses.png"]
     assert [Path(f).name for f in doc["figures"]["files"]] == names
     for name in names:
         png = figs / name

@@ -16,7 +16,7 @@ from online_id.bench import evaluate as ev
 from online_id.bench.scenario import BenchScenario, Fault, OperatingPoint
 from online_id.bench.simulate import simulate_bench
 from online_id.cli import main
-from online_id.cli.simulate import write_can_log
+from online_id.offline.bench_files import write_can_log
 from online_id.io.statefile import load_state, save_state
 from online_id.pipeline import run_bench_data
 from online_id.records import AlertKind

@@ -138,7 +138,7 @@ def test_ced_absolute_value_sensor(capsys):
     assert doc["effects"] == []
     wiener = [c for c in doc["candidates"] if c["kind"] == "absolute_value_sensor"][0]
     assert wiener["significant"] and wiener["fit_pct"] > doc["error_before"]["fit_pct"] + 50
-    assert wiener["rms"] > doc["error_before"]["rms"]
+    assert wiener["rms"] > doc["error_before"]["one_step"]["rms"]
 
 
 def test_bad_variable_names_file_and_variable(capsys):
@@ -208,3 +208,32 @@ def test_the_order_search_stops_where_one_more_step_lowers_the_error_by_less_tha
     got = _smallest_sufficient(range(len(costs)), lambda k: seen.append(k) or costs[k], tol)
     assert got == expect
     assert seen == list(range(min(expect + 2, len(costs))))  # stops fitting at the first insufficient step
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed, amp_nm, na, rpm", [(1, 20.0, 8, 3200.0), (2, 10.0, 4, 3200.0), (3, 15.0, 8, 2700.0)])
+def test_a_once_per_revolution_line_is_named_the_order_never_a_mode(seed, amp_nm, na, rpm):
+    """One speed, a strong order-1 torque above the resonance (a measured rig's situation): whether the
+    baseline holds the line as a near-undamped pole pair (warned and tested as the order) or leaves it in
+    the residual (a line at the shaft's rate at one speed is named the order), the line is named the
+    rotation order first and no additional mode sits at it."""
+    from online_id.bench.scenario import OrderTorque
+    from online_id.diagnose.records import data_path, decimate_alike, path_note
+
+    sc = BenchScenario(operating_points=(OperatingPoint(rpm, 40),), compression_nm=0.0, seed=seed,
+                       effects=Effects(order_torque=OrderTorque("engine", 1.0, amp_nm, 0.3)))
+    rec = simulate_bench(sc)
+    w = np.pi / 30
+    path = data_path(sc.fs_hz, FS)
+    sig = decimate_alike({"u": rec.dyno_torque_nm, "y": rec.dyno_speed_rpm * w, "w1": rec.dyno_speed_rpm * w,
+                          "w2": rec.engine_speed_rpm * w}, path)
+    data = DiagnoseData(sig["u"], sig["y"], path.fs_hz, "torque", "dyno_speed", {"dyno": sig["w1"], "engine": sig["w2"]},
+                        notes={"data_path": path_note(path)})
+    d = diagnose(data, na=na, nb=None, nc=2, max_effects=2)
+    line_hz = rpm / 60.0
+    assert d.effects and d.effects[0].kind == "rotation_order_disturbance" and d.effects[0].params["order"] == 1.0
+    for e in d.effects:
+        assert not (e.kind == "additional_mode" and abs(e.params["freq_hz"] - line_hz) < 0.03 * line_hz)
+    held = [m for m in d.modes if "line" in m]
+    assert all(m["line"]["order"] == 1.0 and abs(m["freq_hz"] - line_hz) < 0.03 * line_hz for m in held)
+    assert bool(held) == any("rotation-order line" in w for w in d.warnings)

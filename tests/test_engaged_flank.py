@@ -227,7 +227,7 @@ def test_the_backlash_test_runs_on_a_config_that_declares_no_compression_pulses(
 
 
 def test_the_report_of_a_saved_state_shows_the_engaged_reference(tmp_path):
-    from online_id.cli.report_cmd import from_state, markdown, summary
+    from online_id.offline.report import from_state, markdown, summary
     from online_id.io.statefile import save_state
 
     healthy, _ = _run(PLANTS[0], None)

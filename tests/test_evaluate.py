@@ -11,7 +11,7 @@ from online_id.bench import evaluate as ev
 from online_id.bench.scenario import BenchScenario, Friction, OperatingPoint
 from online_id.bench.simulate import simulate_bench
 from online_id.cli import main
-from online_id.cli.evaluate import table
+from online_id.offline.evaluate import table
 from online_id.errors import FieldError
 
 

@@ -116,16 +116,18 @@ def test_output_paths_are_checked_before_the_work(tmp_path, cli_error):
 
 
 def test_simulate_writes_nothing_when_one_output_fails(tmp_path, cli_error, monkeypatch):
-    import online_id.cli.simulate as sim
+    import online_id.bench.scenario as scenario
+    import online_id.offline.bench_files as files
     from online_id.bench.scenario import BenchScenario, OperatingPoint
 
-    monkeypatch.setattr(sim, "BenchScenario", lambda: BenchScenario(operating_points=(OperatingPoint(1000.0, 0.5),)))
+    monkeypatch.setattr(scenario, "BenchScenario",
+                        lambda: BenchScenario(operating_points=(OperatingPoint(1000.0, 0.5),)))
 
     def broken(record, path):
         Path(path).write_text("partial")
         raise InputDataError(f"{path}: cannot write: No space left on device")
 
-    monkeypatch.setattr(sim, "write_can_log", broken)
+    monkeypatch.setattr(files, "write_can_log", broken)
     cli_error(["simulate", "--out", str(tmp_path / "b.csv"), "--can-log", str(tmp_path / "b.log")])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["b.log"] or not list(tmp_path.glob("b.csv"))
     assert not (tmp_path / "b.csv").exists() and not (tmp_path / "b.truth.json").exists()

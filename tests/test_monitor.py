@@ -90,7 +90,7 @@ def test_monitor_decodes_and_checks_the_output_frames(capsys, as_json):
         assert docs[3]["signals"]["AlertKind"] == "FREQ_DRIFT" and docs[3]["signals"]["DriftPct"] == -5.2
         assert docs[4]["error"].startswith("bad CRC")
     else:
-        assert "0x300 OidEstimate  ResonanceFreq 23.26  DampingRatio 0.0564  Valid VALID" in lines[1]
+        assert "0x300 OidEstimate  ResonanceFreq 23.26 Hz  DampingRatio 0.0564  Valid VALID" in lines[1]  # DBC units
         assert lines[4].endswith("OidStatus: bad CRC or length: data 0000000000000000")
 
 

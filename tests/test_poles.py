@@ -167,3 +167,26 @@ def test_fast_roots_are_numpys_roots():
             b = rng.normal(size=4)
             z = complex(got[int(rng.integers(got.size))])
             assert modal_residue(a, b, z, got) == modal_residue(a, b, z)
+
+
+@pytest.mark.parametrize("speeds, line_order, f0, zeta0", [([3200, 3200, 3200], 1.0, 18.0, 0.08),
+                                                          ([3000, 3010, 2995], 1.0, 25.0, 0.3),
+                                                          ([1500, 1500], 2.5, 40.0, 0.05)])
+def test_a_near_undamped_pair_on_an_order_line_is_never_a_mode(speeds, line_order, f0, zeta0):
+    """One speed at every operating point: the order line does not move, so it clusters like an invariant
+    mode; near-undamped on an order line, it is a rotation line, set aside (and the driveline is the mode),
+    even where the mode is missed at one point."""
+    rng = np.random.default_rng(len(speeds))
+    rows = []
+    for i, rpm in enumerate(speeds):
+        row = [_pole(line_order * rpm / 60.0 * (1 + 1e-4 * rng.standard_normal()), 0.005)]
+        if i > 0 or len(speeds) < 3:  # missed at the first of three points: the line is found at more
+            row.append(_pole(f0 * (1 + 0.003 * rng.standard_normal()), zeta0))
+        rows.append(row)
+    res = sort_poles(rows, speeds, band_hz=(3, 200))
+    assert res.driveline is not None and res.driveline.f0_hz == pytest.approx(f0, rel=0.02)
+    assert res.invariant_modes == []
+    for row in res.poles:
+        line = [p for p in row if p.zeta < 0.01]
+        assert line[0].cls == SPEED_DEPENDENT and line[0].order == line_order
+    assert [(x.order, x.n_points, x.declared) for x in res.lines] == [(line_order, len(speeds), False)]

@@ -182,7 +182,7 @@ def test_out_is_a_file(tmp_path, cli_error):
 
 
 def test_final_estimate_is_not_valid_when_the_service_ended_in_input_timeout():
-    from online_id.cli.report_cmd import final_estimate
+    from online_id.offline.report import final_estimate
     from online_id.report import EstimateSeries
 
     t = np.arange(5.0)

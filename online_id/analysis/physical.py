@@ -108,18 +108,10 @@ def fit_response(
         raise EstimationError("too few frequency points to fit the anti-resonance")
     s = 2j * np.pi * f_hz
     w0 = 2 * np.pi * f0_hz
-    den_pair = s**2 + 2 * zeta * w0 * s + w0**2
     log_meas = np.log(response)
 
-    def model(x: np.ndarray) -> np.ndarray:
-        log_g, wa, za, p, tau = x
-        num = s**2 + 2 * za * wa * s + wa**2
-        return -np.exp(log_g) * num / ((s + p) * den_pair) * np.exp(-s * tau)
-
     def resid(x: np.ndarray) -> np.ndarray:
-        d = np.log(model(x)) - log_meas
-        d_im = (d.imag + np.pi) % (2 * np.pi) - np.pi
-        return np.concatenate((d.real, d_im))
+        return _log_residual(x, s, w0, zeta, log_meas)
 
     # start: gain from the highest frequencies, anti-resonance from the notch
     wa0 = 2 * np.pi * (fa_guess_hz if fa_guess_hz else 0.8 * f0_hz)
@@ -132,8 +124,7 @@ def fit_response(
     best = None
     for za0 in (0.02, 0.08):
         x0 = np.array([np.log(max(g0, 1e-9)), wa0, za0, 0.05 * w0, 0.0])
-        lo = [-np.inf, 0.1 * w0, 0.0, 0.0, -0.05]
-        up = [np.inf, 0.999 * w0, 0.9, 0.9 * w0, 0.05]
+        lo, up = _bounds(w0)
         x0 = np.clip(x0, np.array(lo) + 1e-12, np.array(up) - 1e-12)
         try:
             sol = least_squares(resid, x0, bounds=(lo, up), x_scale="jac", max_nfev=400)
@@ -146,6 +137,92 @@ def fit_response(
     log_g, wa, za, p, tau = best.x
     rms = float(np.sqrt(np.mean(best.fun**2)))
     return ResponseFit(float(np.exp(log_g)), float(wa / (2 * np.pi)), float(za), float(p / (2 * np.pi)), float(tau), rms)
+
+
+def _bounds(w0: float) -> tuple[list[float], list[float]]:
+    """Bounds of ``x = (log gain, wa, zeta_a, real pole, delay)`` in :func:`fit_response`."""
+    return [-np.inf, 0.1 * w0, 0.0, 0.0, -0.05], [np.inf, 0.999 * w0, 0.9, 0.9 * w0, 0.05]
+
+
+def _log_residual(x: np.ndarray, s: np.ndarray, w0: float, zeta: float, log_meas: np.ndarray) -> np.ndarray:
+    """Log-magnitude and wrapped phase of the two-mass model over the response (see :func:`fit_response`)."""
+    log_g, wa, za, p, tau = x
+    num = s**2 + 2 * za * wa * s + wa**2
+    model = -np.exp(log_g) * num / ((s + p) * (s**2 + 2 * zeta * w0 * s + w0**2)) * np.exp(-s * tau)
+    d = np.log(model) - log_meas
+    return np.concatenate((d.real, (d.imag + np.pi) % (2 * np.pi) - np.pi))
+
+
+def response_sensitivity(f_hz: np.ndarray, response: np.ndarray, fit: ResponseFit, f0_hz: float,
+                         zeta: float) -> tuple[np.ndarray, np.ndarray]:
+    """How the anti-resonance and gain of :func:`fit_response` move with the response and the fixed pole pair.
+
+    Returns ``(D, E)``: ``D`` (2 x 2m) maps a change of the log response,
+    stacked as ``[Re d log H; Im d log H]`` over the ``m`` frequencies, and
+    ``E`` (2 x 2) a change of ``(f0_hz, zeta)``, to the change of
+    ``(fa_hz, gain)``.
+
+    Notes
+    -----
+    At the least-squares optimum :math:`x^*` of the residual
+    :math:`r(x; \\log H, p)`, the implicit function theorem (the Gauss-Newton
+    linearisation) gives :math:`dx = -(J^T J)^{-1} J^T (\\partial r/\\partial
+    \\log H\\, d\\log H + \\partial r/\\partial p\\, dp)` with :math:`J =
+    \\partial r/\\partial x` (central differences); a parameter held on a bound
+    of the fit does not move.  :math:`\\partial r/\\partial \\log H = -I`.
+    """
+    f_hz = np.asarray(f_hz, dtype=float)
+    response = np.asarray(response, dtype=complex)
+    s = 2j * np.pi * f_hz
+    w0 = 2 * np.pi * f0_hz
+    log_meas = np.log(response)
+    x = np.array([np.log(fit.gain), 2 * np.pi * fit.fa_hz, fit.zeta_a, 2 * np.pi * fit.pole_hz, fit.delay_s])
+    lo, up = (np.array(b, dtype=float) for b in _bounds(w0))
+    step = 1e-6 * np.maximum(np.abs(x), np.array([1.0, w0, 0.01, w0, 1e-3]))
+    free = (x - lo > 2 * step) & (up - x > 2 * step)
+    J = np.empty((2 * f_hz.size, x.size))
+    for i in range(x.size):
+        dx = np.zeros(x.size)
+        dx[i] = step[i]
+        J[:, i] = (_log_residual(x + dx, s, w0, zeta, log_meas) - _log_residual(x - dx, s, w0, zeta, log_meas)) / (2 * step[i])
+    Jf = J[:, free]
+    solve = np.zeros((x.size, 2 * f_hz.size))
+    solve[free] = np.linalg.pinv(Jf.T @ Jf) @ Jf.T  # dx per unit -dr
+    dr_dp = np.empty((2 * f_hz.size, 2))
+    for i, (h_f, h_z) in enumerate(((1e-6 * f0_hz, 0.0), (0.0, 1e-6 * max(zeta, 1e-3)))):
+        hp = _log_residual(x, s, 2 * np.pi * (f0_hz + h_f), zeta + h_z, log_meas)
+        hm = _log_residual(x, s, 2 * np.pi * (f0_hz - h_f), zeta - h_z, log_meas)
+        dr_dp[:, i] = (hp - hm) / (2 * (h_f + h_z))
+    to_out = np.array([[0.0, 1.0 / (2 * np.pi), 0.0, 0.0, 0.0], [fit.gain, 0.0, 0.0, 0.0, 0.0]])
+    return to_out @ solve, -(to_out @ solve @ dr_dp)
+
+
+PHYSICAL = ("f0_hz", "zeta", "c_s", "d_s", "J1", "J2")
+
+
+def parameter_jacobian(f0_hz: float, zeta: float, fa_hz: float | None, gain: float | None,
+                       **inertias: float | None) -> np.ndarray:
+    """``d (f0, zeta, c_s, d_s, J1, J2) / d (f0, zeta, fa, gain)`` of :func:`parameters` (central differences).
+
+    Rows of parameters that :func:`parameters` leaves None are NaN; columns
+    of inputs that are None are zero.
+    """
+    v = np.array([f0_hz, zeta, np.nan if fa_hz is None else fa_hz, np.nan if gain is None else gain])
+
+    def out(x: np.ndarray) -> np.ndarray:
+        d = parameters(x[0], x[1], None if np.isnan(x[2]) else float(x[2]),
+                       None if np.isnan(x[3]) else float(x[3]), **inertias)
+        return np.array([np.nan if getattr(d, k) is None else float(getattr(d, k)) for k in PHYSICAL])
+
+    jac = np.zeros((len(PHYSICAL), 4))
+    for i in range(4):
+        if np.isnan(v[i]):
+            continue
+        h = 1e-6 * max(abs(v[i]), 1e-9)
+        dv = np.zeros(4)
+        dv[i] = h
+        jac[:, i] = (out(v + dv) - out(v - dv)) / (2 * h)
+    return jac
 
 
 def parameters(

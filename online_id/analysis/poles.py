@@ -19,6 +19,13 @@ half steps) at its operating point is *speed dependent*; the pair that is
 found at the same frequency at (nearly) every operating point is the
 *driveline* mode; further pairs that are invariant too are reported as
 *invariant* (a second mode, a structural resonance); the rest are *other*.
+
+A pole pair on an order line with almost no damping (``|zeta| <=
+LINE_ZETA``) is a *rotation line*: the ARMAX part absorbed a periodic
+torque locked to the rotation.  It is never a candidate for the driveline or
+an invariant mode, even where every operating point runs at one speed (then
+an order line does not move and would otherwise look invariant), and the
+sorting lists what it set aside.
 """
 
 from __future__ import annotations
@@ -34,6 +41,7 @@ SPEED_DEPENDENT = "speed_dependent"
 INVARIANT = "invariant"
 REAL = "real"
 OTHER = "other"
+LINE_ZETA = 0.02  # an order line is an (almost) undamped oscillator; a driveline mode is damped more
 
 
 @dataclass(frozen=True)
@@ -156,6 +164,25 @@ def order_of(f_hz: float, speed_rpm: float, *, max_order: float = 12.0, tol_pct:
     return None
 
 
+def rotation_line(f_hz: float, zeta: float, rates_hz: dict[str, float], *, line_zeta: float = LINE_ZETA,
+                  step: float = 0.5, max_order: float = 40.0, tol_pct: float = 2.5,
+                  tol_hz: float = 0.4) -> tuple[str, float] | None:
+    """``(shaft, order)`` when a pole pair is a rotation line: damped no more than ``line_zeta`` and at a
+    multiple (``step``: half orders) of a shaft's rotation rate [Hz] (within ``tol_pct`` or ``tol_hz``);
+    the smallest order over the shafts.  ``None`` otherwise."""
+    if not (np.isfinite(f_hz) and np.isfinite(zeta) and abs(zeta) <= line_zeta):
+        return None
+    best = None
+    for shaft, r in rates_hz.items():
+        if not r > 0:
+            continue
+        k = round(f_hz / r / step) * step
+        if 0 < k <= max_order and abs(f_hz - k * r) <= max(tol_hz, tol_pct / 100.0 * k * r):
+            if best is None or k < best[1]:
+                best = (shaft, float(k))
+    return best
+
+
 @dataclass(frozen=True)
 class ModeSummary:
     """The invariant driveline mode found across operating points."""
@@ -168,6 +195,22 @@ class ModeSummary:
     n_points: int
 
 
+@dataclass(frozen=True)
+class SetAsideLine:
+    """A rotation-order line the model holds as a pole pair, set aside from the modes."""
+
+    order: float
+    f_hz: float
+    zeta: float
+    n_points: int
+    declared: bool = False  # a harmonic of the declared compression pulses (expected, not reported)
+
+    def text(self) -> str:
+        return (f"a pole pair at {self.f_hz:.2f} Hz with damping {self.zeta:.4f} sits on order {self.order:g} of "
+                f"the rotation at {self.n_points} operating point(s): a rotation-order line (a periodic torque "
+                "locked to the shaft), set aside from the modes; it is not the driveline resonance")
+
+
 @dataclass
 class PoleSorting:
     """Result of :func:`sort_poles`: classified poles per point and the driveline mode."""
@@ -175,6 +218,26 @@ class PoleSorting:
     poles: list[list[Pole]]
     driveline: ModeSummary | None
     invariant_modes: list[ModeSummary] = field(default_factory=list)
+    lines: list[SetAsideLine] = field(default_factory=list)
+
+
+def is_rotation_line(p: Pole, line_zeta: float = LINE_ZETA) -> bool:
+    """A pole on an order line (``p.order`` set) with almost no damping: a rotation-order line."""
+    return p.kind == "complex" and p.order is not None and abs(p.zeta) <= line_zeta
+
+
+def set_aside_lines(poles_per_point: list[list[Pole]], line_zeta: float = LINE_ZETA,
+                    pulses_per_rev: float | None = None) -> list[SetAsideLine]:
+    """The rotation lines of :func:`is_rotation_line`, one per order, over the operating points; those at
+    a multiple of ``pulses_per_rev`` are marked declared."""
+    by_order: dict[float, list[Pole]] = {}
+    for row in poles_per_point:
+        for p in row:
+            if is_rotation_line(p, line_zeta):
+                by_order.setdefault(p.order, []).append(p)
+    return [SetAsideLine(k, float(np.median([p.f_hz for p in ps])), float(np.median([p.zeta for p in ps])), len(ps),
+                         bool(pulses_per_rev) and abs(k / pulses_per_rev - round(k / pulses_per_rev)) < 1e-9)
+            for k, ps in sorted(by_order.items())]
 
 
 def _cluster_modes(cands: list[list[Pole]], tol_pct: float, min_points: int) -> list[tuple[list[int | None], float]]:
@@ -226,6 +289,7 @@ def sort_poles(
     max_zeta: float = 0.5,
     max_order_zeta: float = 0.2,
     max_freq_hz: float = np.inf,
+    line_zeta: float = LINE_ZETA,
 ) -> PoleSorting:
     """Class every pole as driveline, invariant, speed dependent, real or other.
 
@@ -251,6 +315,9 @@ def sort_poles(
     max_freq_hz
         Poles above this frequency (near Nyquist, where the anti-alias filter
         leaves no signal) are never put on an order line.
+    line_zeta
+        A pole on an order line damped no more than this is a rotation line
+        (:func:`is_rotation_line`): never a mode candidate.
     """
     n_points = len(poles_per_point)
     marked: list[list[Pole]] = []
@@ -268,7 +335,8 @@ def sort_poles(
     # candidates for invariant modes: lightly damped complex poles in the band;
     # order-line poles are candidates too, since an invariant mode may cross an order line at one point
     cand_idx = [
-        [j for j, p in enumerate(row) if p.kind == "complex" and band_hz[0] <= p.f_hz <= band_hz[1] and 0.0 < p.zeta < max_zeta]
+        [j for j, p in enumerate(row) if p.kind == "complex" and band_hz[0] <= p.f_hz <= band_hz[1]
+         and 0.0 < p.zeta < max_zeta and not is_rotation_line(p, line_zeta)]
         for row in marked
     ]
     cands = [[marked[i][j] for j in idx] for i, idx in enumerate(cand_idx)]
@@ -304,7 +372,7 @@ def sort_poles(
                 if m is not None:
                     j = cand_idx[i][m]
                     marked[i][j] = replace(marked[i][j], cls=cls, order=None)
-    return PoleSorting(marked, driveline, invariant)
+    return PoleSorting(marked, driveline, invariant, set_aside_lines(marked, line_zeta, pulses_per_rev))
 
 
 def modal_residue(a: np.ndarray, b: np.ndarray, z: complex, roots: np.ndarray | None = None) -> float:
@@ -334,6 +402,26 @@ def modal_residue(a: np.ndarray, b: np.ndarray, z: complex, roots: np.ndarray | 
     return float(abs(num / den)) if den != 0 else float("inf")
 
 
+def pole_gradient(a: np.ndarray, z: complex, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Gradients of a pole's frequency [Hz] and damping with respect to ``a[1:]`` (see :func:`pole_std`).
+
+    Infinite where the derivative does not exist (``z = 0``, a multiple root).
+    """
+    a = np.asarray(a, dtype=float)
+    n = a.size - 1
+    if n < 1 or z == 0:
+        return np.full(max(n, 0), np.inf), np.full(max(n, 0), np.inf)
+    dA = np.polyval(np.polyder(a), z)  # z^n + a1 z^(n-1) + ... : same order as np.polyval expects
+    if dA == 0:
+        return np.full(n, np.inf), np.full(n, np.inf)
+    powers = z ** np.arange(n - 1, -1, -1)  # z^(n-k) for k = 1..n
+    G = -powers / dA / (z * dt)  # d s / d a_k
+    s = np.log(z) / dt
+    x, y = s.real, s.imag
+    r = abs(s)
+    return (x * G.real + y * G.imag) / (2 * np.pi * r), (-(y**2) * G.real + x * y * G.imag) / r**3
+
+
 def pole_std(a: np.ndarray, z: complex, cov_a: np.ndarray, dt: float) -> tuple[float, float]:
     """Standard deviations of a pole's frequency [Hz] and damping from the covariance of ``a``.
 
@@ -346,21 +434,9 @@ def pole_std(a: np.ndarray, z: complex, cov_a: np.ndarray, dt: float) -> tuple[f
     :math:`\\partial \\zeta/\\partial(x, y) = (-y^2, xy)/r^3`.  First-order
     propagation: :math:`\\sigma_f^2 = g_f^T \\Sigma_a g_f`.
     """
-    a = np.asarray(a, dtype=float)
-    n = a.size - 1
-    if n < 1 or z == 0:
+    g_f, g_z = pole_gradient(a, z, dt)
+    if g_f.size == 0 or not (np.all(np.isfinite(g_f)) and np.all(np.isfinite(g_z))):
         return float("inf"), float("inf")
-    coeffs = a  # z^n + a1 z^(n-1) + ... : same order as np.polyval expects
-    dA = np.polyval(np.polyder(coeffs), z)
-    if dA == 0:
-        return float("inf"), float("inf")
-    powers = z ** np.arange(n - 1, -1, -1)  # z^(n-k) for k = 1..n
-    G = -powers / dA / (z * dt)  # d s / d a_k
-    s = np.log(z) / dt
-    x, y = s.real, s.imag
-    r = abs(s)
-    g_f = (x * G.real + y * G.imag) / (2 * np.pi * r)
-    g_z = (-(y**2) * G.real + x * y * G.imag) / r**3
     var_f = float(g_f @ cov_a @ g_f)
     var_z = float(g_z @ cov_a @ g_z)
     return float(np.sqrt(max(var_f, 0.0))), float(np.sqrt(max(var_z, 0.0)))

@@ -47,8 +47,9 @@ N_STATES = 9
 # parameter indices
 (P_J1, P_J2, P_J3, P_C2, P_D2, P_B0, P_B1, P_B2, P_V, P_SIGMA, P_GAP,
  P_RIP_A, P_RIP_ORDER, P_RIP_PHASE, P_DIST_A, P_DIST_W, P_STR_W, P_STR_Z,
- P_STR_GAIN, P_ORD_A, P_ORD_ORDER, P_ORD_PHASE, P_ORD_ENGINE, P_COUL, P_COUL_V) = range(25)
-N_PARAMS = 25
+ P_STR_GAIN, P_ORD_A, P_ORD_ORDER, P_ORD_PHASE, P_ORD_ENGINE, P_COUL, P_COUL_V, P_THIRD_AT) = range(26)
+N_PARAMS = 26
+THIRD_AT = {"engine": 0.0, "between": 1.0, "dyno": 2.0}  # P_THIRD_AT: where the third inertia sits
 
 _FOUR_PI = 4.0 * math.pi
 
@@ -90,9 +91,11 @@ def _ripple(theta1, p):
 def _derivative(x, t, u, c_s, d_s, force, p, tdc, strength, third, dx):
     y1 = x[Y1]
     y2 = x[Y2]
-    t_s = _shaft_torque(x[PHI], y1 - y2, c_s, d_s, p[P_GAP])
+    at = p[P_THIRD_AT] if third else 0.0
+    ym = x[Y3] if at == 1.0 else y2  # the shaft's engine-side end: the third inertia when it is between
+    t_s = _shaft_torque(x[PHI], y1 - ym, c_s, d_s, p[P_GAP])
     if p[P_COUL] != 0.0:  # Coulomb friction in the coupling, smoothed over P_COUL_V rad/s
-        t_s += p[P_COUL] * math.tanh((y1 - y2) / p[P_COUL_V])
+        t_s += p[P_COUL] * math.tanh((y1 - ym) / p[P_COUL_V])
     t_dyno = u + _ripple(x[THETA1], p)
     t_dist = p[P_DIST_A] * math.sin(p[P_DIST_W] * t) + p[P_STR_GAIN] * x[XS]
     t_eng = 0.0
@@ -103,18 +106,34 @@ def _derivative(x, t, u, c_s, d_s, force, p, tdc, strength, third, dx):
             t_dist += p[P_ORD_A] * math.sin(p[P_ORD_ORDER] * x[THETA1] + p[P_ORD_PHASE])
     t_23 = 0.0
     if third:
-        t_23 = p[P_C2] * x[PHI2] + p[P_D2] * (y2 - x[Y3])
-    dx[PHI] = y1 - y2
-    dx[Y1] = (-t_s - t_dyno - t_dist) / p[P_J1]
-    dx[Y2] = (t_s - _engine_torque(x[THETA2], y2, p, tdc, strength) - t_23 - t_eng) / p[P_J2]
+        if at == 1.0:  # between: the second spring from the third inertia to the engine
+            t_23 = p[P_C2] * x[PHI2] + p[P_D2] * (ym - y2)
+        elif at == 2.0:  # beyond the dyno
+            t_23 = p[P_C2] * x[PHI2] + p[P_D2] * (y1 - x[Y3])
+        else:
+            t_23 = p[P_C2] * x[PHI2] + p[P_D2] * (y2 - x[Y3])
+    dx[PHI] = y1 - ym
     dx[THETA1] = y1
     dx[THETA2] = y2
-    if third:
-        dx[PHI2] = y2 - x[Y3]
+    if at == 1.0:
+        dx[Y1] = (-t_s - t_dyno - t_dist) / p[P_J1]
+        dx[Y2] = (t_23 - _engine_torque(x[THETA2], y2, p, tdc, strength) - t_eng) / p[P_J2]
+        dx[PHI2] = ym - y2
+        dx[Y3] = (t_s - t_23) / p[P_J3]
+    elif at == 2.0:
+        dx[Y1] = (-t_s - t_dyno - t_dist - t_23) / p[P_J1]
+        dx[Y2] = (t_s - _engine_torque(x[THETA2], y2, p, tdc, strength) - t_eng) / p[P_J2]
+        dx[PHI2] = y1 - x[Y3]
         dx[Y3] = t_23 / p[P_J3]
     else:
-        dx[PHI2] = 0.0
-        dx[Y3] = 0.0
+        dx[Y1] = (-t_s - t_dyno - t_dist) / p[P_J1]
+        dx[Y2] = (t_s - _engine_torque(x[THETA2], y2, p, tdc, strength) - t_23 - t_eng) / p[P_J2]
+        if third:
+            dx[PHI2] = y2 - x[Y3]
+            dx[Y3] = t_23 / p[P_J3]
+        else:
+            dx[PHI2] = 0.0
+            dx[Y3] = 0.0
     w_s = p[P_STR_W]
     dx[XS] = x[VS]
     dx[VS] = force - 2.0 * p[P_STR_Z] * w_s * x[VS] - w_s * w_s * x[XS]
@@ -175,27 +194,39 @@ def friction_torque_nm(speed_rad_s: float, b0: float, b1: float, b2: float) -> f
 
 
 def linear_state_matrix(J1: float, J2: float, c_s: float, d_s: float,
-                        third: tuple[float, float, float] | None = None) -> np.ndarray:
+                        third: tuple[float, float, float] | None = None, location: str = "engine") -> np.ndarray:
     """State matrix of the linear driveline (no friction, compression or backlash).
 
-    States ``[phi, y1, y2]``, plus ``[phi2, y3]`` when ``third = (J3, c_2, d_2)``.
+    States ``[phi, y1, y2]``, plus ``[phi2, y3]`` when ``third = (J3, c_2, d_2)``: hanging off the engine
+    (``location="engine"``), between the shaft and the engine (``"between"``) or off the dyno (``"dyno"``).
     """
-    n = 3 if third is None else 5
-    a = np.zeros((n, n))
-    a[0, 1], a[0, 2] = 1.0, -1.0
-    a[1, :3] = [-c_s / J1, -d_s / J1, d_s / J1]
-    a[2, :3] = [c_s / J2, d_s / J2, -d_s / J2]
-    if third is not None:
-        J3, c_2, d_2 = third
-        a[2, 2] -= d_2 / J2
-        a[2, 3], a[2, 4] = -c_2 / J2, d_2 / J2
-        a[3, 2], a[3, 4] = 1.0, -1.0
-        a[4, 2:] = [d_2 / J3, c_2 / J3, -d_2 / J3]
+    if third is None:
+        a = np.zeros((3, 3))
+        a[0, 1], a[0, 2] = 1.0, -1.0
+        a[1, :3] = [-c_s / J1, -d_s / J1, d_s / J1]
+        a[2, :3] = [c_s / J2, d_s / J2, -d_s / J2]
+        return a
+    J3, c_2, d_2 = third
+    # the chain of three inertias as masses m and two springs (i, j, c, d) on speeds [y1, y2, y3]
+    springs = {"engine": ((0, 1, c_s, d_s), (1, 2, c_2, d_2)),
+               "between": ((0, 2, c_s, d_s), (2, 1, c_2, d_2)),
+               "dyno": ((0, 1, c_s, d_s), (0, 2, c_2, d_2))}[location]
+    m = (J1, J2, J3)
+    a = np.zeros((5, 5))  # states [phi, y1, y2, phi2, y3]: phi, phi2 the twists of the two springs
+    speed = {0: 1, 1: 2, 2: 4}
+    for k, (i, j, c, d) in enumerate(springs):
+        tw = 0 if k == 0 else 3
+        a[tw, speed[i]], a[tw, speed[j]] = 1.0, -1.0
+        for node, sign in ((i, -1.0), (j, 1.0)):  # torque c tw + d (yi - yj) leaves i, enters j
+            r = speed[node]
+            a[r, tw] += sign * c / m[node]
+            a[r, speed[i]] += sign * d / m[node]
+            a[r, speed[j]] -= sign * d / m[node]
     return a
 
 
 def linear_modes(J1: float, J2: float, c_s: float, d_s: float,
-                 third: tuple[float, float, float] | None = None) -> list[dict[str, float]]:
+                 third: tuple[float, float, float] | None = None, location: str = "engine") -> list[dict[str, float]]:
     """Oscillatory modes ``{f_hz, zeta}`` of the linear driveline, lowest first.
 
     Notes
@@ -204,7 +235,7 @@ def linear_modes(J1: float, J2: float, c_s: float, d_s: float,
     natural frequency) and ``zeta = -Re(s) / |s|``.  Overdamped pairs (real
     eigenvalues) are not reported.
     """
-    eig = np.linalg.eigvals(linear_state_matrix(J1, J2, c_s, d_s, third))
+    eig = np.linalg.eigvals(linear_state_matrix(J1, J2, c_s, d_s, third, location))
     modes = [
         {"f_hz": float(abs(s) / (2 * math.pi)), "zeta": float(-s.real / abs(s))}
         for s in eig if s.imag > 1e-9 * max(1.0, abs(s))

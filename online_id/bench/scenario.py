@@ -118,17 +118,29 @@ class Noise:
         _non_negative(self, *(f.name for f in dataclasses.fields(self)))
 
 
+THIRD_LOCATIONS = ("engine", "between", "dyno")
+
+
 @dataclass(frozen=True)
 class ThirdInertia:
-    """Inertia ``J3`` hanging off the engine via stiffness ``c_2``, damping ``d_2``."""
+    """An unmeasured inertia ``J3`` with stiffness ``c_2`` and damping ``d_2``.
+
+    ``location``: ``engine`` hangs it off the engine, beyond the engine speed sensor; ``between`` puts it
+    between the shaft and the engine (a dual-mass flywheel or a coupling: the shaft drives ``J3``, which
+    drives the engine through ``c_2, d_2``; the engine sensor sees the engine); ``dyno`` hangs it off the
+    dyno, beyond the dyno speed sensor (a compliant dyno mount or a hub beyond the sensor).
+    """
 
     J3: float
     c_2: float
     d_2: float
+    location: str = "engine"
 
     def __post_init__(self) -> None:
         _positive(self, "J3", "c_2")
         _non_negative(self, "d_2")
+        _require(self.location in THIRD_LOCATIONS, "location", self.location,
+                 f"expected one of {', '.join(THIRD_LOCATIONS)}")
 
 
 @dataclass(frozen=True)

@@ -110,6 +110,7 @@ def _parameters(s: BenchScenario) -> np.ndarray:
     if s.third_inertia is not None:
         ti = s.third_inertia
         p[plant.P_J3], p[plant.P_C2], p[plant.P_D2] = ti.J3, ti.c_2, ti.d_2
+        p[plant.P_THIRD_AT] = plant.THIRD_AT[ti.location]
     fx = s.effects
     if fx.backlash is not None:
         p[plant.P_GAP] = fx.backlash.gap_rad
@@ -199,6 +200,8 @@ def simulate_bench(
     gap = s.effects.backlash.gap_rad if s.effects.backlash is not None else 0.0
     x = np.zeros(plant.N_STATES)
     x[plant.PHI] = w0 / s.c_s + math.copysign(0.5 * gap, w0) + s.initial_twist_rad
+    if s.third_inertia is not None and s.third_inertia.location == "between":
+        x[plant.PHI2] = w0 / s.third_inertia.c_2  # the second spring carries the engine's friction too
     x[plant.Y1] = x[plant.Y2] = x[plant.Y3] = speed0
     integral = w0 / gains.ki if gains.ki > 0 else 0.0
 
@@ -242,14 +245,15 @@ def simulate_bench(
 def bench_truth(s: BenchScenario, plateaus: list[dict[str, float]], gains: PiGains,
                 delays: dict[str, int]) -> dict[str, Any]:
     """The JSON-able truth of a run (see :func:`simulate_bench`)."""
-    third = None
+    third, where = None, "engine"
     if s.third_inertia is not None:
         third = (s.third_inertia.J3, s.third_inertia.c_2, s.third_inertia.d_2)
-    modes = plant.linear_modes(s.J1, s.J2, s.c_s, s.d_s, third)
+        where = s.third_inertia.location
+    modes = plant.linear_modes(s.J1, s.J2, s.c_s, s.d_s, third, where)
     faults = []
     for fault in s.faults:
         f_modes = plant.linear_modes(s.J1, s.J2, s.c_s * fault.stiffness_factor,
-                                     s.d_s * fault.damping_factor, third)
+                                     s.d_s * fault.damping_factor, third, where)
         faults.append({"t_s": fault.t_s, "stiffness_factor": fault.stiffness_factor,
                        "damping_factor": fault.damping_factor,
                        "f0_hz": f_modes[0]["f_hz"] if f_modes else None,

@@ -29,15 +29,19 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from online_id.cli import command_help
+from online_id.cli.bus_options import add_bus_options, with_bus_options
 from online_id.config import load_config
 from online_id.errors import ConfigError, DbcError
 from online_id.io.auth import read_key
-from online_id.io.bus import CanBus
-from online_id.io.dbc import BenchCommand, encode_command, load_dbc
 
-COMMANDS = {"ack": BenchCommand.ACK_ALERT, "relearn": BenchCommand.RELEARN_BASELINE}
+if TYPE_CHECKING:
+    from online_id.io.bus import CanBus
+
+COMMANDS = {"ack": "ACK_ALERT", "relearn": "RELEARN_BASELINE"}
+"""Subcommand -> the name of its :class:`~online_id.io.dbc.BenchCommand`."""
 FRESHNESS_WAIT_S = 2.0
 """How long to wait for the service's freshness value with ``--wait 0``."""
 
@@ -47,8 +51,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
         text = command_help(name)
         p = subparsers.add_parser(name, help=text, description=f"Send the service a command frame: {text}.")
         p.add_argument("--config", metavar="FILE", help="the service's YAML configuration (bus, DBC, mapping)")
-        p.add_argument("--interface", help="override bus.interface")
-        p.add_argument("--channel", help="override bus.channel")
+        add_bus_options(p)
         p.add_argument("--key-file", metavar="FILE",
                        help="the key (hex) of authenticated commands (default: commands.key_file of the config)")
         p.add_argument("--wait", type=float, default=2.0, metavar="S",
@@ -64,19 +67,21 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    s = load_config(args.config)
+    from online_id.io.bus import CanBus
+    from online_id.io.dbc import BenchCommand, encode_command, load_dbc
+
+    s = with_bus_options(load_config(args.config), args)
     if getattr(args, "from_log", None):
         return relearn_from(args.from_log, args.state, s)
     if getattr(args, "state", None) is not None:
         raise ConfigError("relearn: --state needs --from LOG (a running service keeps its own state)")
-    command = COMMANDS[args.command_name]
+    command = BenchCommand[COMMANDS[args.command_name]]
     db = load_dbc(s.dbc)
     key_file = args.key_file or s.commands.key_file
     key = read_key(key_file, "--key-file" if args.key_file else "commands.key_file") if key_file else None
     m = s.mapping
     repeats = 2 if command == BenchCommand.RELEARN_BASELINE else 1
-    interface = args.interface or s.bus.interface
-    channel = args.channel or s.bus.channel
+    interface, channel = s.bus.interface, s.bus.channel
     with CanBus(interface, channel, s.bus.bitrate) as bus:
         wait_s = args.wait if args.wait > 0 else FRESHNESS_WAIT_S
         fresh = ask_freshness(bus, s, db, wait_s)
@@ -112,6 +117,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _codec(s, db=None):
+    from online_id.io.dbc import load_dbc
     from online_id.io.dbc_output import OutputEncoder
 
     codec = OutputEncoder(db if db is not None else load_dbc(s.dbc), source=s.dbc or "online_id.dbc")
@@ -138,6 +144,8 @@ def _await(bus: CanBus, codec, frame_id: int, name: str, wanted, wait_s: float) 
 def ask_freshness(bus: CanBus, s, db, wait_s: float = FRESHNESS_WAIT_S) -> tuple[int, bool] | None:
     """Send a NONE command frame and read the service's answer: (last accepted freshness value, whether it
     expects a MAC), or None when no answer came within ``wait_s``."""
+    from online_id.io.dbc import BenchCommand, encode_command
+
     codec, ids = _codec(s, db)
     if "OidFreshness" not in ids:
         raise ConfigError(f"{s.dbc or 'online_id.dbc'}: no OidFreshness message: the service cannot tell a "
@@ -160,7 +168,7 @@ def await_answer(bus: CanBus, s, freshness: int, wait_s: float) -> dict | None:
 
 def relearn_from(log: str, directory: Path | None, settings) -> int:
     """Learn the baselines from a reference log into the state of ``directory`` (see module notes)."""
-    from online_id.cli.replay import keep, replay, restore, state_file
+    from online_id.offline.replay import keep, replay, restore, state_file
     from online_id.progress import Progress
     from online_id.runtime import Runtime
     from online_id.service import state_path

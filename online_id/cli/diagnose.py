@@ -10,7 +10,6 @@ or a MATLAB ``.mat`` file (``--input-var U --output-var Y [--time-var T | --fs H
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -28,6 +27,7 @@ from online_id.diagnose.effects import shaft_angle
 from online_id.cli.diagnose_records import add_arguments as add_record_arguments, read_records
 from online_id.diagnose.records import data_path, decimate_alike, path_note
 from online_id.errors import ConfigError, InputDataError
+from online_id.io.jsonout import dumps
 from online_id.io.mdf import is_mdf
 from online_id.io.outfile import check_output
 from online_id.io.table_csv import read_csv_header
@@ -215,8 +215,8 @@ def run_bench(args: argparse.Namespace) -> BenchDiagnosis:
         progress.close()
 
 
-def run_diagnosis(args: argparse.Namespace) -> Diagnosis:
-    data, bench = load_data(args)
+def run_diagnosis(args: argparse.Namespace, data: DiagnoseData | None = None) -> Diagnosis:
+    data, bench = load_data(args) if data is None else (data, False)
     na, nb, nc, nk = BENCH_ORDERS if bench else GENERIC_ORDERS
     na = args.na if args.na is not None else na
     nb = args.nb if args.nb is not None else (None if na == "auto" else nb)
@@ -260,8 +260,9 @@ def text_report(d: Diagnosis) -> str:
              f"{d.data.input_name} -> {d.data.output_name} at {d.data.fs_hz:g} Hz, "
              f"{len(d.data)} samples, estimation {d.n_est}, held out {len(d.data) - d.n_est}", "",
              summary_table(d), "",
-             f"error before: RMS {d.error_before.rms:.4g}, fit {d.error_before.fit_pct:.1f} %",
-             f"error after:  RMS {d.error_after.rms:.4g}, fit {d.error_after.fit_pct:.1f} %",
+             f"error before: RMS {d.error_before.rms:.4g}, fit {d.error_before.fit_pct:.1f} % (held out)",
+             f"error after:  RMS {d.error_after.rms:.4g}, fit {d.error_after.fit_pct:.1f} % "
+             f"(summary: {d.error_after.rms / d.error_before.rms:.4g} of the baseline's one-step RMS)",
              f"stopped: {d.stop_reason}"]
     lines += recording_lines(d) + ["", "Residual tests (held-out part), before -> after:"]
     after = {t.name: t for t in d.tests_after}
@@ -307,7 +308,7 @@ def write_report(d: Diagnosis, out: Path) -> list[Path]:
     files = [out / "summary.md", out / "diagnosis.json"]
     files[0].write_text("# Diagnosis\n\n```\n" + text_report(d) + "\n```\n\n" + summary_table(d) + "\n",
                         encoding="utf-8")
-    files[1].write_text(json.dumps(d.as_dict(), indent=2, default=float) + "\n", encoding="utf-8")
+    files[1].write_text(dumps(d.as_dict(), indent=2) + "\n", encoding="utf-8")
     files += plot_residuals(d, out)
     return files
 
@@ -353,6 +354,46 @@ def plot_residuals(d: Diagnosis, out: Path) -> list[Path]:
     return [spec, corr]
 
 
+SAME_RATE = 0.005  # two shafts whose mean speeds agree this closely turn as one (a bench's dyno and engine)
+
+
+def bench_shafts(data: DiagnoseData) -> tuple[str, str] | None:
+    """``(dyno, engine)``: the shafts of generic records that are a bench, else ``None``.
+
+    A bench is a torque and exactly two measured shafts turning at one rate: the per-operating-point
+    diagnosis of a bench file applies, whichever options named the columns.  The dyno is the shaft the
+    output is the speed of (the torque acts on it), else the first named.
+    """
+    speeds = dict(data.shaft_speeds_rad_s)
+    if len(speeds) != 2:
+        return None
+    (n1, w1), (n2, w2) = speeds.items()
+    m1, m2 = float(np.mean(w1)), float(np.mean(w2))
+    if not (abs(m1) > 0 and abs(m2 / m1 - 1.0) <= SAME_RATE):
+        return None
+    if np.allclose(data.y, w2, rtol=0.0, atol=1e-9 * max(abs(m2), 1.0)):
+        return n2, n1
+    return n1, n2
+
+
+def bench_series_of(data: DiagnoseData, shafts: tuple[str, str], args: argparse.Namespace) -> BenchSeries:
+    """Generic records that are a bench, prepared as a bench file is (:func:`bench_series`): the input is
+    the torque on the dyno (braking positive: its sign is taken from the data, a braking torque slows the
+    dyno), the shafts' speeds at the records' rate."""
+    dyno, engine = (data.shaft_speeds_rad_s[n] for n in shafts)
+    u = np.asarray(data.u, dtype=float)
+    acc = np.gradient(dyno) * data.fs_hz
+    if float(np.dot(u - u.mean(), acc - acc.mean())) > 0:  # the torque speeds the dyno up: driving positive
+        u = -u
+    s = load_config(args.config)
+    ppr = args.pulses_per_rev if args.pulses_per_rev is not None else (s.model.pulses_per_rev or DEFAULT_PULSES_PER_REV)
+    series = prepare(data.time_s, u, dyno, engine, source=data.source, pulses_per_rev=ppr,
+                     target_hz=args.sample_rate or TARGET_FS_HZ)
+    series.meta["read_as"] = (f"generic records with a torque ({data.input_name}) and two shafts turning as one "
+                              f"({shafts[0]}: dyno, {shafts[1]}: engine): the bench's diagnosis")
+    return series
+
+
 def run(args: argparse.Namespace) -> int:
     if args.report:
         check_output(args.report, "report", directory=True)  # before the work, not after it
@@ -361,11 +402,22 @@ def run(args: argparse.Namespace) -> int:
     if is_bench(args):
         result, text, writer = run_bench(args), bench_text, write_bench_report
     else:
-        result, text, writer = run_diagnosis(args), text_report, write_report
+        data, _ = load_data(args)
+        shafts = bench_shafts(data)
+        if shafts is not None:  # one diagnosis: a bench read through the generic options is a bench
+            progress = progress_for(args, "diagnose")
+            try:
+                result = diagnose_bench(bench_series_of(data, shafts, args), max_effects=args.max_effects,
+                                        na=args.na if isinstance(args.na, int) else 6,
+                                        nb=args.nb if isinstance(args.nb, int) else 6, progress=progress)
+            finally:
+                progress.close()
+            text, writer = bench_text, write_bench_report
+        else:
+            result, text, writer = run_diagnosis(args, data), text_report, write_report
     files = writer(result, Path(args.report)) if args.report else []
     if args.json:
-        json.dump(result.as_dict(), sys.stdout, indent=2, default=float)
-        sys.stdout.write("\n")
+        sys.stdout.write(dumps(result.as_dict(), indent=2) + "\n")
     else:
         print(text(result))
         for f in files:

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
 from online_id.diagnose.bench_data import RPM_PER_RAD_S
-from online_id.diagnose.bench_diagnosis import BenchDiagnosis
+from online_id.io.jsonout import dumps
+from online_id.diagnose.bench_diagnosis import CHANNEL_TEXT, FULL, BenchDiagnosis
 
 
 def _fmt(params: dict) -> str:
@@ -25,15 +25,23 @@ def _fmt(params: dict) -> str:
     return ", ".join(out)
 
 
-def _gain(c) -> float:
-    """The held-out gain of a candidate (a sensor delay's score is its size in ms; its gain is a parameter)."""
-    return float(c.params.get("heldout_gain", c.gain))
+CHANNEL_HEAD = {"dyno": "dyno eq rpm", "engine": "engine eq rpm", "balance": "torque balance Nm",
+                "transfer": "transfer misfit", "dyno" + FULL: "dyno eq at full rate rpm",
+                "engine" + FULL: "engine eq at full rate rpm"}
+
+
+def _channel_cells(ch) -> str:
+    cells = []
+    for c, v in ch.mse.items():
+        k = RPM_PER_RAD_S if c.startswith(("dyno", "engine")) else 1.0
+        cells.append(f"{v:.4g}" if c == "transfer" else f"{np.sqrt(v) * k:.4g}")
+    return " | ".join(cells) + " |"
 
 
 def bench_text(b: BenchDiagnosis) -> str:
     """The report printed by ``online-id diagnose`` for a bench file."""
     s, path = b.series, b.series.path
-    lines = [f"online-id diagnose {s.source}",
+    lines = [f"online-id diagnose {s.source}"] + ([f"read as: {s.meta['read_as']}"] if "read_as" in s.meta else []) + [
              f"causal data path: {path.fs_in_hz:g} Hz -> {path.fs_hz:g} Hz, linear-phase FIR of "
              f"{path.numtaps} taps, its delay ({path.group_delay_samples} samples) removed from "
              "torque and both speeds alike",
@@ -45,14 +53,24 @@ def bench_text(b: BenchDiagnosis) -> str:
         lines.append(f"| {i} | {p.speed_rpm:.0f} | {p.t_start_s:.1f}-{p.t_end_s:.1f} | "
                      f"{', '.join(f'{k:g}' for k in q.declared)} |")
     e0 = b.errors(b.baseline)
-    lines += ["", "| step | effect | parameters | gain (held-out) | t | RMS dyno eq rpm | RMS engine eq rpm "
-              "| RMS torque balance Nm |", "|---|---|---|---|---|---|---|---|",
-              f"| 0 | baseline per plateau (na={b.baseline.spec.na}, nb={b.baseline.spec.nb}) | | | | "
-              f"{e0['dyno']['rms_rpm']:.4g} | {e0['engine']['rms_rpm']:.4g} | {e0['balance']['rms_nm']:.4g} |"]
+    lines += ["", "Held-out error per channel (speed equations: one-step [rpm]; torque balance [Nm]; speed transfer: "
+              "relative misfit) and their summary (RMS over the channels relative to the baseline). A step is "
+              "taken when the figure it is judged on falls significantly and the summary falls.", "",
+              "| step | effect | parameters | judged on (held out) | before -> after | t | "
+              + " | ".join(CHANNEL_HEAD[c] for c in b.base_channels.mse) + " | summary |",
+              "|---|---|---|---|---|---|" + "---|" * (len(b.base_channels.mse) + 1),
+              f"| 0 | baseline per plateau (na={b.baseline.spec.na}, nb={b.baseline.spec.nb}) | | | | | "
+              + _channel_cells(b.base_channels) + " 1.000 |"]
     for i, st in enumerate(b.steps, 1):
         c = st.candidate
-        lines.append(f"| {i} | {c.kind} | {_fmt(c.params)} | {100 * _gain(c):.1f} % | {c.t_stat:.1f} | "
-                     f"{st.rms_after['dyno']:.4g} | {st.rms_after['engine']:.4g} | {st.rms_after['balance']:.4g} |")
+        fb, fa = st.accepted_on(b.base_channels)
+        lines.append(f"| {i} | {c.kind} | {_fmt(c.params)} | {', '.join(CHANNEL_TEXT[x] for x in c.judged_on)} | "
+                     f"{fb:.4g} -> {fa:.4g} ({100 * (fa / fb - 1):+.1f} %) | {c.t_stat:.1f} | "
+                     + _channel_cells(st.after) + f" {st.summary_after:.4g} |")
+    for i, st in enumerate(b.steps, 1):
+        lines += [f"  step {i}: {n}" for n in st.notes]
+    for r in b.refused:
+        lines.append(f"  refused at step {r['step']}: {r['kind']} {_fmt(r['params'])}: {r['why']}")
     lines += ["", "result: " + (", then ".join(c.kind for c in b.effects) if b.steps
                                 else "no significant effect"), f"stopped: {b.stop_reason}", "",
               "held-out error per plateau [rpm; torque balance Nm], before -> after:"]
@@ -67,12 +85,17 @@ def bench_text(b: BenchDiagnosis) -> str:
             f"{x['J1']:.3g}" for x in notes["inertias_kgm2"]) + ", J2 " + ", ".join(
             f"{x['J2']:.3g}" for x in notes["inertias_kgm2"]) + " kg m^2 per plateau; shaft torque reversed "
             + ", ".join(f"{x:.1f}" for x in notes["shaft_torque_reversed_pct"]) + " % of the time"]
+        if "inertias_after_kgm2" in notes:
+            lines.append("  with the effects: J1 " + ", ".join(f"{x['J1']:.3g}" for x in notes["inertias_after_kgm2"])
+                         + ", J2 " + ", ".join(f"{x['J2']:.3g}" for x in notes["inertias_after_kgm2"]) + " kg m^2")
         if not notes["backlash_testable"]:
             lines.append("  the shaft torque hardly reverses on any plateau: a backlash may not be seen")
-    lines += ["", "strongest candidates of step 1 (score, t; accepted when the score reaches the threshold and "
-              "t >= 2.86; a sensor delay's score is its size):"]
+        lines += [f"warning: {w}" for w in notes["warnings"]]
+    lines += ["", "strongest candidates of step 1 (score: the share of the held-out error of the figure it is "
+              "judged on that it removes; t; accepted when the score reaches the threshold, t >= 2.86 and the "
+              "summary falls):"]
     for c in sorted(b.candidates[0], key=lambda c: -c.gain / b.thresholds[c.kind])[:6] if b.candidates else []:
-        unit, k = ("ms", 1.0) if c.kind == "sensor_delay" else ("%", 100.0)
+        unit, k = "%", 100.0
         lines.append(f"  {c.kind:28s} {k * c.gain:6.2f} {unit:2s} t={c.t_stat:5.1f}  threshold "
                      f"{k * b.thresholds[c.kind]:.2f} {unit}  {_fmt(c.params)}")
     return "\n".join(lines)
@@ -83,7 +106,7 @@ def write_bench_report(b: BenchDiagnosis, out: Path) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
     files = [out / "summary.md", out / "diagnosis.json", out / "residual_spectrum.png"]
     files[0].write_text("# Diagnosis\n\n```\n" + bench_text(b) + "\n```\n", encoding="utf-8")
-    files[1].write_text(json.dumps(b.as_dict(), indent=2, default=float) + "\n", encoding="utf-8")
+    files[1].write_text(dumps(b.as_dict(), indent=2) + "\n", encoding="utf-8")
     import matplotlib
 
     matplotlib.use("Agg")

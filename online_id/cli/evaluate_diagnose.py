@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 from online_id.errors import ConfigError
+from online_id.io.jsonout import dumps
 from online_id.cli import command_help
 
 
@@ -27,8 +28,17 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=1, help="first test seed (default 1)")
     p.add_argument("--thresholds", metavar="JSON",
                    help="use these thresholds instead of calibrating ({kind: value}, or per path "
-                   "{no_demand: {...}, demand: {...}} as thresholds.json holds them)")
+                   "{no_demand: {...}, demand: {...}} as thresholds.json holds them); 'defaults': the ones "
+                   "the diagnosis ships with")
     p.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
+    p.add_argument("--family", choices=("bench", "structures"), default="bench",
+                   help="bench family of the test cases: bench (the first), or structures (unmeasured masses "
+                   "between or beyond the measured ones, cylinder imbalance, high orders, broadband resonances, "
+                   "soft to stiff plants)")
+    p.add_argument("--calibration-family", action="append", choices=("bench", "structures"), default=None,
+                   help="families of the clean calibration benches (repeatable; default: --family)")
+    p.add_argument("--paths", choices=("both", "no_demand", "demand"), default="both",
+                   help="diagnose without the recorded demand, with it, or both (default)")
     p.add_argument("--quick", action="store_true", help="3 cases per kind, 6 calibration benches")
     p.add_argument("--include", metavar="DIR", action="append", default=[],
                    help="also summarise the finished test cases of an earlier run (its cases.jsonl); "
@@ -47,7 +57,7 @@ def _progress(label: str, sink: Path):
 
     def report(i: int, n: int, r: dict) -> None:
         with sink.open("a", encoding="utf-8") as fh:  # finished cases survive an interrupted run
-            fh.write(json.dumps(r, default=float) + "\n")
+            fh.write(dumps(r) + "\n")
         el = time.monotonic() - t0
         print(f"\r{label}: {i}/{n} cases, {el:.0f} s, eta {el / i * (n - i):.0f} s  ({r['case']})   ",
               end="", file=sys.stderr, flush=True)
@@ -75,8 +85,13 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--cases (0 only with --include) and --jobs must be >= 1, "
                           "--calibration-cases >= 0")
     t0 = time.monotonic()
+    paths = ev.PATHS if args.paths == "both" else (args.paths,)
     calibration = []
-    if args.thresholds:
+    if args.thresholds == "defaults":  # the thresholds the diagnosis ships with
+        from online_id.diagnose.bench_diagnosis import THRESHOLDS, THRESHOLDS_DEMAND
+
+        thresholds = {"no_demand": dict(THRESHOLDS), "demand": dict(THRESHOLDS_DEMAND)}
+    elif args.thresholds:
         try:
             thresholds = json.loads(Path(args.thresholds).read_text(encoding="utf-8"))
         except (OSError, ValueError) as err:
@@ -87,28 +102,29 @@ def run(args: argparse.Namespace) -> int:
         if args.calibration_from:
             calibration = _read_cases(Path(args.calibration_from) / "calibration.jsonl")
         else:
-            jobs = [("clean", ev.CALIBRATION_SEED0 + i) for i in range(n_cal)]
+            jobs = [("clean", ev.CALIBRATION_SEED0 + i, fam, paths)
+                    for fam in (args.calibration_family or [args.family]) for i in range(n_cal)]
             calibration = ev.run_cases(jobs, args.jobs, _progress("calibration (clean benches)",
                                                                   Path(args.out) / "calibration.jsonl"))
         thresholds = ev.calibrate_paths(calibration)
         Path(args.out).mkdir(parents=True, exist_ok=True)
-        (Path(args.out) / "thresholds.json").write_text(json.dumps(thresholds, indent=1) + "\n",
+        (Path(args.out) / "thresholds.json").write_text(dumps(thresholds, indent=1) + "\n",
                                                         encoding="utf-8")
-    jobs = [(k, args.seed + i) for i in range(n_test) for k in KINDS]
+    jobs = [(k, args.seed + i, args.family, paths) for i in range(n_test) for k in KINDS]
     results = (ev.run_cases(jobs, args.jobs, _progress("test benches", Path(args.out) / "cases.jsonl"))
                if jobs else [])
     for d in args.include:
         results += _read_cases(Path(d) / "cases.jsonl")
     seconds = time.monotonic() - t0
     summaries = {}
-    for path in ev.PATHS:
+    for path in paths:
         summaries[path] = ev.summarise(results, thresholds[path], path)
         summaries[path]["seconds"] = seconds
         summaries[path]["command"] = " ".join(["online-id"] + sys.argv[1:]) if sys.argv else ""
     files = ev.write_outputs(Path(args.out), summaries, calibration, results)
-    for path in ev.PATHS:
+    for path in paths:
         print(f"thresholds ({path}): " + ", ".join(f"{k} {v:.4g}" for k, v in thresholds[path].items()))
-    for path in ev.PATHS:
+    for path in paths:
         print()
         print(ev.table(summaries[path]))
     print(f"\n{len(results)} test and {len(calibration)} calibration cases in {seconds:.0f} s")

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import sys
 import threading
 import time
@@ -46,11 +47,16 @@ class Fleet:
             if kind == "alert" and data.get("kind") != "NONE":
                 self.alerts_seen[bench] = self.alerts_seen.get(bench, 0) + 1
 
-    def table(self, now_unix_s: float) -> str:
-        """One line per bench (see the header for the columns and their units)."""
-        head = (f"{'BENCH':<14} {'STATE':<13} {'f0 [Hz]':>8} {'zeta [-]':>8} {'c_s [Nm/rad]':>12} "
-                f"{'resid [rad/s]':>13} {'exc [Nm]':>8} {'age [s]':>7} {'ALERTS':>6}  LAST ALERT")
-        rows = [head]
+    def table(self, now_unix_s: float, width: int | None = None) -> str:
+        """One line per bench (see the header for the columns and their units).
+
+        Every column is as wide as its widest cell; the last (LAST ALERT) is
+        cut only to fit ``width`` characters (a terminal's), never otherwise.
+        """
+        head = ["BENCH", "STATE", "f0 [Hz]", "zeta [-]", "c_s [Nm/rad]", "resid [rad/s]", "exc [Nm]", "age [s]",
+                "ALERTS", "LAST ALERT"]
+        left = {0, 1, 9}  # text columns; the numbers align right
+        rows = []
         with self.lock:
             items = sorted(self.benches.items())
         for bench, entry in items:
@@ -60,24 +66,27 @@ class Fleet:
             if last and last.get("kind") == "NONE":
                 last = None
             stamps = [p.get("time_unix_s") for p in (est, q, st) if isinstance(p.get("time_unix_s"), (int, float))]
-            age = f"{now_unix_s - max(stamps):7.1f}" if stamps else f"{'-':>7}"
             alerts = max(int(st.get("alerts_total") or 0), self.alerts_seen.get(bench, 0))
             last_text = (f"{last.get('kind')} {last.get('severity')}: {last.get('message', '')}" if last else "")
-            rows.append(
-                f"{bench[:14]:<14} {str(st.get('state', '?'))[:13]:<13} "
-                f"{_cell(est.get('f0_hz') if valid else None, 8, '.2f')} "
-                f"{_cell(est.get('damping_ratio') if valid else None, 8, '.3f')} "
-                f"{_cell(est.get('shaft_stiffness_nm_per_rad') if valid else None, 12, '.0f')} "
-                f"{_cell(q.get('residual_rms_rad_s'), 13, '.4f')} {_cell(q.get('excitation_rms_nm'), 8, '.1f')} "
-                f"{age} {alerts:>6}  {printable(last_text)[:48]}")
-        if len(rows) == 1:
-            rows.append(f"(no bench has published under {self.prefix}/ yet)")
-        return "\n".join(rows)
+            rows.append([printable(bench), printable(str(st.get("state", "?"))),
+                         _cell(est.get("f0_hz") if valid else None, ".2f"),
+                         _cell(est.get("damping_ratio") if valid else None, ".3f"),
+                         _cell(est.get("shaft_stiffness_nm_per_rad") if valid else None, ".0f"),
+                         _cell(q.get("residual_rms_rad_s"), ".4f"), _cell(q.get("excitation_rms_nm"), ".1f"),
+                         f"{now_unix_s - max(stamps):.1f}" if stamps else "-", str(alerts), printable(last_text)])
+        widths = [max(len(r[i]) for r in [head] + rows) for i in range(len(head))]
+        lines = []
+        for r in [head] + rows:
+            cells = [c.ljust(w) if i in left else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths))]
+            line = " ".join(cells[:-1]) + "  " + r[-1]
+            lines.append(line[:width] if width else line)
+        if not rows:
+            lines.append(f"(no bench has published under {self.prefix}/ yet)")
+        return "\n".join(lines)
 
 
-def _cell(value, width: int, fmt: str) -> str:
-    return f"{value:>{width}{fmt}}" if isinstance(value, (int, float)) and not isinstance(value, bool) \
-        else f"{'-':>{width}}"
+def _cell(value, fmt: str) -> str:
+    return format(value, fmt) if isinstance(value, (int, float)) and not isinstance(value, bool) else "-"
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
@@ -147,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
             while True:
                 if tty:
                     print("\x1b[H\x1b[2J", end="")
-                print(fleet.table(time.time()))
+                print(fleet.table(time.time(), shutil.get_terminal_size().columns if tty else None))
                 if sub.fault:  # the view stays, with what is wrong under it; paho keeps reconnecting
                     print(printable(sub.fault))
                 print("" if not tty else f"(every {args.interval:g} s; Ctrl-C ends)", flush=True)

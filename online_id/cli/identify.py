@@ -4,18 +4,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
-import sys
 
-from online_id.benchlog import read_bench
 from online_id.config import Settings, load_config
-from online_id.estimation.identification import IdentificationResult, identify
-from online_id.errors import ConfigError, EstimationError
-from online_id.io.outfile import check_output
-from online_id.progress import Progress, add_quiet_option, progress_for
-from online_id.signals import speed_warnings
+from online_id.errors import ConfigError
+from online_id.estimation.settings import HOLDOUT
+from online_id.progress import add_quiet_option
 from online_id.units import ANGLE_UNIT_HELP, angle_factor, is_angle_unit
-from online_id.report import figures_text, fmt, identification_document, identification_table
 from online_id.cli import command_help
 
 
@@ -37,7 +31,20 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--plot", metavar="FILE.png|DIR",
                    help="FILE.png: pole frequency and damping against engine speed; DIR: that figure (poles.png), "
                         "a Bode plot of the model over the measured response per operating point "
-                        "(bode_K_RPMrpm.png) and the simulated against the measured output (compare.png)")
+                        "(bode_K_RPMrpm.png), the simulated against the measured held-out output (compare.png), "
+                        "step and impulse responses (responses.png) and, with --resid, the residual tests (resid.png)")
+    p.add_argument("--resid", action="store_true",
+                   help="residual tests per operating point as MATLAB's resid: autocorrelation of the one-step "
+                        "residual on the held-out data and its cross-correlation with the torque, with 99 %% bounds")
+    p.add_argument("--validate", metavar="FILE",
+                   help="also compare the models with another recording of the bench (same columns and units): "
+                        "each of its operating points against the model of the nearest engine speed")
+    p.add_argument("--mat", metavar="FILE.mat",
+                   help="write the models per operating point (A, B, C, sample time, delay, units) as a MATLAB "
+                        "file that idpoly takes (docs/sysid.md: the variable layout)")
+    p.add_argument("--out-mf4", metavar="FILE.mf4",
+                   help="write the results as MDF 4 channels on the recording's time base (models' simulated and "
+                        "predicted dyno speed, residual, per-point estimates and fits, driveline parameters)")
     add_quiet_option(p)
     p.add_argument("--recursive", action="store_true",
                    help="run the service's streaming estimator (RELS with forgetting) over the file instead "
@@ -68,6 +75,10 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    help="fit the order grid on the best-excited S seconds of each operating point and hold "
                         "out the rest for validation (default 40); 0 fits whole plateaus, whose cost grows "
                         "with the recording")
+    m.add_argument("--holdout", type=float, metavar="FRACTION", default=HOLDOUT,
+                   help=f"fraction of each operating point held out of every fit, in one piece, to validate the "
+                        f"model on (default {HOLDOUT:g}); 0: the fit window may take the whole point (then the "
+                        "model is compared with its own fit window, and says so)")
     m.add_argument("--refine-seconds", type=float, metavar="S", default=0.0,
                    help="refit the chosen order on up to S seconds around the fit window (default 0: off)")
     p.set_defaults(func=run)
@@ -120,80 +131,7 @@ def settings_from_args(args: argparse.Namespace) -> Settings:
     )
 
 
-def _note(text: str) -> None:
-    print(text, file=sys.stderr)
-
-
-def run_identification(path: str, s: Settings, label: str = "identify", *, fit_s: float | None = 40.0,
-                       refine_s: float | None = None, quiet: bool = False) -> IdentificationResult:
-    """Read ``path`` and identify, with progress on a terminal (``fit_s``, ``refine_s``: see :func:`identify`)."""
-    with Progress(label, quiet=quiet) as progress:
-        progress(0.0, f"reading {path}")
-        data = read_bench(path, s, _note)
-        for text in speed_warnings(data, s.columns, s.units):
-            _note(f"warning: {text}")
-        return identify(data, s.identification, s.inertias, progress=progress, fit_s=fit_s, refine_s=refine_s)
-
-
-def _seconds(value: float, flag: str) -> float | None:
-    """A ``--*-seconds`` value: ``None`` for 0 (off / whole plateau)."""
-    if not value >= 0:
-        raise ConfigError(f"{flag}: expected a number of seconds >= 0, got {value!r}")
-    return value or None
-
-
-def run_recursive(args: argparse.Namespace, s: Settings) -> int:
-    from online_id.pipeline import run_bench_data
-
-    data = read_bench(args.path, s, _note)
-    for text in speed_warnings(data, s.columns, s.units):
-        _note(f"warning: {text}")
-    with progress_for(args, "identify --recursive") as progress:
-        pipe = run_bench_data(data, s, progress)
-    result = pipe.result()
-    if result["driveline"]["f0_hz"] is None:  # nothing identified: an error, not a table of blanks
-        changes = result["status_changes"]
-        why = changes[-1]["why"] if changes else "no complete sample"
-        raise EstimationError(f"{args.path}: the streaming estimator gave no estimate in "
-                              f"{result['counters']['samples']} samples (final state {result['state']}: {why})")
-    if args.json:
-        json.dump(result, sys.stdout, indent=2)
-        sys.stdout.write("\n")
-        return 0
-    d = result["driveline"]
-    print(f"online-id identify --recursive {args.path}: {result['counters']['samples']} samples, "
-          f"final state {result['state']}")
-    print(f"  resonance  f0 {fmt(d['f0_hz'], '.3f')} Hz, damping ratio {fmt(d['zeta'], '.4f')}, valid {d['valid']}")
-    print(f"  shaft      c_s {fmt(d['c_s'], '.1f')} Nm/rad, d_s {fmt(d['d_s'], '.3f')} Nms/rad")
-    return 0
-
-
-def plot_figures(args: argparse.Namespace, s: Settings, result: IdentificationResult) -> dict:
-    """Draw what ``--plot`` asks for (only then is matplotlib imported; a directory re-reads the data)."""
-    from online_id.plots.identification import write_plots
-
-    return write_plots(result, args.plot, lambda: read_bench(args.path, s, lambda _note: None),
-                       title=f"online-id identify {args.path}", pulses_per_rev=s.identification.pulses_per_rev)
-
-
 def run(args: argparse.Namespace) -> int:
-    s = settings_from_args(args)
-    if args.plot:
-        check_output(args.plot, "plot", directory=not args.plot.lower().endswith(".png"))  # before the work
-    if args.recursive:
-        return run_recursive(args, s)
-    result = run_identification(args.path, s, fit_s=_seconds(args.fit_seconds, "--fit-seconds"),
-                                refine_s=_seconds(args.refine_seconds, "--refine-seconds"),
-                                quiet=args.json or args.quiet)
-    doc = identification_document(result, s.identification.pulses_per_rev)
-    if args.plot:
-        doc["figures"] = plot_figures(args, s, result)
-    if args.json:
-        json.dump(doc, sys.stdout, indent=2)
-        sys.stdout.write("\n")
-    else:
-        print(f"online-id identify {args.path}")
-        print(identification_table(result, pulses_per_rev=s.identification.pulses_per_rev))
-        for line in figures_text(doc):
-            print(line)
-    return 0
+    from online_id.offline.identify import run_identify
+
+    return run_identify(args, settings_from_args(args))

@@ -22,14 +22,15 @@ import json
 import sys
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from online_id.config import load_config
 from online_id.errors import ConfigError, DbcError
-from online_id.io.bus import CanBus
-from online_id.io.dbc import load_dbc, signal_bounds
-from online_id.io.dbc_output import OutputEncoder
+
+if TYPE_CHECKING:
+    from online_id.io.dbc_output import OutputEncoder
 from online_id.cli import command_help
+from online_id.cli.bus_options import add_bus_options, with_bus_options
 
 SILENT_S = 2.0
 """No status frame for this long: the service is reported silent."""
@@ -43,8 +44,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                     "the time since each was last seen. On a terminal the view refreshes in place; otherwise, or "
                     "with --json, one line per frame.")
     p.add_argument("--config", metavar="FILE", help="the service's YAML configuration (bus, DBC, publish)")
-    p.add_argument("--interface", help="override bus.interface")
-    p.add_argument("--channel", help="override bus.channel")
+    add_bus_options(p)
     p.add_argument("--json", action="store_true", help="one JSON document per frame (never the live view)")
     p.add_argument("--max-seconds", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
     p.set_defaults(func=run)
@@ -64,6 +64,8 @@ class Seen:
 
 def _limits(message: Any) -> dict[str, tuple[float, float, dict[int, str] | None]]:
     """Signal -> (lowest, highest physical value allowed, defined values or None), from the DBC."""
+    from online_id.io.dbc import signal_bounds
+
     return {sig.name: (*signal_bounds(sig), {int(k): str(v) for k, v in sig.choices.items()} if sig.choices else None)
             for sig in message.signals}
 
@@ -85,9 +87,11 @@ def suspect_values(values: dict, limits: dict[str, tuple[float, float, dict[int,
 class Watch:
     """Decode and check the service's output frames (no I/O: :meth:`take` gets frames, returns records)."""
 
-    def __init__(self, codec: OutputEncoder, ids: dict[int, str], db: Any) -> None:
+    def __init__(self, codec: OutputEncoder, ids: dict[int, str], db: Any,
+                 units: dict[str, dict[str, str]] | None = None) -> None:
         self.codec = codec
         self.ids = ids
+        self.units = units or {}  # message -> signal -> unit, from the DBC
         self.seen: dict[str, Seen] = {name: Seen() for name in ids.values()}
         self.limits = {name: _limits(db.get_message_by_name(name)) for name in ids.values()}
         self.alerts: list[dict] = []
@@ -122,11 +126,15 @@ class Watch:
         if name == "OidAlert":
             self.alerts = (self.alerts + [dict(values, t_s=t_s)])[-5:]
         record["signals"] = values
+        record["units"] = {k: u for k, u in self.units.get(name, {}).items() if u and k in values}
         return record
 
 
-def _fmt(values: dict) -> str:
-    return "  ".join(f"{k} {v:.6g}" if isinstance(v, float) else f"{k} {v}" for k, v in values.items())
+def _fmt(values: dict, units: dict | None = None) -> str:
+    """``Signal value unit`` pairs (the unit from the DBC, where it has one)."""
+    units = units or {}
+    return "  ".join((f"{k} {v:.6g}" if isinstance(v, float) else f"{k} {v}") + (f" {units[k]}" if units.get(k) else "")
+                     for k, v in values.items())
 
 
 def line(record: dict) -> str:
@@ -138,7 +146,7 @@ def line(record: dict) -> str:
         return f"{head}: SUSPECT: {record['suspect']}"
     jump = f"  (alive counter jumped {record['counter_jump'][0]} -> {record['counter_jump'][1]})" \
         if "counter_jump" in record else ""
-    return f"{head}  {_fmt(record['signals'])}{jump}"
+    return f"{head}  {_fmt(record['signals'], record.get('units'))}{jump}"
 
 
 def screen(watch: Watch, now: float, where: str) -> str:
@@ -153,24 +161,30 @@ def screen(watch: Watch, now: float, where: str) -> str:
             f"{watch.suspect} suspect frames (values outside the DBC)", ""]
     for name, s in watch.seen.items():
         age = f"{now - s.t_s:5.1f} s ago" if s.count else "never seen"
-        rows.append(f"{name:<14} {s.count:7d} frames  {age}  {_fmt(s.values)}"
+        rows.append(f"{name:<14} {s.count:7d} frames  {age}  {_fmt(s.values, watch.units.get(name))}"
                     + (f"  ({s.suspect} suspect)" if s.suspect else ""))
     rows += ["", f"last alerts ({len(watch.alerts)}):"]
-    rows += [f"  {a['t_s']:7.1f} s  {_fmt({k: v for k, v in a.items() if k != 't_s'})}" for a in watch.alerts]
+    rows += [f"  {a['t_s']:7.1f} s  {_fmt({k: v for k, v in a.items() if k != 't_s'}, watch.units.get('OidAlert'))}"
+             for a in watch.alerts]
     return "\n".join(rows)
 
 
 def open_watch(args: argparse.Namespace):
     """The config, a :class:`Watch` of its outputs, and the bus description."""
-    s = load_config(args.config)
+    from online_id.io.dbc import load_dbc
+    from online_id.io.dbc_output import OutputEncoder
+
+    s = with_bus_options(load_config(args.config), args)
     db = load_dbc(s.dbc)
     codec = OutputEncoder(db, source=s.dbc or "online_id.dbc")
-    interface = args.interface or s.bus.interface
-    channel = args.channel or s.bus.channel
-    return s, Watch(codec, codec.output_ids(s.publish.frame_ids), db), interface, channel
+    ids = codec.output_ids(s.publish.frame_ids)
+    units = {name: {sig.name: sig.unit or "" for sig in db.get_message_by_name(name).signals} for name in ids.values()}
+    return s, Watch(codec, ids, db, units), s.bus.interface, s.bus.channel
 
 
 def run(args: argparse.Namespace) -> int:
+    from online_id.io.bus import CanBus
+
     if args.max_seconds is not None and not args.max_seconds > 0:
         raise ConfigError(f"--max-seconds: expected a number > 0, but got {args.max_seconds!r}")
     s, watch, interface, channel = open_watch(args)

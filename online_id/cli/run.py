@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 
 from online_id.config import load_config
-from online_id.service import run_service
 from online_id.cli import command_help
+from online_id.cli.bus_options import add_bus_options, with_bus_options
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
@@ -17,17 +17,13 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
         "and publish estimate, quality, status and alert frames. Stops cleanly on SIGTERM/SIGINT.",
     )
     p.add_argument("--config", metavar="FILE", help="YAML configuration (see deploy/config.yaml)")
-    p.add_argument("--interface", help="override bus.interface (e.g. socketcan, virtual)")
-    p.add_argument("--channel", help="override bus.channel (e.g. can0, vcan0)")
+    add_bus_options(p)
     p.add_argument("--max-seconds", type=float, metavar="S", help="stop after S seconds (tests)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    import dataclasses
+    from online_id.service import run_service
 
-    s = load_config(args.config)
-    bus = {k: v for k, v in dict(interface=args.interface, channel=args.channel).items() if v}
-    if bus:
-        s = dataclasses.replace(s, bus=dataclasses.replace(s.bus, **bus))
+    s = with_bus_options(load_config(args.config), args)
     return run_service(s, max_s=args.max_seconds)

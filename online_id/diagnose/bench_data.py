@@ -103,6 +103,7 @@ class BenchSeries:
     pulses_per_rev: float = 2.0
     meta: dict = field(default_factory=dict)
     demand: np.ndarray | None = None  # the recorded test-torque demand (PRBS) [Nm], if any
+    full: "BenchSeries | None" = None  # the same record at its own rate (lines above the decimated band)
 
     @property
     def fs_hz(self) -> float:
@@ -156,5 +157,14 @@ def prepare(time_s: np.ndarray, torque_nm: np.ndarray, dyno_rad_s: np.ndarray,
         raise InputDataError(f"{source}: no steady operating point of at least {MIN_PLATEAU_S:g} s "
                              f"(dyno speed within {PLATEAU_TOL_RPM:g} rpm); a bench diagnosis "
                              "needs plateaus")
+    full = None
+    if path.q > 1:  # lines up to the recording's own Nyquist frequency are looked for at its own rate
+        q = path.q
+        full = BenchSeries(arrays["dyno torque"], arrays["dyno speed"], arrays["engine speed"],
+                           shaft_angle(arrays["dyno speed"], fs), shaft_angle(arrays["engine speed"], fs),
+                           CausalPath(fs, 1, 1),
+                           [Plateau(p.start * q, p.stop * q, p.speed_rpm, p.t_start_s, p.t_end_s) for p in plateaus],
+                           source, pulses_per_rev,
+                           demand=arrays["torque demand"] if demand_nm is not None else None)
     return BenchSeries(dec[0], dec[1], dec[2], theta1[:n], theta2[:n], path, plateaus,
-                       source, pulses_per_rev, demand=dec[3] if demand_nm is not None else None)
+                       source, pulses_per_rev, demand=dec[3] if demand_nm is not None else None, full=full)

@@ -34,14 +34,15 @@ recorded demand, else the measured torque; :func:`coherence_contrast`).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.ndimage import median_filter, uniform_filter1d
-from scipy.signal import butter, csd, find_peaks, iirpeak, lfilter, sosfilt, welch
+from scipy.signal import bilinear, butter, csd, find_peaks, iirpeak, lfilter, sosfilt, welch
 
 from online_id.diagnose.bench_model import (BALANCE, BALANCE_LAGS, EQS, BenchFit, PlateauSignals, Spec, design,
-                                            output, plateau_signals)
+                                            order_columns, output, plateau_signals)
 from online_id.diagnose.bench_data import BenchSeries
 
 ORDER_GRID_STEP = 0.5
@@ -75,6 +76,64 @@ class OrderTerm:
 
 
 @dataclass(frozen=True)
+class OrderFamilyTerm:
+    """Disturbances at several ``orders`` of the rotation of ``shaft`` (a family: one cause, several
+    lines), entering the equation of ``shaft`` and the torque balance; orders above the Nyquist frequency
+    of a plateau are left out there."""
+
+    shaft: str
+    orders: tuple[float, ...]
+    kind: str = "rotation_order_disturbance"
+
+    def columns(self, p: PlateauSignals, eq: str) -> np.ndarray | None:
+        if eq not in (self.shaft, BALANCE):
+            return None
+        ks = [k for k in self.orders if k * p.rev_hz < 0.5 * p.fs_hz]
+        if not ks:
+            return None
+        theta = (p.theta1 if self.shaft == "dyno" else p.theta2)[p.rows]
+        return order_columns(theta, ks)
+
+    def params(self) -> dict:
+        return {"shaft": self.shaft, "family_orders": [float(k) for k in self.orders]}
+
+
+def fundamental(orders: list[float] | tuple[float, ...], step: float = ORDER_GRID_STEP) -> float:
+    """The greatest common divisor of ``orders`` on the grid of ``step`` (half orders): the fundamental of
+    a family (0.5, 1.5, 2.5 -> 0.5; 3, 6 -> 3; a single order -> itself)."""
+    n = 0
+    for k in orders:
+        n = math.gcd(n, int(round(k / step)))
+    return n * step
+
+
+def family_reading(shaft: str, orders: list[float], pulses_per_rev: float) -> str:
+    """What a family of rotation orders on ``shaft`` points to (a physical reading for an engineer)."""
+    f0 = fundamental(orders)
+    listed = ", ".join(f"{k:g}" for k in sorted(orders))
+    if shaft == "engine":
+        if f0 % 1.0:
+            return (f"half orders of the engine ({listed}): cam-synchronous, once per working cycle of a "
+                    "four-stroke; one cylinder differs from the others (compression, injection or firing "
+                    "imbalance, a misfire)" if len(orders) > 1 or f0 == 0.5 else
+                    f"order {f0:g} of the engine alone ({listed}): a half order, cam-synchronous (a cylinder "
+                    "that differs, or an auxiliary driven by the camshaft)")
+        if pulses_per_rev and (f0 / pulses_per_rev) % 1.0 == 0.0:
+            return f"order {f0:g} of the engine ({listed}): a harmonic of the declared compression pulses"
+        if f0 == 1.0:
+            return (f"once per engine revolution ({listed}): an imbalance or a misalignment of the crank "
+                    "train, the flywheel or the coupling")
+        return f"order {f0:g} of the engine ({listed}): a torque locked to the crankshaft"
+    if shaft == "dyno":
+        if f0 in (1.0, 2.0):
+            return (f"order {f0:g} of the dyno ({listed}): an imbalance or a misalignment of the dyno's rotor "
+                    "or of the coupling (order 2: a cardan joint bent)")
+        return (f"order {f0:g} of the dyno ({listed}): locked to the dyno's rotor: a torque ripple of its "
+                "drive (pole pairs, slots, the inverter)")
+    return f"order {f0:g} of {shaft} ({listed})"
+
+
+@dataclass(frozen=True)
 class FixedTerm:
     """Line at ``freq_hz`` in equation ``eq``: a sinusoid and a narrow-band noise model.
 
@@ -89,6 +148,7 @@ class FixedTerm:
     eq: str
     residuals: tuple = field(default=(), compare=False, repr=False)
     kind: str = "fixed_frequency_disturbance"
+    q: float = BAND_Q  # quality factor of the band-pass (a broadband resonance: 1 / (2 zeta))
 
     def columns(self, p: PlateauSignals, eq: str) -> np.ndarray | None:
         if eq != self.eq:
@@ -96,7 +156,7 @@ class FixedTerm:
         w = 2.0 * np.pi * self.freq_hz * p.time_s[p.rows]
         cols = [np.sin(w), np.cos(w)]
         if self.residuals:
-            b, a = iirpeak(self.freq_hz, BAND_Q, fs=p.fs_hz)
+            b, a = iirpeak(self.freq_hz, self.q, fs=p.fs_hz)
             bp = lfilter(b, a, self.residuals[p.index])
             k0 = BALANCE_BP_LAG if eq == BALANCE else 1
             quarter = max(1, int(round(p.fs_hz / (4.0 * self.freq_hz))))
@@ -144,6 +204,114 @@ class CoulombTerm:
         return {}
 
 
+@dataclass(frozen=True)
+class BranchTerm:
+    """A further inertia hung off the dyno by its own spring and damper, in the torque balance.
+
+    The torque it takes from the dyno is ``J3 s H(s) y1`` with ``H = (w^2 + 2 zeta w s) / (s^2 + 2 zeta
+    w s + w^2)`` (``w``, ``zeta``: the inertia on its spring with the dyno held): the balance
+    ``u = -J1 y1' - J2 y2' - J3 (H y1)' - w`` gets ``H y1`` (bilinear, causal) at the balance's speed
+    lags, whose derivative weights give ``J3``.  Nothing else in the balance predicts it: the speed
+    transfer, engine over dyno, does not see what hangs off the dyno.
+    """
+
+    freq_hz: float
+    zeta: float
+    kind: str = "additional_mode"
+    eq: str = BALANCE
+    speeds: tuple[str, ...] = ("y1",)
+
+    def filtered(self, p: PlateauSignals, speed: str = "y1") -> np.ndarray:
+        key = ("branch", speed, self.freq_hz, self.zeta)
+        if key not in p.cache:
+            w = 2 * np.pi * self.freq_hz
+            b, a = bilinear([2 * self.zeta * w, w * w], [1.0, 2 * self.zeta * w, w * w], fs=p.fs_hz)
+            y = getattr(p, speed)
+            p.cache[key] = lfilter(b, a, y - y[p.rows[0]]) + y[p.rows[0]]
+        return p.cache[key]
+
+    def columns(self, p: PlateauSignals, eq: str) -> np.ndarray | None:
+        if eq != self.eq:
+            return None
+        lags = BALANCE_LAGS if eq == BALANCE else np.arange(1, 7)
+        return np.hstack([p.lagged(self.filtered(p, v), lags) for v in self.speeds])
+
+    def params(self) -> dict:
+        return {"branch_freq_hz": float(self.freq_hz), "branch_zeta": float(self.zeta)}
+
+
+def smooth_reference(fs_hz: float) -> BranchTerm:
+    """Both speeds low-passed at the top of the branch band, at the balance's lags: the reference a
+    branch is judged against.  The balance's accelerations are noisy differences; a low-passed speed
+    gives a better one, whatever hangs off the dyno, and that is no inertia."""
+    return BranchTerm(BRANCH_BAND_HZ[1] * fs_hz, BRANCH_ZETAS[-1], speeds=("y1", "y2"), kind="smooth_reference")
+
+    def params(self) -> dict:
+        return {"branch_freq_hz": float(self.freq_hz), "branch_zeta": float(self.zeta)}
+
+
+def chain_modes(masses: tuple[float, ...], springs: list[tuple[int, int, float, float]]) -> list[tuple[float, float]]:
+    """Natural frequency [Hz] and damping ratio of each oscillating mode of inertias ``masses`` joined by
+    ``springs`` ``(i, j, c, d)``: the eigenvalues of ``M s^2 + D s + K`` with ``Im > 0``."""
+    n = len(masses)
+    K, D = np.zeros((n, n)), np.zeros((n, n))
+    for i, j, c, d in springs:
+        g = np.zeros(n)
+        g[i], g[j] = 1.0, -1.0
+        K += c * np.outer(g, g)
+        D += d * np.outer(g, g)
+    minv = np.diag(1.0 / np.asarray(masses, dtype=float))
+    a = np.block([[np.zeros((n, n)), np.eye(n)], [-minv @ K, -minv @ D]])
+    eig = np.linalg.eigvals(a)
+    return sorted((float(abs(x) / (2 * np.pi)), float(-x.real / abs(x))) for x in eig
+                  if x.imag > 1e-6 * max(np.abs(eig).max(), 1.0))
+
+
+def branch_inertias(fit: BenchFit) -> tuple[float, float, float]:
+    """``(J1, J2, J3)`` of a balance fitted with :func:`smooth_reference` and a :class:`BranchTerm` (its
+    last terms), medians over the plateaus.  Every filtered speed has unit gain at low frequency, so its
+    lag weights add to its inertia as the raw speed's do (:func:`balance_inertias`); the branch's give
+    ``J3``."""
+    lags, k = BALANCE_LAGS, BALANCE_LAGS.size
+    out = []
+    for (j1, j2), p, coef in zip(balance_inertias(fit), fit.plateaus, fit.eqs[BALANCE].coefs):
+        js = [float(np.sum(lags * coef[i:i + k or None]) / p.fs_hz) for i in (-3 * k, -2 * k, -k)]
+        out.append((j1 + js[0], j2 + js[1], js[2]))
+    return tuple(float(np.median(x)) for x in zip(*out))
+
+
+BRANCH_ZETAS = (0.04, 0.1, 0.2, 0.35)
+BRANCH_GRID = 30  # branch frequencies searched, geometric over BRANCH_BAND_HZ
+# 15 Hz to 0.3 fs: above it the balance's accelerations are noise, and any low-pass of the dyno speed
+# "explains" the torque better than their noisy difference (a heavily damped branch near 0.4 fs removed
+# 30-45 % of a clean balance's held-out error)
+BRANCH_BAND_HZ = (15.0, 0.3)
+
+
+def search_branch(series: BenchSeries, spec: Spec, ps: list[PlateauSignals], eq: str = BALANCE) -> BranchTerm:
+    """The branch of :class:`BranchTerm` that removes the largest share of the estimation residual of
+    equation ``eq`` of ``spec`` (projection, as :func:`search_backlash`): a geometric grid of
+    frequencies over the damping ratios, refined once around the best."""
+    proj = {p.index: Projector(design(p, spec, eq)[p.est], output(p, eq)[p.est]) for p in ps}
+
+    def score(f: float, z: float) -> float:
+        term = BranchTerm(float(f), float(z), eq=eq)
+        total = 0.0
+        for p in ps:
+            x = term.columns(p, eq)[p.est]
+            total += proj[p.index].share_of(x)
+        return total
+
+    fs = ps[0].fs_hz
+    grid = np.geomspace(BRANCH_BAND_HZ[0], BRANCH_BAND_HZ[1] * fs, BRANCH_GRID)
+    best = max(((score(f, z), f, z) for f in grid for z in BRANCH_ZETAS))
+    step = grid[1] / grid[0]
+    fine = np.clip(best[1] * step ** np.linspace(-1, 1, 9), grid[0], grid[-1])
+    zs = np.clip(best[2] * np.array([0.7, 1.0, 1.4]), BRANCH_ZETAS[0], BRANCH_ZETAS[-1])
+    best = max(((score(f, z), f, z) for f in fine for z in zs))
+    return BranchTerm(float(best[1]), float(best[2]), eq=eq)
+
+
 # -- screening ------------------------------------------------------------------
 
 @dataclass(frozen=True)
@@ -159,15 +327,32 @@ class Line:
 def screen_lines(fit: BenchFit, eqs: tuple[str, ...] | None = None,
                  axes: tuple[str, ...] = ("hz", "order")) -> list[Line]:
     """Peaks of the plateau-averaged residual spectra of ``eqs`` (default all), on the Hz and order axes."""
+    return screen_signals(fit.plateaus, {eq: fit.eqs[eq].residuals for eq in (fit.eqs if eqs is None else eqs)},
+                          axes)
+
+
+def speed_lines(ps: list[PlateauSignals]) -> list[Line]:
+    """Peaks of the plateau-averaged spectra of the measured speeds on the order axis (``eq`` names the
+    speed), the declared orders left out: a strong order line stands out there even where a speed
+    equation predicts it from its lags."""
+    sig = {eq: [(p.y1 if eq == "dyno" else p.y2)[p.rows] - np.mean((p.y1 if eq == "dyno" else p.y2)[p.rows])
+                for p in ps] for eq in EQS}
+    return screen_signals(ps, sig, ("order",), exclude=set().union(*(p.declared for p in ps)))
+
+
+def screen_signals(ps: list[PlateauSignals], signals: dict[str, list[np.ndarray]],
+                   axes: tuple[str, ...] = ("hz", "order"), exclude: set | frozenset = frozenset()) -> list[Line]:
+    """Peaks of the plateau-averaged spectra of ``signals`` (per name, one array per plateau on its rows),
+    each plateau's spectrum over its median, on the Hz and order axes, over their running medians;
+    orders within 0.1 of ``exclude`` are left out."""
     out = []
-    ps = fit.plateaus
     fs = ps[0].fs_hz
     f_axis = np.arange(0.5, 0.45 * fs, 0.25)
     k_axis = np.arange(0.25, MAX_ORDER + 1e-9, 0.01)
     k_axis = k_axis[k_axis * min(p.rev_hz for p in ps) < 0.45 * fs]
-    for eq in (fit.eqs if eqs is None else eqs):
+    for eq, sigs in signals.items():
         hz, order = [], []
-        for p, r in zip(ps, fit.eqs[eq].residuals):
+        for p, r in zip(ps, sigs):
             f, pxx = welch(r, fs=fs, nperseg=int(WELCH_S * fs))
             pxx = pxx / np.median(pxx)
             hz.append(np.interp(f_axis, f, pxx))
@@ -180,10 +365,74 @@ def screen_lines(fit: BenchFit, eqs: tuple[str, ...] | None = None,
             spec = np.nan_to_num(spec)
             local = median_filter(spec, size=LOCAL_BINS[axis], mode="nearest")
             spec = spec / np.maximum(local, 1e-12)  # a line stands out of its neighbourhood
+            if axis == "order" and exclude:
+                spec[np.min(np.abs(grid[:, None] - np.array(sorted(exclude))[None, :]), axis=1) <= 0.1] = 0.0
             idx, _ = find_peaks(spec, height=PEAK_MIN, distance=4)
             idx = idx[np.argsort(spec[idx])[::-1]][:N_LINES]
             out += [Line(eq, axis, float(grid[i]), float(spec[i])) for i in idx]
     return out
+
+
+HUMP_BAND = (8.0, 0.4)  # Hz, fraction of fs: where the torque balance's residual is searched for a hump
+HUMP_WELCH_S = 1.0
+
+
+@dataclass(frozen=True)
+class Hump:
+    """A broad resonance hump in the torque balance's residual spectrum: natural frequency, damping,
+    the peak's height over the floor (pooled) and per plateau (the band's mean ratio around it)."""
+
+    freq_hz: float
+    zeta: float
+    peak: float
+    per_plateau: tuple[float, ...]
+
+
+def balance_hump(fit: BenchFit) -> Hump | None:
+    """The broad hump a heavily damped resonance driven by its own noise leaves in the torque balance's
+    residual (nothing in the balance predicts it from the speeds).
+
+    Each plateau's residual spectrum (Welch, 1 s) over a smooth floor (a quadratic in log frequency fitted
+    robustly: twice, leaving out the bins more than twice above it), the ratios averaged over the
+    plateaus, and a resonance ``1 + A / ((1 - (f/f0)^2)^2 + (2 zeta f/f0)^2)`` fitted to them from the
+    best of a grid of starts.  A narrow line stands out of a running median and is screened as a line;
+    a hump as wide as that neighbourhood does not.
+    """
+    from scipy.optimize import least_squares as lsq
+
+    ps = fit.plateaus
+    fs = ps[0].fs_hz
+    ratios = []
+    for p, r in zip(ps, fit.eqs[BALANCE].residuals):
+        f, pxx = welch(r, fs=fs, nperseg=int(HUMP_WELCH_S * fs))
+        band = (f >= HUMP_BAND[0]) & (f <= HUMP_BAND[1] * fs)
+        x, y = np.log(f[band]), np.log(np.maximum(pxx[band], 1e-300))
+        keep = np.ones(x.size, bool)
+        for _ in range(3):
+            c = np.polyfit(x[keep], y[keep], 2)
+            keep = y - np.polyval(c, x) < np.log(2.0)
+        ratios.append(np.exp(y - np.polyval(c, x)))
+    fb = f[band]
+    R = np.mean(ratios, axis=0)
+
+    def model(v: np.ndarray) -> np.ndarray:
+        a, f0, z = np.exp(v)
+        q = fb / f0
+        return 1.0 + a / ((1 - q * q) ** 2 + (2 * z * q) ** 2)
+
+    best = None
+    for f0 in np.geomspace(15.0, HUMP_BAND[1] * 0.75 * fs, 24):
+        for z in (0.1, 0.2, 0.3):
+            v0 = np.log([max(float(np.interp(f0, fb, R)) - 1.0, 0.05) * (2 * z) ** 2, f0, z])
+            cost = float(np.sum((model(v0) - R) ** 2))
+            if best is None or cost < best[0]:
+                best = (cost, v0)
+    fitv = lsq(lambda v: model(v) - R, best[1], method="lm", max_nfev=400).x
+    a, f0, z = (float(x) for x in np.exp(fitv))
+    if not (HUMP_BAND[0] < f0 < HUMP_BAND[1] * fs and 0.0 < z < 1.0):
+        return None
+    near = np.abs(fb - f0) <= max(z * f0, 2.0)
+    return Hump(f0, z, 1.0 + a / (2 * z) ** 2, tuple(float(np.mean(r[near])) for r in ratios))
 
 
 def line_strength(fit: BenchFit, eq: str, freq_hz: float) -> list[float]:
@@ -304,7 +553,7 @@ N_CENTRES = 17  # dead-zone centres searched per plateau, between the twist's 1s
 SEARCH_LAG = 1
 
 
-class _Projector:
+class Projector:
     """Least-squares residual maker of one equation's regressors on one plateau's estimation rows."""
 
     def __init__(self, phi: np.ndarray, y: np.ndarray) -> None:
@@ -321,6 +570,14 @@ class _Projector:
         xo = self.off(x)
         den = float(xo @ xo)
         return float(self.r @ xo) ** 2 / den / self.ssr if den > 0 and self.ssr > 0 else 0.0
+
+    def share_of(self, x: np.ndarray) -> float:
+        """Share of the residual sum of squares that the columns ``x`` (2-D) remove together."""
+        xo = self.off(x)
+        q, rr = np.linalg.qr(xo / np.maximum(np.sqrt(np.mean(xo**2, axis=0)), 1e-300))
+        keep = np.abs(np.diag(rr)) > 1e-8 * max(np.abs(np.diag(rr)).max(), 1e-300)
+        c = q[:, keep].T @ self.r
+        return float(c @ c) / self.ssr if self.ssr > 0 else 0.0
 
 
 def search_backlash(series: BenchSeries, spec: Spec) -> TwistTerm:
@@ -341,7 +598,7 @@ def search_backlash(series: BenchSeries, spec: Spec) -> TwistTerm:
     for p in ps:
         for eq in EQS:
             phi = design(p, spec, eq)[p.est]
-            proj[p.index, eq] = _Projector(phi, output(p, eq)[p.est])
+            proj[p.index, eq] = Projector(phi, output(p, eq)[p.est])
 
     def score(p: PlateauSignals, gap: float, c: float) -> float:
         x = np.clip(p.twist - c, -0.5 * gap, 0.5 * gap)[p.rows - SEARCH_LAG][p.est]

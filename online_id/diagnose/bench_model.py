@@ -68,9 +68,10 @@ class Spec:
     na: int = 6
     nb: int = 6
     modes: tuple[int, int] = (0, 0)
-    shift_dyno: float = 0.0
-    shift_engine: float = 0.0
+    shift_dyno: float = 0.0  # advance of the dyno speed [s] (a sensor delay corrected)
+    shift_engine: float = 0.0  # advance of the engine speed [s]
     terms: tuple = ()
+    transfer_mode: str = ""  # where a further inertia sits in the speed transfer's model ("": none)
 
     def orders(self, eq: str) -> tuple[int, int]:
         m = self.modes[EQS.index(eq)] if eq in EQS else 0
@@ -102,7 +103,9 @@ class PlateauSignals:
     rev_hz: float
     fs_hz: float
     declared: list = field(default_factory=list)
+    line_free_hz: tuple = ()  # the speed equations' regressors carry nothing within a notch at these [Hz]
     demand: np.ndarray | None = None  # recorded torque demand (PRBS) on the series grid
+    own: dict = field(default_factory=dict)  # speed equation -> (its output, the other speed) in its time base
     cache: dict = field(default_factory=dict)  # (eq, na, nb) -> base regressors
     residual: dict = field(default_factory=dict)  # eq -> baseline residual on the full plateau span
 
@@ -152,11 +155,30 @@ def causal_highpass(x: np.ndarray, n: int) -> np.ndarray:
     return x - (c[k] - c[lo]) / (k - lo)
 
 
+def own_time_base(raw1: np.ndarray, raw2: np.ndarray, shift1: float, shift2: float) -> dict[str, tuple]:
+    """Each speed equation's output and other speed in the output's own time base.
+
+    A sensor delay is corrected by advancing the late speed (``shift`` samples).  An equation keeps its
+    own output and the torque as measured and advances the other speed only when that one is the later
+    (by the difference): the measured torque and an earlier speed already lead a late output, and the
+    lags reach back over the delay, so advancing the late output in its own equation would take away the
+    lead it has on them and raise its one-step error while the balance and the other equation fall.
+    """
+    return {"dyno": (raw1, shifted(raw2, max(shift2 - shift1, 0.0))),
+            "engine": (raw2, shifted(raw1, max(shift1 - shift2, 0.0)))}
+
+
 def plateau_signals(series: BenchSeries, spec: Spec) -> list[PlateauSignals]:
-    """Per-plateau signal views with the spec's speed shifts and block masks."""
+    """Per-plateau signal views with the spec's speed shifts and block masks.
+
+    ``y1``, ``y2`` are both speeds with the shifts applied (aligned with the torque: the torque balance,
+    the twist and the speed transfer use them); each speed equation takes its output and the other
+    speed from :func:`own_time_base`.
+    """
     fs = series.fs_hz
-    y1 = shifted(series.dyno, spec.shift_dyno)
-    y2 = shifted(series.engine, spec.shift_engine)
+    y1 = shifted(series.dyno, spec.shift_dyno * fs)
+    y2 = shifted(series.engine, spec.shift_engine * fs)
+    own = own_time_base(series.dyno, series.engine, spec.shift_dyno * fs, spec.shift_engine * fs)
     block, hold = int(round(BLOCK_S * fs)), int(round(HOLDOUT_S * fs))
     out = []
     for i, p in enumerate(series.plateaus):
@@ -171,8 +193,10 @@ def plateau_signals(series: BenchSeries, spec: Spec) -> list[PlateauSignals]:
         out.append(PlateauSignals(i, rows, ~val, val, series.torque, y1, y2, series.theta_dyno,
                                   series.theta_engine, np.arange(series.dyno.size) / fs, tw,
                                   float(np.mean(series.engine[span])) / (2 * np.pi), fs,
-                                  demand=series.demand))
+                                  demand=series.demand, own=own))
         out[-1].declared = declared_orders(series, out[-1].rev_hz)
+        out[-1].line_free_hz = tuple(k * out[-1].rev_hz for k in series.meta.get("line_free_orders", ())
+                                     if k * out[-1].rev_hz < 0.5 * fs)
     return out
 
 
@@ -224,9 +248,11 @@ def _build_base(p: PlateauSignals, eq: str, na: int, nb: int) -> list[np.ndarray
     elif eq == "dyno":
         # the torque from lag 1: at lag 0 it holds the speed controller's reaction to the
         # measured dyno speed (feedback), which a one-step predictor must not use
-        cols = [p.lagged(p.y1, lags_a), p.lagged(p.u, lags_b + 1), p.lagged(p.y2, lags_b)]
+        y1, y2 = p.own[eq]
+        cols = [p.lagged(y1, lags_a), p.lagged(p.u, lags_b + 1), p.lagged(y2, lags_b)]
     else:
-        cols = [p.lagged(p.y2, lags_a), p.lagged(p.y1, lags_b)]
+        y2, y1 = p.own[eq]
+        cols = [p.lagged(y2, lags_a), p.lagged(y1, lags_b)]
     if p.declared:
         cols.append(order_columns(p.theta2[p.rows], p.declared))
     cols.append(np.ones((p.rows.size, 1)))
@@ -247,20 +273,45 @@ def _lstsq(phi: np.ndarray, y: np.ndarray) -> np.ndarray:
     return coef / scale
 
 
+LINE_FREE_Q = 30.0  # quality factor of the notches that keep lines out of the regressors
+
+
 def design(p: PlateauSignals, spec: Spec, eq: str, extra: list[np.ndarray] = ()) -> np.ndarray:
-    """Regressors of equation ``eq`` of ``spec`` on the rows of plateau ``p`` (and ``extra`` columns)."""
+    """Regressors of equation ``eq`` of ``spec`` on the rows of plateau ``p`` (and ``extra`` columns).
+
+    Where the plateau names line-free frequencies (``p.line_free_hz``), the regressors of a speed
+    equation, all but the rotation-order columns and the constant, are notched there (zero phase): a
+    strong order line is otherwise predicted one step ahead from its own past and from the speed
+    controller's reaction to it in the torque, and an order term then explains nothing of it.
+    """
     cols = _base_columns(p, spec, eq)
+    free = eq in EQS and bool(p.line_free_hz)
+    if free:
+        key = ("line_free", eq) + spec.orders(eq) + (p.line_free_hz,)
+        if key not in p.cache:
+            p.cache[key] = _notched(np.hstack(cols)[:, :-1], p)
+        cols = [p.cache[key], np.hstack(cols)[:, -1:]]
     for term in spec.terms:
         c = term.columns(p, eq)
         if c is not None:
-            cols.append(np.asarray(c, dtype=float).reshape(p.rows.size, -1))
+            c = np.asarray(c, dtype=float).reshape(p.rows.size, -1)
+            cols.append(_notched(c, p) if free and term.kind != "rotation_order_disturbance" else c)
     cols += [np.asarray(c, dtype=float).reshape(p.rows.size, -1) for c in extra]
     return np.hstack(cols)
 
 
+def _notched(x: np.ndarray, p: PlateauSignals) -> np.ndarray:
+    from scipy.signal import filtfilt, iirnotch
+
+    for f in p.line_free_hz:
+        b, a = iirnotch(f, LINE_FREE_Q, fs=p.fs_hz)
+        x = filtfilt(b, a, x, axis=0)
+    return x
+
+
 def output(p: PlateauSignals, eq: str) -> np.ndarray:
-    """What equation ``eq`` explains on the rows of plateau ``p``: a speed, or the torque (balance)."""
-    return {"dyno": p.y1, "engine": p.y2, BALANCE: p.u}[eq][p.rows]
+    """What equation ``eq`` explains on the rows of plateau ``p``: a speed (as measured), or the torque."""
+    return (p.u if eq == BALANCE else p.own[eq][0])[p.rows]
 
 
 def fit_plateau(p: PlateauSignals, spec: Spec, eq: str, extra: list[np.ndarray] = (),

@@ -55,7 +55,8 @@ BAND_HZ = (2.0, 0.3)  # lowest frequency [Hz], highest as a fraction of fs
 DELAY_GRID_S = 2e-4
 W_REF = 2 * np.pi * 50.0  # frequency scale of the polynomial coefficients (conditioning)
 SK_ITERATIONS = 4
-N_STARTS, N_REFINED = 12, 2  # antiresonance starts of the mode fit; the best few are refined
+N_STARTS, N_REFINED = 12, 3  # second-spring frequencies started from per inertia ratio; the best few refined
+MU_STARTS = (0.05, 0.2, 0.6)  # inertia ratios started from
 MAX_NFEV = 150
 
 
@@ -203,52 +204,97 @@ def fit_ratio_tau(f: np.ndarray, T: np.ndarray, w: np.ndarray, max_s: float) -> 
     return fit_ratio(f, T, w, tau)
 
 
-def _mode_model(x: np.ndarray) -> RatioModel:
+MODE_VARIANTS = ("engine", "between")  # where the further inertia sits on the engine side
+
+
+def _mode_model(x: np.ndarray, variant: str = "engine") -> RatioModel:
     """Physical parameters ``[log a, log b, log alpha, log beta, log mu, tau]`` -> model.
 
-    ``N = (b z + a)(z^2 + beta z + alpha)``, ``Q = z^2 + (1 + mu)(beta z + alpha)``.
+    ``variant="engine"``: a further inertia hangs off the engine (beyond its sensor),
+    ``N = (b z + a)(z^2 + beta z + alpha)``, ``Q = z^2 + (1 + mu)(beta z + alpha)``
+    (``a, b`` the shaft, ``alpha, beta`` the second spring, both per engine inertia; ``mu`` the
+    further inertia over the engine's).
+
+    ``variant="between"``: the further inertia sits between the shaft and the engine (a dual-mass
+    flywheel: the shaft drives it, it drives the engine through the second spring, the sensor sees the
+    engine), ``N = (b z + a)(beta z + alpha)``, ``Q = mu z^2 + (mu beta + b + beta) z + (mu alpha + a +
+    alpha)``.  Both keep ``T(0) = 1``.
     """
     a, b, al, be, mu = np.exp(np.clip(x[:5], -30.0, 30.0))
+    if variant == "between":
+        num = np.polymul([b, a], [be, al])[::-1]  # ascending
+        return RatioModel(float(x[5]), num, np.array([mu * al + a + al, mu * be + b + be, mu]))
     num = np.polymul([b, a], [1.0, be, al])[::-1]  # ascending
     return RatioModel(float(x[5]), num, np.array([(1 + mu) * al, (1 + mu) * be, 1.0]))
 
 
 def fit_ratio_mode(f: np.ndarray, T: np.ndarray, w: np.ndarray, two: RatioModel, max_s: float,
-                   start: np.ndarray | None = None) -> tuple[RatioModel, np.ndarray]:
+                   start: np.ndarray | None = None, tau: float | None = None,
+                   variant: str = "engine") -> tuple[RatioModel, np.ndarray]:
     """The two-mass model with one more inertia on the engine side (an additional mode).
 
     Nonlinear least squares of the relative error over the physical
-    parameters of :func:`_mode_model`, started from the two-mass fit ``two``
-    and a grid of antiresonances ``sqrt(alpha)`` (30 Hz to the band's end,
-    ``mu = 0.1``); the starts with the least misfit are refined and the best
-    end point is kept.  With ``start`` (parameters of an earlier fit) only
-    that start is refined.  Returns the model and its parameters.
+    parameters of :func:`_mode_model` (``variant``: where the inertia sits),
+    started from the two-mass fit ``two`` and a grid of second-spring
+    frequencies ``sqrt(alpha)`` (30 Hz to the band's end, ``mu = 0.1``); the
+    starts with the least misfit are refined and the best end point is kept.
+    With ``start`` (parameters of an earlier fit) that start is refined too.
+    ``tau`` holds the delay (``None``: fitted, within ``+-max_s``).  Returns
+    the model and its parameters.
     """
     sw = np.sqrt(w)
+    free = tau is None
+
+    def full(x: np.ndarray) -> np.ndarray:
+        return x if free else np.append(x[:5], tau)
 
     def resid(x: np.ndarray) -> np.ndarray:
+        x = full(x)
         tc = T * np.exp(2j * np.pi * f * x[5])
         with np.errstate(all="ignore"):
-            d = (tc - _mode_model(x).response(f)) / np.maximum(np.abs(tc), 1e-300) * sw
+            d = (tc - _mode_model(x, variant).response(f)) / np.maximum(np.abs(tc), 1e-300) * sw
         d = np.nan_to_num(d, nan=1e6, posinf=1e6, neginf=-1e6)
         return np.concatenate((d.real, d.imag))
 
-    a0, b0 = max(two.num[0], 1e-6), max(two.num[1], 1e-6)
     starts = []
-    for fa in np.geomspace(30.0, f[-1], N_STARTS if start is None else 0):
-        al = (2 * np.pi * fa / W_REF) ** 2
-        x0 = np.array([np.log(a0), np.log(b0), np.log(al), np.log(0.08 * np.sqrt(al)), np.log(0.1), two.tau_s])
-        starts.append((float(np.sum(resid(x0) ** 2)), x0))
-    best = None
+    for tau0, mu0 in [(t, m) for t in ((two.tau_s, 0.0) if free else (tau,)) for m in MU_STARTS]:
+        a0, b0 = max(two.num[0], 1e-6), max(two.num[1], 1e-6)
+        if variant == "between":  # the two-mass fit sees the engine and the inertia between as one
+            a0, b0 = a0 * (1 + mu0), b0 * (1 + mu0)
+        for fa in np.geomspace(min(30.0, 0.5 * f[-1]), f[-1], N_STARTS):
+            al = (2 * np.pi * fa / W_REF) ** 2
+            x0 = np.array([np.log(a0), np.log(b0), np.log(al), np.log(0.08 * np.sqrt(al)), np.log(mu0), tau0])
+            x0 = x0 if free else x0[:5]
+            starts.append((float(np.sum(resid(x0) ** 2)), x0))
+    tries = sorted(starts, key=lambda c: c[0])[:N_REFINED]
     if start is not None:
-        starts = [(0.0, np.asarray(start, dtype=float))]
-    for _, x0 in sorted(starts, key=lambda c: c[0])[:N_REFINED]:
+        x0 = np.asarray(start, dtype=float)
+        tries.append((0.0, x0 if free else x0[:5]))
+    best = None
+    for _, x0 in tries:
         r = least_squares(resid, x0, method="lm", max_nfev=MAX_NFEV)
         if np.all(np.isfinite(r.x)) and (best is None or 2 * r.cost < best[0]):
             best = (2 * r.cost, r.x)
-    x = best[1].copy()
+    x = full(best[1]).copy()
     x[5] = float(np.clip(x[5], -max_s, max_s))
-    return _mode_model(x), x
+    return _mode_model(x, variant), x
+
+
+def heldout_misfit(ps: list[PlateauSignals], variant: str = "") -> float:
+    """Held-out misfit of the speed transfer of a model: fitted on the estimation segments, judged on the
+    held-out ones, with no delay beyond the shifts the plateaus' speeds already carry.
+
+    ``variant``: with one more inertia on the engine side where it sits (:func:`fit_ratio_mode`), ``""``
+    the two-mass model.  The transfer figure of a diagnosis step (a sensor delay or an additional mode
+    changes it).
+    """
+    fs = ps[0].fs_hz
+    fe, Te, we = pooled_ratio([segment_spectra(p, "est") for p in ps], fs)
+    fv, Tv, wv = pooled_ratio([segment_spectra(p, "val") for p in ps], fs)
+    model = fit_ratio(fe, Te, we, 0.0)
+    if variant:
+        model, _ = fit_ratio_mode(fe, Te, we, model, 0.0, tau=0.0, variant=variant)
+    return model.misfit(fv, Tv, wv)
 
 
 def fit_ratio_delay(f: np.ndarray, T: np.ndarray, w: np.ndarray, max_s: float) -> tuple[float, float, float]:
@@ -262,40 +308,55 @@ def fit_ratio_delay(f: np.ndarray, T: np.ndarray, w: np.ndarray, max_s: float) -
 
 
 def transfer_effects(ps: list[PlateauSignals], max_s: float) -> dict:
-    """Sensor delay and additional mode from the speed transfer, with held-out misfits.
+    """Sensor delay and additional mode from the speed transfer, told apart by nested held-out fits.
 
-    Returns ``delay`` (``tau_s``, jackknife ``t`` over the plateaus of the
-    delay fitted to all segments, ``heldout_gain``: the share of the held-out
-    transfer misfit of the two-mass model that the delay removes) and
-    ``mode`` (``heldout_gain``: the share of the two-mass model's held-out
-    misfit, delay fitted in both, that one more pole pair removes;
-    ``freq_hz`` the added pole pair, the one farthest from the two-mass
-    pole; ``t`` the held-out misfit difference of the two models in noise
-    units (:func:`heldout_z`), 0 when the pole lies outside the fitted band).
+    Four models of the transfer are fitted on the estimation segments and judged on the held-out ones:
+    the two-mass model without and with a delay, and with one more inertia on the engine side (beyond
+    the engine, or between the shaft and the engine; the variant that fits the estimation segments best)
+    without and with a delay.  A delay is a pure phase slope with unit gain; a further inertia changes
+    the gain and the phase's shape.  So:
+
+    - ``delay``: ``heldout_gain`` the share of the *mode* model's held-out misfit that a delay removes
+      (a mode cannot take it), ``t`` its Wald-type z (:func:`heldout_z`); ``tau_s`` the delay of the
+      two-mass fit to all segments and ``jackknife_s`` its leave-one-plateau-out values;
+    - ``mode``: ``heldout_gain`` the share of the *delay* model's held-out misfit that the further
+      inertia removes (a delay cannot take it), ``t`` its z (0 when the added pole pair lies outside the
+      fitted band), ``freq_hz`` the added pole pair (the one farthest from the two-mass pole),
+      ``location``: ``between`` (the shaft and the engine) or ``engine`` (beyond the engine) where the
+      held-out misfits of the two variants differ by ``T_LOCATION`` in z, else ``engine side``.
     """
     fs = ps[0].fs_hz
     spec = {part: [segment_spectra(p, part) for p in ps] for part in ("all", "est", "val")}
     f, T, w = pooled_ratio(spec["all"], fs)
-    two = fit_ratio_tau(f, T, w, max_s)
+    two_all = fit_ratio_tau(f, T, w, max_s)
     n = len(ps)
     if n > 2:
         jk = np.array([fit_ratio_tau(*pooled_ratio(spec["all"][:i] + spec["all"][i + 1:], fs), max_s).tau_s
                        for i in range(n)])
-        se = float(np.sqrt((n - 1) / n * np.sum((jk - jk.mean()) ** 2)))
     else:
-        jk, se = np.array([two.tau_s]), np.inf
+        jk = np.array([two_all.tau_s])
     held = _heldout(spec["est"], spec["val"], fs, max_s)
-    z_mode = heldout_z([sg for p in ps for sg in segment_spectra(p, "val", each=True)], held["two"],
-                       held["four"], fs)
+    segs = [sg for p in ps for sg in segment_spectra(p, "val", each=True)]
+    best = held["variants"][held["best"]]
+    z_delay = heldout_z(segs, best["m0"], best["md"], fs)
+    z_mode = heldout_z(segs, held["twod"], best["md"], fs)
     f_mode = held["freq_hz"]
     in_band = bool(np.isfinite(f_mode) and BAND_HZ[0] < f_mode < BAND_HZ[1] * fs)
+    other = held["variants"][[v for v in MODE_VARIANTS if v != held["best"]][0]]
+    z_loc = heldout_z(segs, other["md"], best["md"], fs)
+    location = held["best"] if z_loc >= T_LOCATION else "engine side"
     return {
-        "delay": {"tau_s": two.tau_s, "t": abs(two.tau_s) / se if se > 0 else 0.0,
-                  "jackknife_s": jk.tolist(), "heldout_gain": held["delay_gain"]},
+        "delay": {"tau_s": two_all.tau_s, "t": z_delay, "jackknife_s": jk.tolist(),
+                  "heldout_gain": held["delay_gain"], "tau_with_mode_s": best["md"].tau_s},
         "mode": {"heldout_gain": held["mode_gain"], "freq_hz": f_mode, "in_band": in_band,
-                 "t": z_mode if in_band else 0.0,
-                 "tau_s": held["mode_tau_s"], "poles_hz": held["poles_hz"]},
+                 "t": z_mode if in_band else 0.0, "location": location, "variant": held["best"],
+                 "location_z": z_loc, "tau_s": best["md"].tau_s, "poles_hz": held["poles_hz"]},
+        # the two-mass fit (delay free) per engine inertia: c_s / J2 = a W^2, d_s / J2 = b W
+        "two_mass": {"c_per_J2": float(held["twod"].num[0]) * W_REF**2, "d_per_J2": float(held["twod"].num[1]) * W_REF},
     }
+
+
+T_LOCATION = 3.0  # held-out z by which one variant of the further inertia must beat the other to be named
 
 
 def heldout_z(segs: list[Spectra], two: RatioModel, four: RatioModel, fs: float) -> float:
@@ -349,17 +410,92 @@ def _farthest_pole(p2: np.ndarray, p4: np.ndarray) -> float:
     return float(p4[int(np.argmax(np.abs(np.log(np.maximum(p4, 1e-9) / max(ref, 1e-9)))))])
 
 
-def _heldout(est: list[Spectra], val: list[Spectra], fs: float, max_s: float,
-             start: np.ndarray | None = None) -> dict:
-    """Models fitted on the estimation segments' transfer, misfits on the held-out segments' one."""
+def _heldout(est: list[Spectra], val: list[Spectra], fs: float, max_s: float) -> dict:
+    """The nested models of :func:`transfer_effects` fitted on the estimation segments' transfer, their
+    misfits on the held-out segments' one."""
     fe, Te, we = pooled_ratio(est, fs)
     fv, Tv, wv = pooled_ratio(val, fs)
-    two = fit_ratio_tau(fe, Te, we, max_s)
-    four, x = fit_ratio_mode(fe, Te, we, two, max_s, start)
-    v_zero, v_two, v_four = (m.misfit(fv, Tv, wv) for m in (fit_ratio(fe, Te, we, 0.0), two, four))
-    p4 = four.poles_hz()
-    f_mode = _farthest_pole(two.poles_hz(), p4)
-    return {"delay_gain": 1.0 - v_two / v_zero if v_zero > 0 else 0.0,
-            "mode_gain": 1.0 - v_four / v_two if v_two > 0 else 0.0,
-            "freq_hz": f_mode, "mode_tau_s": four.tau_s, "poles_hz": p4.tolist(), "mode_x": x,
-            "two": two, "four": four}
+    two0 = fit_ratio(fe, Te, we, 0.0)
+    twod = fit_ratio_tau(fe, Te, we, max_s)
+    variants = {}
+    for v in MODE_VARIANTS:
+        m0, x0 = fit_ratio_mode(fe, Te, we, two0, max_s, tau=0.0, variant=v)
+        md, _ = fit_ratio_mode(fe, Te, we, twod, max_s, start=np.append(x0[:5], 0.0), variant=v)
+        variants[v] = {"m0": m0, "md": md, "est": md.misfit(fe, Te, we)}
+    pick = min(variants, key=lambda v: variants[v]["est"])
+    b = variants[pick]
+    v_two, v_d, v_m, v_md = (m.misfit(fv, Tv, wv) for m in (two0, twod, b["m0"], b["md"]))
+    p4 = b["md"].poles_hz()
+    return {"delay_gain": 1.0 - v_md / v_m if v_m > 0 else 0.0,
+            "mode_gain": 1.0 - v_md / v_d if v_d > 0 else 0.0,
+            "freq_hz": _farthest_pole(twod.poles_hz(), p4), "poles_hz": p4.tolist(),
+            "two0": two0, "twod": twod, "variants": variants, "best": pick,
+            "misfits": {"two": v_two, "delay": v_d, "mode": v_m, "mode_delay": v_md}}
+
+
+ADMITTANCE_BAND_HZ = (5.0, 0.3)  # above the speed loop's bandwidth (its reaction to speed noise) to 0.3 fs
+
+
+def dyno_admittance(ps: list[PlateauSignals]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``y1 / u`` (dyno speed over the measured torque) from the estimation segments of every plateau:
+    ``sum conj(U) Y1 / sum |U|^2`` in the band, with its weight (the coherence); the declared lines are
+    projected off the speed first, as for the transfer."""
+    sxy = sxx = syy = 0.0
+    f = None
+    for p in ps:
+        u = p.u[p.rows]
+        y1 = _without_declared(p, p.y1[p.rows])
+        nper = int(round(p.fs_hz))
+        win = np.hanning(nper)
+        f = np.fft.rfftfreq(nper, 1.0 / p.fs_hz)
+        for i0 in range(0, p.rows.size - nper + 1, nper):
+            if not p.est[i0:i0 + nper].all():
+                continue
+            U, Y = (np.fft.rfft(win * (v[i0:i0 + nper] - np.mean(v[i0:i0 + nper]))) for v in (u, y1))
+            sxy, sxx, syy = sxy + np.conj(U) * Y, sxx + np.abs(U) ** 2, syy + np.abs(Y) ** 2
+    fs = ps[0].fs_hz
+    band = (f >= ADMITTANCE_BAND_HZ[0]) & (f <= ADMITTANCE_BAND_HZ[1] * fs)
+    coh = np.abs(sxy) ** 2 / np.maximum(sxx * syy, 1e-300)
+    return f[band], (sxy / np.maximum(sxx, 1e-300))[band], coh[band]
+
+
+def fit_dyno_branch(ps: list[PlateauSignals], j_total: float, j2: float, c_per_j2: float, d_per_j2: float,
+                    f3_hz: float, zeta3: float) -> tuple[float, float, float, float, float]:
+    """``(J1, J2, J3, c3, d3)`` of a further inertia hung off the dyno, from the dyno's admittance.
+
+    ``y1 / u = -1 / (J1 s + Z_s + Z_3)`` with ``Z = J s (c + d s) / (J s^2 + d s + c)`` the engine
+    through the shaft (``c_s = c_per_j2 J2``, ``d_s = d_per_j2 J2``: the speed transfer knows the shaft
+    per engine inertia) and the branch through its spring, times ``exp(-s tau)`` (the torque acts between
+    the samples, a sensor and an actuator lag it); least squares of the relative error over ``J1, J2,
+    J3, c3, d3`` (logs) and ``tau``, started from the balance's ``j2``, its branch ``f3_hz, zeta3`` and a few
+    shares of ``j_total`` for ``J3``.  The branch and the dyno's own inertia trade against each other at
+    low frequency in the balance; the admittance's resonances and antiresonances tell them apart.
+    """
+    f, Y, w = dyno_admittance(ps)
+    s = 2j * np.pi * f
+    sw = np.sqrt(w)
+
+    def z(j: float, c: float, d: float) -> np.ndarray:
+        return j * s * (c + d * s) / (j * s**2 + d * s + c)
+
+    def model(x: np.ndarray) -> np.ndarray:
+        j1, jj2, j3, c3, d3 = np.exp(np.clip(x[:5], -40.0, 40.0))
+        return -np.exp(-s * x[5]) / (j1 * s + z(jj2, c_per_j2 * jj2, d_per_j2 * jj2) + z(j3, c3, d3))
+
+    def resid(x: np.ndarray) -> np.ndarray:
+        with np.errstate(all="ignore"):
+            d = (Y - model(x)) / np.maximum(np.abs(Y), 1e-300) * sw
+        d = np.nan_to_num(d, nan=1e6, posinf=1e6, neginf=-1e6)
+        return np.concatenate((d.real, d.imag))
+
+    w3 = 2 * np.pi * f3_hz
+    best = None
+    for share in (0.05, 0.15, 0.35):
+        j3 = share * j_total
+        x0 = np.append(np.log([max(j_total - j3, 1e-6), j2, j3, j3 * w3 * w3, 2 * zeta3 * w3 * j3]), 0.0)
+        r = least_squares(resid, x0, method="lm", max_nfev=500)
+        if np.all(np.isfinite(r.x)) and (best is None or r.cost < best[0]):
+            best = (r.cost, r.x)
+    if best is None:
+        return (float("nan"),) * 5
+    return tuple(float(v) for v in np.exp(best[1][:5]))

@@ -35,9 +35,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from online_id.analysis.plateaus import find_plateaus
-from online_id.analysis.poles import poles_of
+from online_id.analysis.poles import poles_of, rotation_line
 from online_id.estimation.pem import fit_percent
 from online_id.diagnose import effects as fx
+from online_id.diagnose.bench_effects import family_reading
 from online_id.diagnose.data import DiagnoseData, Split
 from online_id.diagnose.model import AugmentedFit, Structure, fit_extension, fit_structure, regressors, windows
 from online_id.diagnose.residual_tests import RIG_SPLIT_RATIO, ResidualTest, run_tests
@@ -75,11 +76,23 @@ class EffectStep:
     error_after: ErrorFigures
     basis: str = "one_step"
 
-    def as_dict(self) -> dict:
+    def as_dict(self, base: ErrorFigures | None = None) -> dict:
+        base = base or self.error_before
         return {"kind": self.kind, "params": self.params,
                 "explained_variance": self.explained_variance, "basis": self.basis,
-                "t_stat": self.t_stat,
-                "error_before": self.error_before.as_dict(), "error_after": self.error_after.as_dict()}
+                "t_stat": self.t_stat, "accepted_on": {"channels": ["one_step"], "before": self.error_before.rms,
+                                                       "after": self.error_after.rms},
+                "error_before": error_doc(self.error_before, base), "error_after": error_doc(self.error_after, base)}
+
+
+def error_doc(fig: ErrorFigures, base: ErrorFigures) -> dict:
+    """A model's held-out error as reported: ``rms`` is the summary, the held-out one-step RMS relative to
+    the baseline's (1 for the baseline; the one channel of a record with one output), beside the
+    one-step RMS in the output's unit and the simulation fit."""
+    return {"rms": fig.rms / base.rms if base.rms > 0 else 1.0,
+            "summary": "held-out one-step RMS relative to the baseline's",
+            "one_step": {"rms": fig.rms, "relative": fig.rms / base.rms if base.rms > 0 else 1.0},
+            "fit_pct": fig.fit_pct}
 
 
 @dataclass(frozen=True)
@@ -135,9 +148,9 @@ class Diagnosis:
             "recording": dict(self.data.notes),
             "shaft_rates": dict(self.data.shaft_rates),
             "warnings": list(self.warnings),
-            "effects": [e.as_dict() for e in self.effects],
-            "error_before": self.error_before.as_dict(),
-            "error_after": self.error_after.as_dict(),
+            "effects": [e.as_dict(self.error_before) for e in self.effects],
+            "error_before": error_doc(self.error_before, self.error_before),
+            "error_after": error_doc(self.error_after, self.error_before),
             "tests_before": [_test_dict(t) for t in self.tests_before],
             "tests_after": [_test_dict(t) for t in self.tests_after],
             "candidates": [c.__dict__ for c in self.candidates],
@@ -211,7 +224,10 @@ def _build(kind: str, hint: dict, data: DiagnoseData, cur: AugmentedFit, split: 
         term = fx.RotationOrder(hint["shaft"], hint["order"])
         if any(t == term for t in s.terms):
             return None
-        model = fit_extension(data, cur, term, split)
+        # a line the baseline holds as a pole pair: the whole model is refitted with the term, so that A
+        # can let go of the pair (with A held the term finds the line already predicted)
+        model = fit_structure(data, s.with_term(term), split) if hint.get("held") else \
+            fit_extension(data, cur, term, split)
         return model, _params(kind, model, cur, data, hint), None
     elif kind == "fixed_frequency_disturbance":
         new = fx.search_frequency(data, s, split, C, hint["freq_hz"], hint["half_width_hz"])
@@ -246,17 +262,40 @@ def _params(kind: str, model: AugmentedFit, cur: AugmentedFit, data: DiagnoseDat
     s = model.structure
     hint = hint or {}
     if kind == "additional_mode":
-        return {"freq_hz": fx.new_mode_freq_hz(cur.A, model.A, data.fs_hz)}
+        f, zeta = fx.new_mode(cur.A, model.A, data.fs_hz)
+        out = {"freq_hz": f, "damping": zeta}
+        line = rotation_line(f, zeta, shaft_rates_hz(data))
+        if line is not None:
+            out["rotation_line"] = {"shaft": line[0], "order": line[1]}
+        return out
     if kind == "sensor_delay":
         d = s.delay - cur.structure.delay
         signal = data.output_name if d > 0 else data.input_name
         return {"signal": signal, "delay_s": abs(d) / data.fs_hz, "delay_samples": abs(d)}
     params = s.terms[-1].params()
+    if kind == "fixed_frequency_disturbance" and one_operating_point(data):
+        # at one speed a line fixed in Hz and one locked to a shaft look alike: a line at a multiple of a
+        # shaft's rate (within the frequency resolution of the record) is named the rotation order
+        line = rotation_line(params["freq_hz"], 0.0, shaft_rates_hz(data), tol_pct=0.5,
+                             tol_hz=2.0 * data.fs_hz / len(data))
+        if line is not None:
+            params["locked_to"] = {"shaft": line[0], "order": line[1]}
+    if kind == "rotation_order_disturbance":  # the bench path's shape: a family (here of one) and a reading
+        params["family_orders"] = [params["order"]]
+        params["reading"] = family_reading(params["shaft"], [params["order"]], 0.0)
     if kind == "rotation_order_disturbance" and hint.get("aliases"):
         params["aliases"] = list(hint["aliases"])
     if kind == "rotation_order_disturbance" and "line_ratio" in hint:
         params["line_ratio"] = float(hint["line_ratio"])
     return params
+
+
+def one_operating_point(data: DiagnoseData) -> bool:
+    """The first shaft's speed spans less than 10 % of its mean (5-95 %): one operating point."""
+    for w in list(data.shaft_speeds_rad_s.values())[:1]:
+        lo, hi = np.percentile(w, [5, 95])
+        return bool(abs(np.mean(w)) > 0 and (hi - lo) < 0.1 * abs(np.mean(w)))
+    return False
 
 
 def _blocks(data: DiagnoseData, blocks: int | None) -> int:
@@ -295,16 +334,35 @@ def steady_mask(data: DiagnoseData) -> np.ndarray | None:
     return keep if keep.mean() >= 0.5 else None
 
 
-def modes_of(A: np.ndarray, fs_hz: float) -> list[dict]:
-    """Poles of ``A`` (one per conjugate pair) with frequency, damping and stability."""
+def shaft_rates_hz(data: DiagnoseData) -> dict[str, float]:
+    """Each shaft's median rotation rate [Hz]."""
+    return {n: float(np.median(np.abs(w))) / (2.0 * np.pi) for n, w in data.shaft_speeds_rad_s.items()}
+
+
+def modes_of(A: np.ndarray, fs_hz: float, rates_hz: dict[str, float] | None = None) -> list[dict]:
+    """Poles of ``A`` (one per conjugate pair) with frequency, damping and stability; a near-undamped pair
+    at a multiple of a shaft's rate (``rates_hz``) carries ``line``: the shaft and order of that rotation
+    line (:func:`~online_id.analysis.poles.rotation_line`)."""
     out = []
     for p in poles_of(A, 1.0 / fs_hz):
         z = complex(p.z)
-        out.append({"z_real": z.real, "z_imag": z.imag, "abs_z": abs(z),
-                    "freq_hz": p.f_hz if np.isfinite(p.f_hz) else None,
-                    "damping": p.zeta if np.isfinite(p.zeta) else None,
-                    "kind": p.kind, "stable": bool(abs(z) < 1.0)})
+        m = {"z_real": z.real, "z_imag": z.imag, "abs_z": abs(z),
+             "freq_hz": p.f_hz if np.isfinite(p.f_hz) else None,
+             "damping": p.zeta if np.isfinite(p.zeta) else None,
+             "kind": p.kind, "stable": bool(abs(z) < 1.0)}
+        hit = rotation_line(p.f_hz, p.zeta, rates_hz or {}) if p.kind == "complex" else None
+        if hit is not None:
+            m["line"] = {"shaft": hit[0], "order": hit[1]}
+        out.append(m)
     return out
+
+
+def line_warnings(modes: list[dict]) -> list[str]:
+    """What the baseline holds as a pole pair that is a rotation line, not a mode."""
+    return [f"the baseline holds a pole pair at {m['freq_hz']:.3g} Hz (damping {m['damping']:.4f}) at order "
+            f"{m['line']['order']:g} of shaft {m['line']['shaft']!r}: a rotation-order line (a periodic torque "
+            "locked to the shaft), not a mode; it is tested as a rotation-order disturbance"
+            for m in modes if "line" in m]
 
 
 def fit_warnings(model: AugmentedFit, data: DiagnoseData, split: Split, modes: list[dict]) -> list[str]:
@@ -326,7 +384,7 @@ def fit_warnings(model: AugmentedFit, data: DiagnoseData, split: Split, modes: l
                    "are collinear, its parameters are not determined by the data")
     for name, w in list(data.shaft_speeds_rad_s.items())[:1]:
         lo, hi = np.percentile(w, [5, 95])
-        if abs(np.mean(w)) > 0 and (hi - lo) < 0.1 * abs(np.mean(w)):
+        if one_operating_point(data):
             out.append(f"one operating point: shaft {name!r} speed spans only {hi - lo:.3g} rad/s "
                        f"around {np.mean(w):.3g}; a rotation order and a fixed-frequency line cannot be "
                        "told apart and speed-dependent effects are not identifiable")
@@ -444,8 +502,10 @@ def diagnose(data: DiagnoseData, *, na: int | None, nb: int | None, nc: int, nk:
     e0 = e_cur
     lags = baseline.input_lags
     tests0 = run_tests(data, e_cur, val, lags)
-    modes = modes_of(cur.A, data.fs_hz)
-    warnings = fit_warnings(cur, data, split, modes)
+    modes = modes_of(cur.A, data.fs_hz, shaft_rates_hz(data))
+    warnings = fit_warnings(cur, data, split, modes) + line_warnings(modes)
+    held_lines = [("rotation_order_disturbance", {"shaft": m["line"]["shaft"], "order": m["line"]["order"],
+                                                  "held": True}) for m in modes if "line" in m]
     tests, fig, steps, evaluated = tests0, fig0, [], []
     stop = f"max_effects={max_effects} reached"
     for step in range(max_effects):
@@ -455,7 +515,7 @@ def diagnose(data: DiagnoseData, *, na: int | None, nb: int | None, nc: int, nk:
         if isinstance(cur, WienerAbsFit):
             stop = "absolute-value sensor model: no further extensions"
             break
-        cands = [c for t in tests for c in t.candidates]
+        cands = [c for t in tests for c in t.candidates] + (held_lines if step == 0 else [])
         cands.append(("sensor_delay", {"lag_samples": 0}))
         cands = _dedupe([c if c[0] != "additional_mode" else ("additional_mode", {}) for c in cands])
         r_cur = (data.y - _sim(cur, data, split, horizon))[val]
@@ -511,10 +571,19 @@ def diagnose(data: DiagnoseData, *, na: int | None, nb: int | None, nc: int, nk:
             rms_new = float(np.sqrt(np.mean(e_new[val] ** 2)))
             fit_new = fit_percent(data.y[val], ysim_new[val])
             refused = _guard(fig, rms_new, fit_new) if ok else ""
+            if ok and "rotation_line" in params:
+                line = params["rotation_line"]
+                refused = (f"the added pole pair is a rotation-order line (order {line['order']:g} of shaft "
+                           f"{line['shaft']!r}, damping {params['damping']:.4f}), not a mode")
             evaluated.append(Candidate(step + 1, kind, params, explained, t, ok, rms_new, fit_new,
                                        ok and not refused, refused))
             if ok and not refused and (best is None or explained > best[0]):
                 best = (explained, t, kind, params, model, basis)
+                if "locked_to" in params:
+                    best = (explained, t, "rotation_order_disturbance",
+                            {**params.pop("locked_to"), "freq_hz": params["freq_hz"],
+                             "note": "one operating point: a line fixed in Hz at a multiple of the shaft's rate "
+                                     "cannot be told from a rotation order; named the order"}, model, basis)
         if best is None:
             stop = ("no candidate effect improves the held-out error significantly"
                     + (" (the residual passes every test)" if all(t.passed for t in tests) else ""))

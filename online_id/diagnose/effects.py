@@ -250,8 +250,9 @@ def mode_structure(s: Structure) -> Structure:
     return replace(s, na=s.na + 2, nb=s.nb + 2)
 
 
-def new_mode_freq_hz(A_old: np.ndarray, A_new: np.ndarray, fs_hz: float) -> float:
-    """Frequency of the complex pole pair of ``A_new`` farthest from every pole of ``A_old``."""
+def new_mode(A_old: np.ndarray, A_new: np.ndarray, fs_hz: float) -> tuple[float, float]:
+    """Frequency [Hz] and damping ratio of the complex pole pair of ``A_new`` farthest from every pole of
+    ``A_old`` (NaN, NaN when ``A_new`` has none)."""
     def s_poles(A: np.ndarray) -> np.ndarray:
         z = np.roots(A) if A.size > 1 else np.zeros(0, dtype=complex)
         z = z[np.abs(z) > 1e-9]
@@ -260,10 +261,10 @@ def new_mode_freq_hz(A_old: np.ndarray, A_new: np.ndarray, fs_hz: float) -> floa
     old, new = s_poles(A_old), s_poles(A_new)
     cand = new[new.imag > 1e-6]
     if cand.size == 0:
-        return float("nan")
+        return float("nan"), float("nan")
     if old.size == 0:
         pick = cand[np.argmin(np.abs(cand.real) / np.abs(cand))]
     else:
         dist = np.min(np.abs(cand[:, None] - old[None, :]), axis=1)
         pick = cand[int(np.argmax(dist))]
-    return float(np.abs(pick) / (2.0 * np.pi))
+    return float(np.abs(pick) / (2.0 * np.pi)), float(-pick.real / np.abs(pick))

@@ -5,6 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+HOLDOUT = 0.25
+"""Default fraction of each operating point held out of the fit for validation."""
+
 
 @dataclass(frozen=True)
 class InertiaSettings:

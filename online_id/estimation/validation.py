@@ -29,7 +29,6 @@ from scipy.signal import coherence, csd, welch
 from online_id.analysis.physical import frequency_response
 from online_id.errors import EstimationError
 from online_id.estimation.model import ArmaxOrders
-from online_id.estimation.identification import PointResult, _segment
 from online_id.estimation.pem import (
     ArmaxFit,
     fit_percent,
@@ -37,7 +36,6 @@ from online_id.estimation.pem import (
     reflect_unstable_roots,
     simulate_model,
 )
-from online_id.records import BenchData
 
 
 @dataclass(frozen=True)
@@ -148,43 +146,140 @@ def stable_theta(theta: np.ndarray, orders: ArmaxOrders) -> tuple[np.ndarray, in
 
 
 def compare(fit: ArmaxFit, y: np.ndarray, u: np.ndarray, skip: int | None = None,
-            cancel: Sequence[complex] = ()) -> Comparison:
+            cancel: Sequence[complex] = (), initial: str = "measured") -> Comparison:
     """MATLAB ``compare``: the model's simulated and one-step predicted output against ``y``.
 
-    The simulation starts from the first measured outputs (``y[:max_lag]``)
-    and uses the model without the pole-zero pairs of ``cancel`` (see
-    :func:`cancel_pairs`) and with unstable poles reflected (:func:`stable_theta`);
-    the first ``skip`` samples (default: the model's largest lag) are left
-    out of both fits.
+    The simulation uses the model without the pole-zero pairs of ``cancel``
+    (see :func:`cancel_pairs`) and with unstable poles reflected
+    (:func:`stable_theta`); it starts from the first measured outputs
+    (``y[:max_lag]``, ``initial="measured"``) or from the initial state that
+    fits ``y`` best in least squares (``initial="estimate"``, MATLAB's
+    default ``'e'``: the model's free responses, one per state, are fitted to
+    what the input does not explain).  The first ``skip`` samples (default:
+    the model's largest lag) are left out of both fits.
     """
     y = np.asarray(y, dtype=float).ravel()
     u = np.asarray(u, dtype=float).ravel()
     k = fit.orders.max_lag if skip is None else int(skip)
     if y.size - k < 2 * fit.d:
         raise EstimationError(f"compare: {y.size} samples are too few for a model with {fit.d} parameters")
+    if initial not in ("measured", "estimate"):
+        raise EstimationError(f'compare: initial must be "measured" or "estimate", got {initial!r}')
     theta, n_cancelled = cancel_pairs(fit, cancel)
     theta, n_reflected = stable_theta(theta, fit.orders)
-    y_sim = simulate_model(u, fit.orders, theta, y0=y[:fit.orders.max_lag])
+    if initial == "estimate":
+        y_sim = _simulate_estimated_start(u, y, fit.orders, theta)
+    else:
+        y_sim = simulate_model(u, fit.orders, theta, y0=y[:fit.orders.max_lag])
     y_pred = y - predict_errors(y, u, fit.orders, fit.theta)
     return Comparison(y, y_sim, y_pred, fit_percent(y[k:], y_sim[k:]), fit_percent(y[k:], y_pred[k:]), k,
                       n_reflected, n_cancelled)
 
 
-def plateau_signals(data: BenchData, point: PointResult) -> tuple[np.ndarray, np.ndarray]:
-    """The decimated, mean-free (dyno speed [rad/s], dyno torque [Nm]) of one operating point, as identified."""
-    dt_raw = float(np.median(np.diff(data.time_s)))
-    return _segment(data, point.plateau, max(1, int(round(point.dt / dt_raw))))
+def _simulate_estimated_start(u: np.ndarray, y: np.ndarray, orders: ArmaxOrders, theta: np.ndarray) -> np.ndarray:
+    """``B/A u`` from rest plus the free response of the initial state that fits ``y`` best (least squares)."""
+    from scipy.signal import lfilter
+
+    A, B, _ = orders.split(theta)
+    forced = simulate_model(u, orders, theta)
+    n_state = max(A.size, B.size) - 1
+    if n_state == 0:
+        return forced
+    a = np.pad(A, (0, n_state + 1 - A.size))
+    free = np.empty((y.size, n_state))
+    for i in range(n_state):
+        zi = np.zeros(n_state)
+        zi[i] = 1.0
+        free[:, i] = lfilter([1.0], a, np.zeros(y.size), zi=zi)[0]
+    scale = np.maximum(np.linalg.norm(free, axis=0), 1e-300)
+    x0, *_ = np.linalg.lstsq(free / scale, y - forced, rcond=1e-10)
+    return forced + (free / scale) @ x0
 
 
-def held_out_span(point: PointResult, size: int) -> tuple[int, int, bool]:
-    """``(start, stop, held_out)``: the longest stretch of the plateau outside the fit window.
+Z99 = 2.576  # two-sided 99 % point of the normal distribution
+RESID_LAGS = 25  # MATLAB resid's default number of lags
 
-    Falls back to the fit window itself (``held_out`` False) when the
-    plateau holds less than a second besides it.
+
+@dataclass(frozen=True)
+class ResidualCorrelation:
+    """MATLAB ``resid``: the residual's autocorrelation and its cross-correlation with the input, with bounds.
+
+    ``auto[k]`` is the normalised autocorrelation of the residual at lag
+    ``lags[k]`` (0..M, ``auto[0] = 1``); ``cross[k]`` is
+    :math:`\\mathrm{corr}(e(t), u(t - \\tau))` at ``cross_lags[k] = tau``
+    (-M..M: positive lags, the residual follows the input).  A correlation
+    outside its ``+-bound`` (99 % by default) rejects whiteness, or
+    independence from the input, at that lag.
     """
-    a, b = point.window
-    before, after = (0, a), (b, size)
-    best = max(before, after, key=lambda s: s[1] - s[0])
-    if (best[1] - best[0]) * point.dt >= 1.0:
-        return best[0], best[1], True
-    return a, b, False
+
+    lags: np.ndarray
+    auto: np.ndarray
+    auto_bound: float
+    cross_lags: np.ndarray
+    cross: np.ndarray
+    cross_bound: float
+    n: int
+    confidence: float
+
+    @property
+    def auto_outside(self) -> int:
+        """Lags 1..M whose autocorrelation leaves the band."""
+        return int(np.count_nonzero(np.abs(self.auto[1:]) > self.auto_bound))
+
+    @property
+    def cross_outside(self) -> int:
+        """Lags -M..M whose cross-correlation leaves the band."""
+        return int(np.count_nonzero(np.abs(self.cross) > self.cross_bound))
+
+    def as_dict(self) -> dict:
+        return {"n_samples": self.n, "confidence": self.confidence, "lags": self.lags.tolist(),
+                "autocorrelation": self.auto.tolist(), "autocorrelation_bound": self.auto_bound,
+                "autocorrelation_outside": self.auto_outside, "cross_lags": self.cross_lags.tolist(),
+                "cross_correlation": self.cross.tolist(), "cross_correlation_bound": self.cross_bound,
+                "cross_correlation_outside": self.cross_outside}
+
+
+def _correlation(a: np.ndarray, b: np.ndarray, lags: np.ndarray) -> np.ndarray:
+    """:math:`\\sum_t a(t) b(t - \\tau) / (N \\sigma_a \\sigma_b)` of the mean-free ``a``, ``b`` per lag."""
+    a = a - a.mean()
+    b = b - b.mean()
+    scale = a.size * np.sqrt(np.mean(a * a) * np.mean(b * b))
+    if scale == 0.0:
+        return np.zeros(lags.size)
+    return np.array([(a[k:] @ b[:b.size - k] if k >= 0 else a[:k] @ b[-k:]) for k in lags]) / scale
+
+
+def residual_correlation(e: np.ndarray, u: np.ndarray, max_lag: int = RESID_LAGS,
+                         confidence: float = 0.99) -> ResidualCorrelation:
+    """Autocorrelation of ``e`` (lags 0..max_lag) and its cross-correlation with ``u`` (-max_lag..max_lag).
+
+    Notes
+    -----
+    Bounds as MATLAB's ``resid`` draws them: for a white residual of
+    :math:`N` samples the autocorrelation at a lag :math:`\\ne 0` has the
+    standard deviation :math:`1/\\sqrt N`; the cross-correlation of a
+    residual independent of the input has (Bartlett)
+    :math:`\\sigma^2 = \\frac 1N \\sum_{|k| \\le M} \\rho_{ee}(k)\\,\\rho_{uu}(k)`,
+    which is :math:`1/N` for a white residual whatever the input's
+    spectrum.  The band is :math:`\\pm z\\sigma` with the two-sided normal
+    quantile :math:`z` (2.576 for 99 %).
+    """
+    from scipy.stats import norm
+
+    e = np.asarray(e, dtype=float).ravel()
+    u = np.asarray(u, dtype=float).ravel()
+    if e.size != u.size:
+        raise EstimationError(f"residual_correlation: e has {e.size} samples but u has {u.size}")
+    max_lag = int(max_lag)
+    if e.size < 4 * max_lag:
+        raise EstimationError(f"residual_correlation: {e.size} samples are too few for {max_lag} lags")
+    z = float(norm.ppf(0.5 + confidence / 2.0))
+    lags = np.arange(0, max_lag + 1)
+    both = np.arange(-max_lag, max_lag + 1)
+    auto = _correlation(e, e, lags)
+    cross = _correlation(e, u, both)
+    r_ee = _correlation(e, e, both)
+    r_uu = _correlation(u, u, both)
+    var_cross = max(float(r_ee @ r_uu), 0.0) / e.size
+    return ResidualCorrelation(lags, auto, z / np.sqrt(e.size), both, cross, z * np.sqrt(var_cross), int(e.size),
+                               float(confidence))

@@ -21,5 +21,18 @@ def psd_before_after(ax, f_hz: np.ndarray, before: np.ndarray, after: np.ndarray
                 label=after_label + (" (same as before within 1 %: no effect added)" if same else ""))
     ax.set_ylabel(f"residual PSD [{unit}]")
     ax.set_xlabel("frequency [Hz]")
+    ax.tick_params(labelbottom=True)  # numbers under every panel that names its axis, also above a shared one
+    label_log_axis(ax)
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
+
+
+def label_log_axis(ax) -> None:
+    """Numbers on a log y axis that spans less than a couple of decades (where matplotlib labels none or one)."""
+    from matplotlib.ticker import LogFormatterSciNotation, LogLocator, NullFormatter
+
+    lo, hi = ax.get_ylim()
+    if lo > 0 and hi / lo < 100.0:
+        ax.yaxis.set_major_locator(LogLocator(base=10.0, subs=(1.0, 2.0, 5.0)))
+        ax.yaxis.set_major_formatter(LogFormatterSciNotation(labelOnlyBase=False))
+        ax.yaxis.set_minor_formatter(NullFormatter())
