@@ -191,8 +191,9 @@ def test_the_estimate_frame_is_rehearsed_just_before_a_publication_and_changes_n
 
 def test_a_publication_finds_its_poles_prepared_and_its_sample_updates_after_it() -> None:
     """With a worker process the sample before a publication computes the model's poles; the publication's
-    estimate is of the model as its sample finds it (the sample's update comes after it), so it finds them done:
-    every publication but the first (fails where the estimate follows the sample's update)."""
+    estimate is of the model as its sample finds it (the sample's update comes after it), so it finds them done,
+    and the recursive model's polynomials: every publication but the first (fails where the estimate follows the
+    sample's update)."""
     record = _record(7, seconds=8.0)
     frames = encode_inputs(record.time_s, record.dyno_speed_rpm, record.engine_speed_rpm, record.dyno_torque_nm,
                            db=load_dbc(None))
@@ -202,12 +203,14 @@ def test_a_publication_finds_its_poles_prepared_and_its_sample_updates_after_it(
     original = est.estimate
 
     def estimate(defer_std: bool = False):
-        key = est._poles_key
+        key, made = est._poles_key, len(split)
         got = original(defer_std)
-        found.append(key == est._poles_key)
+        found.append(key == est._poles_key and made == len(split))
         return got
 
+    split, polynomials = [], est.rels.polynomials  # the recursive model's polynomials: made once per model
+    est.rels.polynomials = lambda: split.append(1) or polynomials()
     est.estimate = estimate
     out = [f for t, ident, payload in frames for f in rt.on_frame(t, ident, payload)]
-    assert len(found) > 70 and all(found[1:])
+    assert len(found) > 70 and all(found[1:]) and len(split) > 70
     assert sum(fid == 0x300 for fid, _ in out) == len(found)

@@ -201,6 +201,7 @@ class OnlineDriveline:
         self._poles: list[Pole] = []
         self._roots = np.zeros(0, dtype=complex)  # the roots of A those poles come from
         self._std_due: tuple | None = None  # (A, pole, covariance): a deferred standard deviation, see estimate
+        self._recursive: tuple | None = None  # (rels, its samples and noise variance, its polynomials()): see there
 
     # -- per sample ---------------------------------------------------------------------------
     def update(self, dyno_speed: float, engine_speed: float, dyno_torque: float) -> None:
@@ -308,8 +309,16 @@ class OnlineDriveline:
         w = self.window
         if w.current and w.fit is not None:
             return w.fit.A, w.fit.B, w.fit.C, w.fit.covariance[:na, :na], w.fit.V, "window"
-        a, b, c = self.rels.polynomials()
-        return a, b, c, self._e2 * self.rels.P[:na, :na], self._e2, "recursive"
+        # the recursive model's, once per model: it changes only where an input sample completes a model sample
+        # (``rels.update``, which counts its samples) or the estimator is replaced (restart, a loaded state); the
+        # publication's estimate then finds those of the sample before it (see prepare_estimate)
+        rels, e2 = self.rels, self._e2
+        key = (rels.n_samples, e2)
+        memo = self._recursive
+        if memo is None or memo[0] is not rels or memo[1] != key:
+            a, b, c = rels.polynomials()
+            memo = self._recursive = (rels, key, (a, b, c, e2 * rels.P[:na, :na], e2, "recursive"))
+        return memo[2]
 
     def _poles_for(self, a: np.ndarray, source: str) -> list[Pole]:
         """Poles of ``a``; a window refit's are computed once (refits come once a second, estimates at 10 Hz), the
