@@ -17,7 +17,7 @@ saved every 5 s.
 * **Reaction in the service** (``service_reaction_ms``): the service itself
   measures, for every frame whose processing publishes, the time from the
   kernel's arrival stamp of that frame to the first of its output frames
-  (the OidEstimate) sent (``online_id.reaction``; it reports it when it
+  (the OidEstimate) sent (``online_id.service.reaction``; it reports it when it
   stops).  This is the latency from the trigger frame to the OidEstimate on
   the service's side of the socket, the same on SocketCAN.  Of it, the
   loop's own work (``service_processing_ms``: from taking the frame off the
@@ -66,12 +66,12 @@ from machine import machine_info, machine_line  # noqa: E402
 from online_id.bench.scenario import BenchScenario, OperatingPoint  # noqa: E402
 from online_id.bench.simulate import simulate_bench  # noqa: E402
 from online_id.io.dbc import encode_inputs, load_dbc  # noqa: E402
-from online_id.offload import InlineWorker  # noqa: E402
-from online_id.reaction import read_summaries  # noqa: E402
-from online_id.runtime import Runtime  # noqa: E402
+from online_id.service.offload import InlineWorker  # noqa: E402
+from online_id.service.reaction import read_summaries  # noqa: E402
+from online_id.service.runtime import Runtime  # noqa: E402
 
 GROUP = "239.74.163.51"
-# the service's stop lines (online_id.reaction.read_summaries) -> this benchmark's JSON keys
+# the service's stop lines (online_id.service.reaction.read_summaries) -> this benchmark's JSON keys
 SERVICE_FIGURES = {"reaction": "service_reaction_ms", "processing": "service_processing_ms",
                    "processing CPU": "service_processing_cpu_ms"}
 PHASES = ("pipeline CPU", "encoding CPU", "sending CPU", "waiting")

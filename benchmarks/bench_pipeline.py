@@ -101,8 +101,8 @@ from online_id.bench import BenchScenario, OperatingPoint, simulate_bench
 from online_id.config import BusSettings, InertiaSettings, ModelSettings, Settings
 from online_id.io.bus import CanBus
 from online_id.io.dbc import encode_inputs, load_dbc
-from online_id.runtime import Runtime, role_mapping
-from online_id.service import Service
+from online_id.service.runtime import Runtime, role_mapping
+from online_id.service.live import Service
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import machine_info  # noqa: E402

@@ -41,8 +41,8 @@ from harness import live_settings  # noqa: E402
 from machine import machine_line  # noqa: E402
 
 import online_id.estimation.online as online  # noqa: E402
-from online_id.offload import InlineWorker, ProcessWorker  # noqa: E402
-from online_id.runtime import Runtime  # noqa: E402
+from online_id.service.offload import InlineWorker, ProcessWorker  # noqa: E402
+from online_id.service.runtime import Runtime  # noqa: E402
 
 STEPS = ("decode", "assemble", "update", "estimate", "roots", "poles", "recursive polynomials", "candidates")
 

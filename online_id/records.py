@@ -168,7 +168,7 @@ class ExcitationOut:
 @dataclass(frozen=True)
 class FreshnessOut:
     """The command freshness value: the last one accepted (the next command carries this + 1 .. + 64), and
-    whether commands must carry a MAC (see :mod:`online_id.commands`)."""
+    whether commands must carry a MAC (see :mod:`online_id.service.commands`)."""
 
     t_s: float
     freshness: int

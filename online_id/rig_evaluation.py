@@ -3,7 +3,7 @@
 Each case simulates a rig (:mod:`online_id.bench.rig`: 2-3 gear stages,
 two recorders on drifting clocks, encoder angles, jitter), puts the records
 through the same path as ``online-id diagnose --second-file``
-(:func:`online_id.layouts.assemble`: resampling, clocks estimated where they
+(:func:`online_id.diagnose.layouts.assemble`: resampling, clocks estimated where they
 plainly differ, shafts from angles, torsion, decimation) and diagnoses the motor
 speed from the torque demand.  True effects: a rotation-order disturbance on
 each shaft in turn, at an order that is identifiable (no faster shaft turns
@@ -26,7 +26,7 @@ from online_id.bench.rig import OrderDisturbance, RigSpec, random_rig, simulate_
 from online_id.diagnose import DiagnoseData, diagnose
 from online_id.diagnose.align import resample_uniform
 from online_id.diagnose.residual_tests import RIG_LINE_RATIO, RIG_SPLIT_RATIO
-from online_id.layouts import Column, Layout, ShaftColumn, assemble
+from online_id.diagnose.layouts import Column, Layout, ShaftColumn, assemble
 
 SAMPLE_RATE_HZ = 200.0
 SIM_HORIZON_S = 0.1  # the load loop's set point is unmeasured: longer simulations judge it, not the model
@@ -71,7 +71,7 @@ def rig_spec(seed: int, shaft: int | None, magnitude: float, order: int | None =
 
 def rig_layout(spec: RigSpec, clock: str = "auto") -> Layout:
     """The layout a user would give ``online-id diagnose`` for this rig's two files (angles, no ratios,
-    the clocks estimated where they plainly differ): what :func:`online_id.layouts.assemble` reads."""
+    the clocks estimated where they plainly differ): what :func:`online_id.diagnose.layouts.assemble` reads."""
     shafts = tuple(ShaftColumn(n, "angle", Column(0 if i == 0 else 1, f"{n}_angle_{spec.angle_suffix}"),
                                1.0 / spec.angle_scale, spec.angle_suffix) for i, n in enumerate(spec.names))
     return Layout(Column(0, "torque_demand_nm"), shafts[0].column, shafts, differentiate_output=True,

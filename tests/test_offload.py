@@ -14,8 +14,8 @@ import pytest
 from online_id.bench.scenario import BenchScenario, OperatingPoint
 from online_id.bench.simulate import simulate_bench
 from online_id.config import InertiaSettings, ModelSettings, Settings
-from online_id.offload import InlineWorker, ProcessWorker
-from online_id.pipeline import Pipeline, run_bench_data
+from online_id.service.offload import InlineWorker, ProcessWorker
+from online_id.service.pipeline import Pipeline, run_bench_data
 
 
 def _square(x: float) -> float:
@@ -146,7 +146,7 @@ def test_pipeline_with_the_process_worker_matches_the_inline_pipeline(seed: int,
 
         pipe_ref: list[Pipeline] = []
         try:
-            import online_id.pipeline as pl
+            import online_id.service.pipeline as pl
 
             original = pl.Pipeline
 
@@ -189,7 +189,7 @@ class _CountingWorker(InlineWorker):
 def test_no_job_is_handed_to_a_worker_process_just_before_a_publication() -> None:
     """With a worker process, the window refits and physical fits wait while a publication falls due within
     QUIET_S (handing over a job copies the window: up to a millisecond or two), and still all run."""
-    from online_id.pipeline import QUIET_S
+    from online_id.service.pipeline import QUIET_S
     from online_id.records import SignalSample
 
     record = simulate_bench(dataclasses.replace(BenchScenario(), seed=4,
@@ -220,7 +220,7 @@ def test_the_worker_is_not_polled_on_a_sample_that_publishes(rate_hz: float) -> 
     """Adopting a result (up to a millisecond) never delays an estimate: not on the sample that publishes, nor
     within QUIET_S before it; but it is never put off twice running when every sample publishes."""
     from online_id.config import PublishSettings
-    from online_id.pipeline import QUIET_S
+    from online_id.service.pipeline import QUIET_S
     from online_id.records import EstimateOut, SignalSample
 
     record = simulate_bench(dataclasses.replace(BenchScenario(), seed=3,

@@ -18,10 +18,10 @@ from online_id.config import (InertiaSettings, InputSettings, MappingSettings, M
                               RoleSettings, Settings)
 from online_id.estimation.window import solve_or_error
 from online_id.io.dbc import default_dbc_path, encode_inputs, load_dbc
-from online_id.offload import InlineWorker
-from online_id.pipeline import Pipeline
+from online_id.service.offload import InlineWorker
+from online_id.service.pipeline import Pipeline
 from online_id.records import EstimateOut, SignalSample
-from online_id.runtime import Runtime, role_mapping
+from online_id.service.runtime import Runtime, role_mapping
 
 # the speeds in one message, the torque in another (a bench's own layout)
 SPEEDS_DBC = """

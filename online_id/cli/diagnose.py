@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from online_id.benchlog import is_can_log, read_bench
+from online_id.ingest.benchlog import is_can_log, read_bench
 from online_id.config import Settings, load_config
 from online_id.diagnose.align import resample_uniform
 from online_id.diagnose import DiagnoseData, Diagnosis, diagnose
@@ -31,7 +31,7 @@ from online_id.io.jsonout import dumps
 from online_id.io.mdf import is_mdf
 from online_id.io.outfile import check_output
 from online_id.io.table_csv import read_csv_header
-from online_id.signals import read_bench_csv_with
+from online_id.ingest.signals import read_bench_csv_with
 from online_id.progress import add_quiet_option, progress_for
 from online_id.cli import command_help
 
@@ -320,7 +320,7 @@ def plot_residuals(d: Diagnosis, out: Path) -> list[Path]:
     import matplotlib.pyplot as plt
 
     from online_id.diagnose.residual_tests import input_independence, spectrum, whiteness
-    from online_id.plots.residuals import psd_before_after
+    from online_id.report.residuals import psd_before_after
 
     n0, fs = d.val_index, d.data.fs_hz  # held-out samples
     pairs = [("before", d.residual_before), ("after", d.residual_after)]

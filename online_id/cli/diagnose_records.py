@@ -1,9 +1,9 @@
 """Generic records for ``online-id diagnose``: one or two CSV files, shafts, units, clocks.
 
-The file side of :mod:`online_id.layouts`: reads the columns the options name
+The file side of :mod:`online_id.diagnose.layouts`: reads the columns the options name
 (header line or ``--no-header --columns``) from whichever file holds them,
 puts each file on a uniform grid of its own clock (jitter reported), and hands
-the records and their layout to :func:`online_id.layouts.assemble` (units,
+the records and their layout to :func:`online_id.diagnose.layouts.assemble` (units,
 speeds from angles at full rate, clocks, torsion).  Warnings (a speed beyond
 any rig, a large clock drift, no torsion) go to stderr as they are found and
 into the JSON's ``recording.warnings``.
@@ -23,7 +23,7 @@ from online_id.diagnose.shafts import parse_shafts
 from online_id.errors import ConfigError, InputDataError
 from online_id.io.named_csv import column_names, read_table
 from online_id.io.table_csv import LINE_KEY
-from online_id.layouts import Column, Layout, ShaftColumn, assemble
+from online_id.diagnose.layouts import Column, Layout, ShaftColumn, assemble
 from online_id.units import ANGLE_UNIT_HELP, SPEED_UNITS, angle_factor, speed_factor
 
 DEFAULT_ANGLE_UNIT = "rad"
