@@ -16,10 +16,14 @@ saved every 5 s.
 
 * **Reaction in the service** (``service_reaction_ms``): the service itself
   measures, for every frame whose processing publishes, the time from the
-  kernel's arrival stamp of that frame to the last of its output frames sent
-  (``online_id.service.reaction``; it reports it when it stops).  This is the
-  latency from the trigger frame to the OidEstimate on the service's side of
-  the socket, the same on SocketCAN.
+  kernel's arrival stamp of that frame to the first of its output frames
+  (the OidEstimate) sent (``online_id.service.reaction``; it reports it when it
+  stops).  This is the latency from the trigger frame to the OidEstimate on
+  the service's side of the socket, the same on SocketCAN.  Of it, the
+  loop's own work (``service_processing_ms``: from taking the frame off the
+  socket to the send) and that work's CPU time (``service_processing_cpu_ms``,
+  the loop thread's ``time.thread_time``), which other work on the machine
+  hardly changes: compare it between runs on a loaded machine.
 * **Latency end to end**: from the sender's ``perf_counter()`` just before the send of
   the frame that completes the sample triggering an OidEstimate, to this
   process's ``perf_counter()`` when ``recv`` returns that OidEstimate
@@ -33,8 +37,10 @@ saved every 5 s.
   lossless when the kernel dropped nothing, no frame was missing and every
   sample was made.
 
-Writes ``bench-live.json`` into ``--out`` and prints a table.  Timing is
-noisy on a shared machine: say what else ran.
+Writes ``bench-live.json`` into ``--out`` and prints a table; both say
+which CPU model and kernel gave the figures.  Timing is noisy on a shared
+machine: say what else ran (the load average is recorded at the start and
+the end).
 """
 
 from __future__ import annotations
@@ -43,8 +49,7 @@ import argparse
 import dataclasses
 import json
 import os
-import platform
-import re
+import subprocess
 import sys
 import tempfile
 import time
@@ -56,17 +61,20 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests" / "live"))
 
 from harness import live_config, live_settings, run_live  # noqa: E402
+from machine import machine_info, machine_line  # noqa: E402
 
 from online_id.bench.scenario import BenchScenario, OperatingPoint  # noqa: E402
 from online_id.bench.simulate import simulate_bench  # noqa: E402
 from online_id.io.dbc import encode_inputs, load_dbc  # noqa: E402
 from online_id.service.offload import InlineWorker  # noqa: E402
+from online_id.service.reaction import read_summaries  # noqa: E402
 from online_id.service.runtime import Runtime  # noqa: E402
 
 GROUP = "239.74.163.51"
-REACTION = re.compile(r"reaction p50 (?P<p50>[\d.]+) ms, p99 (?P<p99>[\d.]+) ms, max (?P<max>[\d.]+) ms over (?P<n>\d+)")
-PROCESSING = re.compile(r"processing p50 (?P<p50>[\d.]+) ms, p99 (?P<p99>[\d.]+) ms, max (?P<max>[\d.]+) ms over (?P<n>\d+)")
-
+# the service's stop lines (online_id.service.reaction.read_summaries) -> this benchmark's JSON keys
+SERVICE_FIGURES = {"reaction": "service_reaction_ms", "processing": "service_processing_ms",
+                   "processing CPU": "service_processing_cpu_ms"}
+PHASES = ("pipeline CPU", "encoding CPU", "sending CPU", "waiting")
 
 def _bench(seconds: float, seed: int = 3):
     half = max(seconds / 2.0, 5.0)
@@ -106,13 +114,11 @@ def latency(args, work: Path) -> dict:
     got = run.estimates
     out = {"frames": len(frames), "estimates_expected": len(marks), "estimates_received": len(got),
            "counts": run.counts, "service_cpu_s": run.cpu_s, "sender_max_gap_ms": 1e3 * run.sender_max_gap_s}
-    # the service's own measure: kernel arrival of the frame that triggered a publication -> its frames sent
-    reaction = next((m for m in map(REACTION.search, run.log) if m), None)
-    if reaction:
-        out["service_reaction_ms"] = {k: float(v) for k, v in reaction.groupdict().items()}
-    processing = next((m for m in map(PROCESSING.search, run.log) if m), None)
-    if processing:  # of the reaction, the service loop's own work on the trigger frame
-        out["service_processing_ms"] = {k: float(v) for k, v in processing.groupdict().items()}
+    # the service's own measures from its stop lines: kernel arrival of the frame that triggered a publication ->
+    # its OidEstimate sent (reaction); of it, the loop's own work (processing) and that work's CPU time, and by phase
+    figures = read_summaries(run.text)
+    out.update({key: figures[what] for what, key in SERVICE_FIGURES.items() if what in figures})
+    out["service_phases_ms"] = {what: figures[what] for what in PHASES if what in figures}
     if 0 < len(got) - len(marks) <= 2:
         # the live service completes the stream's last sample when the bus falls silent (the in-process run
         # has no such tick); an estimate it triggers comes after every matched one
@@ -179,55 +185,80 @@ def main() -> int:
     ap.add_argument("--pace-ms", type=float, default=0.2,
                     help="latency run: the sender sleeps until a frame is due when more than this early "
                          "(frames spaced as a bus spaces them; 1 ms sends in bursts of about a millisecond)")
+    ap.add_argument("--busy", type=int, default=0, metavar="N",
+                    help="keep N other processes busy (a loop each, normal priority, any core) all through the runs")
     ap.add_argument("--out", default="bench-live-out")
     args = ap.parse_args()
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    info = machine_info()
+    print(f"machine: {machine_line(info)}", flush=True)
+    info["load_avg_start"] = info.pop("load_avg")
     others = [c for c in range(os.cpu_count() or 1) if c != args.cpu]
     if others:
         os.sched_setaffinity(0, others)  # sender and consumer off the service's core
-    out_dir = Path(args.out)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    result = {"machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
-                          "load_avg_start": os.getloadavg()}, "service_cpu": args.cpu}
-    with tempfile.TemporaryDirectory() as tmp:
-        work = Path(tmp)
-        if not args.skip_latency:
-            print(f"latency: {args.latency_s:g} s at real time (3,000 frames/s), service on core {args.cpu}",
-                  flush=True)
-            result["latency"] = latency(args, work)
-            lat = result["latency"].get("latency_ms")
-            if lat:
-                rx = result["latency"].get("service_reaction_ms")
-                if rx:
-                    print(f"  in the service, trigger frame's arrival -> its outputs sent: p50 {rx['p50']:.2f} ms, "
-                          f"p99 {rx['p99']:.2f} ms, max {rx['max']:.2f} ms over {rx['n']:.0f} publications")
-                px = result["latency"].get("service_processing_ms")
-                if px:
-                    print(f"    of which the loop's own work (frame received -> outputs sent): p50 {px['p50']:.2f} ms, "
-                          f"p99 {px['p99']:.2f} ms, max {px['max']:.2f} ms")
-                if lat["negative"]:
-                    # the estimates were matched to trigger frames of another sample: the figures would be off by
-                    # a millisecond or more; the service's own measure above does not depend on this matching
-                    print(f"  sender -> listener: not measured ({lat['negative']} of {lat['n']} latencies negative: "
-                          f"the live sample grid's phase against the in-process run is ambiguous); counts "
-                          f"{result['latency']['counts']}")
-                else:
-                    print(f"  sender -> listener, trigger frame -> OidEstimate: p50 {lat['p50']:.2f} ms, p99 "
-                          f"{lat['p99']:.2f} ms, max {lat['max']:.2f} ms over {lat['n']} estimates (live grid "
-                          f"{result['latency']['grid_phase_samples']} samples behind the in-process one); counts "
-                          f"{result['latency']['counts']}")
-            else:
-                print(f"  {result['latency']}")
-        if not args.skip_rates:
-            print(f"highest lossless rate: {args.rate_s:g} s of stream per rate", flush=True)
-        result["rates"] = [] if args.skip_rates else rates(args, work)
+    result = {"machine": info, "service_cpu": args.cpu, "rt_priority": args.rt, "busy_processes": args.busy,
+              "command": [Path(sys.argv[0]).name, *sys.argv[1:]]}
+    every_cpu = range(os.cpu_count() or 1)  # (not this process's cores: the busy ones may take the service's)
+    busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"],
+                             preexec_fn=lambda: os.sched_setaffinity(0, every_cpu)) for _ in range(args.busy)]
+    try:
+        run_all(args, result)
+    finally:
+        for proc in busy:
+            proc.kill()
+            proc.wait()
     ok = [r["frames_per_s"] for r in result["rates"] if r["lossless"]]
     result["highest_lossless_frames_per_s"] = (max(ok) if ok else 0.0) if result["rates"] else None
     result["machine"]["load_avg_end"] = os.getloadavg()
     (out_dir / "bench-live.json").write_text(json.dumps(result, indent=2))
     if result["rates"]:
         print(f"highest lossless input rate: {result['highest_lossless_frames_per_s']:.0f} frames/s")
-    print(f"(load average {result['machine']['load_avg_start'][0]:.1f} at start); {out_dir / 'bench-live.json'}")
+    print(f"(load average {result['machine']['load_avg_start'][0]:.1f} at start, "
+          f"{result['machine']['load_avg_end'][0]:.1f} at the end"
+          + (f", {args.busy} busy processes" if args.busy else "") + f"); {out_dir / 'bench-live.json'}")
     return 0
+
+
+def run_all(args, result: dict) -> None:
+    """The latency run and the rate runs (as the arguments ask) into ``result``, with the printed table."""
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        if not args.skip_latency:
+            print(f"latency: {args.latency_s:g} s at real time (3,000 frames/s), service on core {args.cpu}",
+                  flush=True)
+            result["latency"] = latency(args, work)
+            rx = result["latency"].get("service_reaction_ms")
+            if rx:
+                print(f"  in the service, trigger frame's arrival -> OidEstimate sent: p50 {rx['p50']:.2f} ms, "
+                      f"p99 {rx['p99']:.2f} ms, max {rx['max']:.2f} ms over {rx['n']:.0f} publications")
+            px = result["latency"].get("service_processing_ms")
+            if px:
+                print(f"    of which the loop's own work (frame received -> OidEstimate sent): p50 {px['p50']:.2f} "
+                      f"ms, p99 {px['p99']:.2f} ms, max {px['max']:.2f} ms")
+            pc = result["latency"].get("service_processing_cpu_ms")
+            if pc:
+                print(f"    its CPU time (the loop thread's thread_time): p50 {pc['p50']:.2f} ms, "
+                      f"p99 {pc['p99']:.2f} ms, max {pc['max']:.2f} ms")
+            for phase, f in result["latency"].get("service_phases_ms", {}).items():
+                print(f"      {phase}: p50 {f['p50']:.2f} ms, p99 {f['p99']:.2f} ms, max {f['max']:.2f} ms")
+            lat = result["latency"].get("latency_ms")
+            counts = result["latency"]["counts"]
+            if not lat:
+                print(f"  sender -> listener: not measured ({result['latency'].get('note', 'no estimates')}); "
+                      f"counts {counts}, sender's longest gap {result['latency']['sender_max_gap_ms']:.1f} ms")
+            elif lat["negative"]:
+                # the estimates were matched to trigger frames of another sample: the figures would be off by
+                # a millisecond or more; the service's own measure above does not depend on this matching
+                print(f"  sender -> listener: not measured ({lat['negative']} of {lat['n']} latencies negative: "
+                      f"the live sample grid's phase against the in-process run is ambiguous); counts {counts}")
+            else:
+                print(f"  sender -> listener, trigger frame -> OidEstimate: p50 {lat['p50']:.2f} ms, p99 "
+                      f"{lat['p99']:.2f} ms, max {lat['max']:.2f} ms over {lat['n']} estimates (live grid "
+                      f"{result['latency']['grid_phase_samples']} samples behind the in-process one); counts {counts}")
+        if not args.skip_rates:
+            print(f"highest lossless rate: {args.rate_s:g} s of stream per rate", flush=True)
+        result["rates"] = [] if args.skip_rates else rates(args, work)
 
 
 if __name__ == "__main__":

@@ -81,8 +81,8 @@ import gc
 import io
 import itertools
 import multiprocessing
+import json
 import os
-import platform
 import pstats
 import statistics
 import struct
@@ -90,6 +90,7 @@ import sys
 import threading
 import time
 from dataclasses import replace
+from pathlib import Path
 
 import can
 import cantools
@@ -102,6 +103,9 @@ from online_id.io.bus import CanBus
 from online_id.io.dbc import encode_inputs, load_dbc
 from online_id.service.runtime import Runtime, role_mapping
 from online_id.service.live import Service
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from machine import machine_info  # noqa: E402
 
 TARGET_FPS = 37_000.0
 # 1 Mbit/s, standard ID, 8 data bytes: 98 stuffable bits (SOF to CRC) + 24 worst-case stuff bits + 10 (CRC
@@ -116,26 +120,12 @@ _channel_ids = itertools.count()
 # --- machine and helpers ------------------------------------------------------------------------
 
 
-def cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def machine() -> str:
-    try:
-        usable = len(os.sched_getaffinity(0))
-    except AttributeError:
-        usable = os.cpu_count()
+    m = machine_info()
     return (
-        f"{cpu_model()}, {os.cpu_count()} cores ({usable} usable), Python {platform.python_version()}, "
+        f"{m['cpu_model']}, {m['cpus']} cores ({m['cpus_usable']} usable), Python {m['python']}, "
         f"numpy {np.__version__}, numba {numba.__version__}, python-can {can.__version__}, "
-        f"cantools {cantools.__version__}, {platform.system()} {platform.release()}, "
+        f"cantools {cantools.__version__}, {m['kernel']}, load average {m['load_avg'][0]:.1f}, "
         f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}"
     )
 
@@ -566,6 +556,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="also profile one Service.run drain (cProfile, top 20 by own time)")
     parser.add_argument("--hour", action="store_true", help="memory only: replay one hour (= --minutes 60)")
     parser.add_argument("--minutes", type=int, default=None, help="memory only: replay N minutes")
+    parser.add_argument("--out", default="bench-pipeline-out",
+                        help="directory for bench-pipeline.json (the figures, the CPU model and kernel)")
     args = parser.parse_args(argv)
     db = load_dbc(None)
 
@@ -672,9 +664,21 @@ def main(argv: list[str] | None = None) -> int:
                  ("virtual bus, breakdown: sent -> service recv", bus_lat["wake"]),
                  ("virtual bus, breakdown: service recv -> service send OidEstimate", bus_lat["proc"]),
                  ("virtual bus, breakdown: service send -> consumer recv", bus_lat["deliver"])]
+    table = {}
     for name, values in rows:
         p50, p99, p999, mx = pct(values)
         print(f"| {name} | {values.size:,} | {p50:.1f} | {p99:.1f} | {p999:.1f} | {mx:.1f} |")
+        table[name] = {"n": int(values.size), "p50_us": p50, "p99_us": p99, "p999_us": p999, "max_us": mx}
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    result = {"machine": {**machine_info(), "numpy": np.__version__, "numba": numba.__version__,
+                          "omp_num_threads": os.environ.get("OMP_NUM_THREADS")},
+              "command": [Path(sys.argv[0]).name, *sys.argv[1:]],
+              "throughput_frames_per_s": {k: {"median": statistics.median(v), "min": min(v), "max": max(v)}
+                                          for k, v in fps.items()},
+              "latency": table}
+    (out_dir / "bench-pipeline.json").write_text(json.dumps(result, indent=2))
+    print(f"\n{out_dir / 'bench-pipeline.json'}")
 
     if args.profile:
         prof = cProfile.Profile()

@@ -1,6 +1,7 @@
 """The DBC, the CRC and the codec: inputs -> SI samples, publications -> checked frames."""
 
 import math
+import re
 import struct
 from pathlib import Path
 
@@ -387,3 +388,92 @@ def test_encode_inputs_rejects_out_of_range_and_supports_rates(db):
     assert 0 <= delays.min() and delays.max() < 200e-6 and delays.std() > 0
     with pytest.raises(ConfigError, match="decimation"):
         encode_inputs(t, speed, speed, torque, db=db, decimation={"dyno_torque": 0})
+
+
+# --- the receive loop's fast paths: the same bytes and values as cantools --------------------------------------------
+
+# output messages of another layout: big-endian and signed signals, offsets, signals across bytes out of order, and
+# a float one (which cantools encodes: no fast packer); they replace those of online_id.dbc, the others stay
+OTHER_OUTPUTS = """BO_ 768 OidEstimate: 8 OnlineId
+ SG_ ResonanceFreq : 7|16@0+ (0.002,0) [0|131.07] "Hz" Bench
+ SG_ DampingRatio : 18|13@1- (1e-04,0.1) [-0.3|0.5] "" Bench
+ SG_ Valid : 31|1@1+ (1,0) [0|1] "" Bench
+ SG_ OidEstimateCounter : 51|4@0+ (1,0) [0|15] "" Bench
+ SG_ OidEstimateCRC : 56|8@1+ (1,0) [0|255] "" Bench
+
+BO_ 769 OidShaft: 8 OnlineId
+ SG_ ShaftStiffness : 0|32@1- (1,0) [-1e6|1e6] "Nm/rad" Bench
+ SG_ ShaftDamping : 32|16@1- (0.01,0) [-300|300] "Nms/rad" Bench
+ SG_ Valid : 48|1@1+ (1,0) [0|1] "" Bench
+ SG_ OidShaftCounter : 52|4@1+ (1,0) [0|15] "" Bench
+ SG_ OidShaftCRC : 56|8@1+ (1,0) [0|255] "" Bench
+
+BO_ 770 OidQuality: 8 OnlineId
+ SG_ ResidualRms : 0|32@1- (1,0) [-1e9|1e9] "rad/s" Bench
+ SG_ Fpe : 32|12@1+ (0.0001,0) [0|0.4095] "rad/s" Bench
+ SG_ Excitation : 44|4@1+ (100,0) [0|1500] "Nm" Bench
+ SG_ SamplesUsed : 48|4@1+ (1,0) [0|15] "" Bench
+ SG_ OidQualityCounter : 52|4@1+ (1,0) [0|15] "" Bench
+ SG_ OidQualityCRC : 56|8@1+ (1,0) [0|255] "" Bench
+"""
+
+
+def _other_outputs_dbc(path: Path) -> Path:
+    text = default_dbc_path().read_text()
+    for fid in (768, 769, 770):
+        text, n = re.subn(rf"^BO_ {fid} .*\n(?: SG_ .*\n)*", "", text, flags=re.MULTILINE)
+        assert n == 1
+    path.write_text(text.replace("\nCM_ ", "\n" + OTHER_OUTPUTS + "\nCM_ ", 1) + "\nSIG_VALTYPE_ 770 ResidualRms : 1;\n")
+    return path
+
+
+def test_output_frames_are_the_bytes_cantools_encodes(db, tmp_path):
+    """The encoder packs bits itself (the receive loop's budget); every frame is byte for byte what cantools
+    encodes from the same clamped values, on this DBC and on one with big-endian, signed, offset, unaligned and
+    float signals; a message with a float signal is left to cantools."""
+    other = load_dbc(_other_outputs_dbc(tmp_path / "other.dbc"))
+    rng = np.random.default_rng(11)
+    for dbx in (db, other):
+        enc = OutputEncoder(dbx)
+        packed = [k for k in OUTPUT_MESSAGES if enc._specs[k].packer is not None]
+        assert packed == [k for k in OUTPUT_MESSAGES if k != "quality" or dbx is db]  # the float message has none
+        for key in OUTPUT_MESSAGES:
+            spec = enc._specs[key]
+            for _ in range(300):
+                values = {sig.name: float(rng.choice([rng.uniform(-1e6, 1e6), rng.uniform(-2, 2), 0.0, 1e300,
+                                                      rng.uniform(0, 200), -math.inf, math.nan]))
+                          for sig in spec.message.signals}
+                count = enc._count[key]
+                fid, data = enc._encode(key, values)
+                phys = {name: (min(max(v, lo), hi) if math.isfinite(v := float(values[name]))
+                               else min(max(0.0, lo), hi)) for name, (lo, hi) in spec.bounds.items()}
+                phys[spec.counter], phys[spec.crc] = count, 0
+                want = bytearray(spec.message.encode(phys, scaling=True, padding=False, strict=False))
+                want[7] = crc8_j1850(want[:7])
+                assert (fid, data) == (spec.message.frame_id, bytes(want)), (key, values)
+
+
+def test_input_values_are_the_raw_values_cantools_decodes(db, bench_db):
+    """The decoder reads the raw bits itself; on random payloads every signal it uses has the raw value cantools
+    decodes, little- and big-endian, signed and unsigned; float and multiplexed messages are left to cantools."""
+    from online_id.io.dbc import _RawReader
+
+    rng = np.random.default_rng(12)
+    for dbx, mapping in ((db, RoleMapping()), (bench_db, BENCH_MAPPING)):
+        dec = InputDecoder(dbx, mapping)
+        for (fid, _ext), plan in dec._plans.items():
+            msg = dbx.get_message_by_frame_id(fid)
+            assert isinstance(plan.decode, _RawReader)
+            for _ in range(500):
+                data = bytes(rng.integers(0, 256, plan.length, dtype=np.uint8))
+                want = msg.decode(data, decode_choices=False, scaling=False)
+                got = plan.decode(data)
+                assert got == {k: want[k] for k in got} and len(got) >= 1
+    float_torque = RoleMapping(dyno_speed=BENCH_MAPPING.dyno_speed, engine_speed=BENCH_MAPPING.engine_speed,
+                               dyno_torque=RoleSignal("FloatTorque", "TorqueF", "Nm", 1), command=None)
+    paged = RoleMapping(dyno_speed=RoleSignal("Paged", "PagedSpeed", "rpm", 1),
+                        engine_speed=BENCH_MAPPING.engine_speed, dyno_torque=BENCH_MAPPING.dyno_torque, command=None)
+    for mapping, name in ((float_torque, "FloatTorque"), (paged, "Paged")):
+        dec = InputDecoder(bench_db, mapping)
+        plan = dec._plans[(int(bench_db.get_message_by_name(name).frame_id), False)]
+        assert not isinstance(plan.decode, _RawReader)

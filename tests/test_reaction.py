@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from online_id.service.reaction import BIN_S, ReactionTimes
+from online_id.service.reaction import BIN_S, ReactionTimes, read_summaries
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
@@ -30,3 +30,19 @@ def test_other_time_bases_and_long_reactions():
     r.add(1e-4)
     assert r.percentile_s(100) == pytest.approx(0.5) and r.max_s == pytest.approx(0.5)
     assert abs(r.percentile_s(10) - 1e-4) <= BIN_S
+
+
+def test_summaries_read_back_from_a_log():
+    """What benchmarks/bench_live reads from the service's stop lines: each summary by its name, the figures as
+    printed, one not measured left out, the first of a name kept."""
+    a, b, c = ReactionTimes(), ReactionTimes(), ReactionTimes()
+    for v in (1e-4, 2e-4, 3e-3):
+        a.add(v)
+        b.add(v / 2)
+    text = (f"2026 INFO stopped: 12 frames in, state TRACKING; {a.summary()} (the loop's own work: "
+            f"{b.summary('processing')}; its CPU time: {b.summary('processing CPU')})\n"
+            f"by phase: {a.summary('pipeline CPU')}; {c.summary('waiting')}\nlater: {b.summary()}")
+    got = read_summaries(text)
+    assert sorted(got) == ["pipeline CPU", "processing", "processing CPU", "reaction"]
+    assert got["reaction"] == got["pipeline CPU"] == {"p50": 0.21, "p99": 3.0, "max": 3.0, "n": 3}
+    assert got["processing"] == got["processing CPU"] == {"p50": 0.11, "p99": 1.5, "max": 1.5, "n": 3}

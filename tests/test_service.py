@@ -1,6 +1,7 @@
 """The streaming service: frames in, frames out, on python-can's virtual bus and from logs."""
 
 import dataclasses
+import io
 import json
 import os
 import random
@@ -23,6 +24,7 @@ from online_id.io.bus import CanBus
 from online_id.io.dbc import encode_inputs, load_dbc
 from online_id.io.dbc_output import OutputEncoder
 from online_id.service.offload import InlineWorker
+from online_id.service.reaction import read_summaries
 from online_id.records import FrameFault, ServiceState
 from online_id.service.runtime import Runtime
 from online_id.service.live import Service
@@ -51,8 +53,8 @@ def test_service_on_virtual_bus_end_to_end(tmp_path):
     channel = f"test-e2e-{os.getpid()}"
     settings = Settings(bus=BusSettings(interface="virtual", channel=channel),
                         state=StateSettings(directory=str(tmp_path)))
-    svc = Service(settings, bus_factory=lambda: CanBus("virtual", channel, preserve_timestamps=True),
-                  log=open(os.devnull, "w"))
+    log = io.StringIO()
+    svc = Service(settings, bus_factory=lambda: CanBus("virtual", channel, preserve_timestamps=True), log=log)
     consumer = CanBus("virtual", channel)
     sender = CanBus("virtual", channel, preserve_timestamps=True)
     status = {}
@@ -82,6 +84,24 @@ def test_service_on_virtual_bus_end_to_end(tmp_path):
     counters = [ENC.decode(i, d)["OidEstimateCounter"] for i, d in out if i == 0x300]
     assert all((b - a) % 16 == 1 for a, b in zip(counters, counters[1:]))  # alive counter steps by one
     assert (tmp_path / "online-id-state.json").exists()  # state saved on stop
+    # each OidEstimate is sent first, before the rest of its publication was made, and the rest follows in order
+    ids = [i for i, _ in out]
+    assert all(ids[k + 1:k + 4] == [0x301, 0x302, 0x303] for k, i in enumerate(ids) if i == 0x300)
+    # the loop measured its own work on every frame that published, in wall and CPU time and by phase (the frames'
+    # stamps are the simulation's, so the wait before the loop is not measurable here)
+    n = len(counters)
+    text = log.getvalue()
+    assert f"over {n} outputs; its CPU time: processing CPU p50" in text and text.count(f"over {n} outputs") == 5
+    phases = next(ln for ln in text.splitlines() if "the loop on a frame that publishes, by phase" in ln)
+    assert "pipeline CPU p50" in phases and "encoding CPU p50" in phases and "sending CPU p50" in phases
+    assert "waiting time not measured" in phases
+    # ... as benchmarks/bench_live reads them: every figure of every measured one, in order, the whole loop's CPU
+    # time at least its phases' (each histogram's bins are 10 us: p50 rounds up to a bin's upper edge)
+    figures = read_summaries(text)
+    assert sorted(figures) == ["encoding CPU", "pipeline CPU", "processing", "processing CPU", "sending CPU"]
+    assert all(f["n"] == n and 0 <= f["p50"] <= f["p99"] <= f["max"] for f in figures.values())
+    cpu = figures["processing CPU"]
+    assert cpu["max"] >= max(figures[w]["max"] for w in ("pipeline CPU", "encoding CPU", "sending CPU")) - 1e-9
 
 
 # --- replay = offline recursive identification, within 1 % of the truth ---------------------------

@@ -94,9 +94,19 @@ def damp(z: np.ndarray | complex, dt: float) -> tuple[np.ndarray, np.ndarray]:
     return freq, zeta
 
 
-def _roots(a: np.ndarray) -> np.ndarray:
-    """Roots of polynomial ``a``, as ``np.roots`` gives them (eigenvalues of the companion matrix), without
-    its argument checks: the service computes them at every publication."""
+try:  # numpy's compiled eigenvalue routine, which np.linalg.eigvals calls after its argument checks
+    from numpy.linalg._umath_linalg import eigvals as _eigvals
+except ImportError:  # pragma: no cover - another numpy layout: the public function
+    _eigvals = None
+
+
+def polynomial_roots(a: np.ndarray) -> np.ndarray:
+    """Roots of polynomial ``a`` (complex), as ``np.roots`` gives them (eigenvalues of the companion matrix),
+    without its argument checks: the service computes them at every publication.
+
+    numpy's eigenvalue routine is called directly (about half the cost of ``np.linalg.eigvals``, which
+    checks and converts around the same call); where it gives no finite result, ``np.linalg.eigvals``
+    runs and raises as ``np.roots`` does."""
     nz = np.flatnonzero(a)
     if nz.size == 0:
         return np.array([], dtype=complex)
@@ -109,12 +119,20 @@ def _roots(a: np.ndarray) -> np.ndarray:
     comp = np.zeros((n, n))
     comp[0, :] = -a[1:] / a[0]
     comp[np.arange(1, n), np.arange(n - 1)] = 1.0
-    return np.concatenate([np.linalg.eigvals(comp).astype(complex), roots])
+    w = _eigvals(comp, signature="d->D") if _eigvals is not None and np.isfinite(comp[0]).all() else None
+    if w is None or not np.isfinite(w).all():
+        w = np.linalg.eigvals(comp).astype(complex)
+    return np.concatenate([w, roots])
+
 
 
 def poles_of(a: np.ndarray, dt: float, tol_imag: float = 1e-9) -> list[Pole]:
     """Poles of ``A(q^-1)`` (coefficients in powers of q^-1), one per conjugate pair."""
-    roots = _roots(np.asarray(a, dtype=float))
+    return poles_of_roots(polynomial_roots(np.asarray(a, dtype=float)), dt, tol_imag)
+
+
+def poles_of_roots(roots: np.ndarray, dt: float, tol_imag: float = 1e-9) -> list[Pole]:
+    """:func:`poles_of` from the roots of ``A`` (:func:`polynomial_roots`)."""
     out: list[Pole] = []
     for z in roots.tolist():  # the service computes this at every publication: scalar math, no numpy per root
         if z.imag < -tol_imag:
@@ -357,8 +375,9 @@ def sort_poles(
     return PoleSorting(marked, driveline, invariant, set_aside_lines(marked, line_zeta, pulses_per_rev))
 
 
-def modal_residue(a: np.ndarray, b: np.ndarray, z: complex) -> float:
-    """Magnitude of the residue of :math:`B/A` at the pole ``z`` (``a``, ``b`` in powers of q^-1).
+def modal_residue(a: np.ndarray, b: np.ndarray, z: complex, roots: np.ndarray | None = None) -> float:
+    """Magnitude of the residue of :math:`B/A` at the pole ``z`` (``a``, ``b`` in powers of q^-1; ``roots``:
+    the roots of ``a`` where they are at hand, :func:`polynomial_roots`).
 
     Notes
     -----
@@ -372,7 +391,8 @@ def modal_residue(a: np.ndarray, b: np.ndarray, z: complex) -> float:
     """
     if z == 0:
         return 0.0
-    roots = np.roots(np.asarray(a, dtype=float))
+    if roots is None:
+        roots = np.roots(np.asarray(a, dtype=float))
     if roots.size == 0:
         return 0.0
     others = np.delete(roots, int(np.argmin(np.abs(roots - z))))

@@ -53,6 +53,7 @@ resonance).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,7 +68,7 @@ from online_id.analysis.physical import (
     parameters,
     response_grid,
 )
-from online_id.analysis.poles import Pole, modal_residue, order_of, pole_std, poles_of
+from online_id.analysis.poles import Pole, modal_residue, order_of, pole_std, poles_of_roots, polynomial_roots
 from online_id.estimation.rels import RecursiveArmax
 from online_id.estimation.window import RefitJob, SlidingPem, solve_or_error
 from online_id.errors import EstimationError
@@ -198,6 +199,9 @@ class OnlineDriveline:
         self._poles_key: tuple | None = None
         self._memo: dict = {}  # per window fit: pole -> residue, std (see _cached)
         self._poles: list[Pole] = []
+        self._roots = np.zeros(0, dtype=complex)  # the roots of A those poles come from
+        self._std_due: tuple | None = None  # (A, pole, covariance): a deferred standard deviation, see estimate
+        self._recursive: tuple | None = None  # (rels, its samples and noise variance, its polynomials()): see there
 
     # -- per sample ---------------------------------------------------------------------------
     def update(self, dyno_speed: float, engine_speed: float, dyno_torque: float) -> None:
@@ -284,7 +288,7 @@ class OnlineDriveline:
             a, b, _c, cov_a, _V, source = self.polynomials()
             if source == "window":
                 for p in self._candidates(self._poles_for(a, source)):
-                    self._cached("residue", p.z, source, lambda: modal_residue(a, b, p.z))
+                    self._cached("residue", p.z, source, lambda: modal_residue(a, b, p.z, self._roots))
                     self._cached("std", p.z, source, lambda: pole_std(a, p.z, cov_a, self.dt))
         return adopted
 
@@ -305,17 +309,40 @@ class OnlineDriveline:
         w = self.window
         if w.current and w.fit is not None:
             return w.fit.A, w.fit.B, w.fit.C, w.fit.covariance[:na, :na], w.fit.V, "window"
-        a, b, c = self.rels.polynomials()
-        return a, b, c, self._e2 * self.rels.P[:na, :na], self._e2, "recursive"
+        # the recursive model's, once per model: it changes only where an input sample completes a model sample
+        # (``rels.update``, which counts its samples) or the estimator is replaced (restart, a loaded state); the
+        # publication's estimate then finds those of the sample before it (see prepare_estimate)
+        rels, e2 = self.rels, self._e2
+        key = (rels.n_samples, e2)
+        memo = self._recursive
+        if memo is None or memo[0] is not rels or memo[1] != key:
+            a, b, c = rels.polynomials()
+            memo = self._recursive = (rels, key, (a, b, c, e2 * rels.P[:na, :na], e2, "recursive"))
+        return memo[2]
 
     def _poles_for(self, a: np.ndarray, source: str) -> list[Pole]:
-        """Poles of ``a``; a window refit's are computed once (refits come once a second, estimates at 10 Hz)."""
-        key = (source, self.window.n_fits) if source == "window" else None
-        if key is None or self._poles_key != key:
-            self._poles = poles_of(a, self.dt) if np.all(np.isfinite(a)) else []
+        """Poles of ``a``; a window refit's are computed once (refits come once a second, estimates at 10 Hz), the
+        recursive model's once per model (it changes at the model rate, not at every input sample, and not while
+        adaptation is frozen: see :meth:`prepare_estimate`)."""
+        key = (source, self.window.n_fits) if source == "window" else (source, a.tobytes())
+        if self._poles_key != key:
+            finite = bool(np.all(np.isfinite(a)))
+            self._roots = polynomial_roots(a) if finite else np.zeros(0, dtype=complex)
+            self._poles = poles_of_roots(self._roots, self.dt) if finite else []
             self._poles_key = key
             self._memo = {}
         return self._poles
+
+    def prepare_estimate(self) -> None:
+        """The current model's poles, computed now for an estimate due before the model changes.
+
+        The live service calls it on the sample before a publication: a publication's estimate is of the
+        model as its sample finds it (the pipeline updates the model with that sample after the estimate),
+        so it finds its poles done (:meth:`_poles_for`).  Nothing else changes: the estimate is the same
+        with or without it.
+        """
+        a, _b, _c, _cov, _V, source = self.polynomials()
+        self._poles_for(a, source)
 
     def _cached(self, what: str, z: complex, source: str, compute):
         """``compute()`` once per window fit and pole (``what``: residue, std); every time for the recursive model.
@@ -344,10 +371,17 @@ class OnlineDriveline:
             out.append(p)
         return out
 
-    def estimate(self) -> OnlineEstimate:
-        """The current driveline estimate (see module notes)."""
+    def estimate(self, defer_std: bool = False) -> OnlineEstimate:
+        """The current driveline estimate (see module notes).
+
+        ``defer_std``: an estimate of the recursive model (never valid, so its pole's standard deviations
+        decide nothing) comes without them (inf) until :meth:`complete_estimate` is given it: the receive loop sends the
+        estimate's frame first (a window fit's are computed once per fit and come at once).
+        """
+        if self._std_due is not None:
+            self._std_done()
         if not self.window.fit_newest:
-            return self._estimate()
+            return self._estimate(defer_std)
         # a fit of the newest seconds: where its estimate is valid, and differs from the long window's valid estimate
         # by more than both their uncertainties allow, the window forgets the older samples, else the fit before it
         # serves again, as if it had not run (see SlidingPem.settle_newest and NEWEST_SIGMAS)
@@ -360,7 +394,22 @@ class OnlineDriveline:
             est = self._estimate()
         return est
 
-    def _estimate(self) -> OnlineEstimate:
+    def complete_estimate(self, est: OnlineEstimate) -> OnlineEstimate:
+        """``est`` (of :meth:`estimate` with ``defer_std``) with its standard deviations, as :meth:`estimate`
+        gives it without (call before the next sample)."""
+        if self._std_due is None:
+            return est
+        std_f, std_z = self._std_done()
+        return dataclasses.replace(est, f0_std_hz=std_f, zeta_std=std_z)
+
+    def _std_done(self) -> tuple[float, float]:
+        a, z, cov_a = self._std_due
+        self._std_due = None
+        std_f, std_z = pole_std(a, z, cov_a, self.dt)
+        self._pick_std = std_f
+        return std_f, std_z
+
+    def _estimate(self, defer_std: bool = False) -> OnlineEstimate:
         a, b, _c, cov_a, V, source = self.polynomials()
         poles = self._poles_for(a, source)
         cands = self._candidates(poles)
@@ -375,7 +424,7 @@ class OnlineDriveline:
                 ref = min(p.f_hz for p in cands)
                 near = [p for p in cands if p.f_hz <= 1.15 * ref]
             pick = near[0] if len(near) == 1 else max(
-                near, key=lambda p: self._cached("residue", p.z, source, lambda: modal_residue(a, b, p.z)))
+                near, key=lambda p: self._cached("residue", p.z, source, lambda: modal_residue(a, b, p.z, self._roots)))
         # two pairs within 5 % of each other at the resonance: the model splits the mode, neither is it
         split = pick is not None and any(p is not pick and abs(p.f_hz - pick.f_hz) < 0.05 * pick.f_hz for p in cands)
         d = self.orders.n_params
@@ -387,8 +436,11 @@ class OnlineDriveline:
         std_f = std_z = float("inf")
         if pick is not None:
             self._pick = pick.f_hz
-            std_f, std_z = self._cached("std", pick.z, source, lambda: pole_std(a, pick.z, cov_a, self.dt))
-            self._pick_std = std_f
+            if defer_std and source != "window":
+                self._std_due = (a, pick.z, cov_a)  # not valid whatever they are (see the condition below)
+            else:
+                std_f, std_z = self._cached("std", pick.z, source, lambda: pole_std(a, pick.z, cov_a, self.dt))
+                self._pick_std = std_f
         # valid when the model's own uncertainty is small; leaving needs twice the uncertainty (hysteresis)
         k = 2.0 if self._valid else 1.0
         self._valid = (

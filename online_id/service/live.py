@@ -53,7 +53,7 @@ from online_id.service.reaction import ReactionTimes
 from online_id.records import AlertKind, AlertOut, FrameFault
 from online_id.service.restore import restore_pipeline
 from online_id.service.runtime import Runtime
-from online_id.service.scheduling import request_short_slice
+from online_id.service.scheduling import Collector, request_short_slice
 
 STATE_FILE = "online-id-state.json"
 RECV_TIMEOUT_S = 0.05  # the loop wakes at least this often on a silent bus (timeouts, worker results)
@@ -89,6 +89,10 @@ class Service:
         self.last_frame_ts: float | None = None
         self.reaction = ReactionTimes()  # input frame arrival -> its first output sent (see online_id.service.reaction)
         self.processing = ReactionTimes()  # the same output: from the loop receiving the frame to it sent
+        self.processing_cpu = ReactionTimes()  # ... and the CPU time of this thread meanwhile (time.thread_time)
+        # ... by phase (CPU time): decoding and the pipeline, encoding the OidEstimate, sending it; and before it,
+        # the wait from the frame's arrival to the loop taking it off the socket (wall time)
+        self.phases = {what: ReactionTimes() for what in ("pipeline CPU", "encoding CPU", "sending CPU", "waiting")}
         self._last_state = None
         self._restore()
         if self.state_file is not None:  # a command's freshness value outlives a restart (online_id.service.commands)
@@ -266,14 +270,17 @@ class Service:
         ping_every = (self.notifier.watchdog_s or 10.0) / 3
         draining_until = None
         next_chores = 0.0
-        runtime, monotonic, wall = self.runtime, time.monotonic, time.time
-        reaction, processing = self.reaction, self.processing
+        runtime, monotonic, wall, cpu = self.runtime, time.monotonic, time.time, time.thread_time
+        reaction, processing, processing_cpu = self.reaction, self.processing, self.processing_cpu
+        pipeline_cpu, encoding_cpu, sending_cpu, waiting = self.phases.values()
+        collector = Collector()
         try:
             while True:
                 # the hot path: one frame in, its outputs out; everything else at most every CHORES_S
                 try:
                     frame = bus.recv(RECV_TIMEOUT_S if draining_until is None else 0.0)
                     t_recv = wall()
+                    c_recv = cpu()
                     now = monotonic()
                     if frame is not None:
                         before = runtime.stream_clock
@@ -284,15 +291,28 @@ class Service:
                             # the loop's clock follows the frames the pipeline took, never a bad one's time
                             self.last_frame_ts, self.last_frame_wall = clock, now
                         if pubs:
-                            # a publication's first frame is its OidEstimate: encoded and sent before the
-                            # others are encoded
-                            first, *rest = runtime.frames(pubs[:1])
-                            bus.send(*first)
-                            t_sent = wall()
-                            reaction.add(t_sent - frame.t_s)
-                            processing.add(t_sent - t_recv)
-                            for ident, data in rest + (runtime.frames(pubs[1:]) if len(pubs) > 1 else []):
+                            # a publication's first frame is its OidEstimate: encoded and sent before anything
+                            # else is encoded, and before the rest of the publication is made
+                            c_made = cpu()
+                            first = runtime.first_frame(pubs[0])
+                            c_encoded = cpu()
+                            if first is not None:  # (None: an output the DBC lacks)
+                                bus.send(*first)
+                                t_sent = wall()
+                                c_sent = cpu()
+                                reaction.add(t_sent - frame.t_s)
+                                processing.add(t_sent - t_recv)
+                                processing_cpu.add(c_sent - c_recv)
+                                pipeline_cpu.add(c_made - c_recv)
+                                encoding_cpu.add(c_encoded - c_made)
+                                sending_cpu.add(c_sent - c_encoded)
+                                waiting.add(t_recv - frame.t_s)
+                            for ident, data in runtime.frames(pubs, skip_first=True):
                                 bus.send(ident, data)
+                            more = runtime.finish()
+                            if more:
+                                for ident, data in runtime.frames(more):
+                                    bus.send(ident, data)
                         out = None
                     elif draining_until is not None:
                         break
@@ -306,14 +326,17 @@ class Service:
                         for ident, data in out:
                             bus.send(ident, data)
                 except BusError as err:
+                    runtime.finish()  # the rest of a publication whose first frame failed: its frames are lost
                     self.say(f"bus failed: {err}; reopening")
                     bus.close()
                     self._drops_base = None
                     bus = self._open(None if max_s is None else t_start + max_s)
                     continue
-                if now < next_chores:
-                    continue
+                if now < next_chores or (self.last_frame_ts is not None and runtime.pipeline.publication_near(
+                        self.last_frame_ts + now - self.last_frame_wall)):
+                    continue  # (not while a publication is near: they take up to milliseconds, see QUIET_S)
                 next_chores = now + CHORES_S
+                collector.collect()
                 if draining_until is None and (self.stop_requested or (max_s is not None and now - t_start > max_s)):
                     # stop: first take what the kernel already holds for us (bounded), then end
                     draining_until = now + DRAIN_MAX_S
@@ -336,6 +359,7 @@ class Service:
             self.save(final=True)
             return 2 if getattr(err, "permanent", False) else 1
         finally:
+            collector.close()
             self._check_drops(bus)
             stop = self.runtime.pipeline.excitation.stop(self.runtime.pipeline.t_s)
             if stop is not None:
@@ -356,8 +380,12 @@ class Service:
                  f"{c.faults[FrameFault.UNKNOWN_ID]} foreign frames, {self._commands_text()}, "
                  f"state {self.runtime.pipeline.state.name}; "
                  f"{self.reaction.summary()}"
-                 + (f" (the loop's own work on the frame: {self.processing.summary('processing')})"
+                 + (f" (the loop's own work on the frame: {self.processing.summary('processing')}; "
+                    f"its CPU time: {self.processing_cpu.summary('processing CPU')})"
                     if self.processing.n else ""))
+        if self.processing.n:
+            self.say("the loop on a frame that publishes, by phase: "
+                     + "; ".join(times.summary(what) for what, times in self.phases.items()))
         if not saved:  # systemd sees it: the state on disk is older than the service's
             self.say(f"exit status 1: the last save of the state failed ({self.state_file})")
             return 1

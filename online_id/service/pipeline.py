@@ -79,6 +79,11 @@ MINIMA_SPREAD_F = 0.03
 ACCEPTED_SIGMAS = 3.0  # ... while the estimate moves no farther from the baseline than this many of its own stds
 STEADY_S = 5.0  # learning needs the estimates this long ago within the dead bands (or 3 own stds), see _steady
 SPREAD_RATIO_REPORTED = 5.0  # a learned spread this many times the estimator's own uncertainty is reported
+QUIET_S = 0.005
+"""With a worker process, no slow work (a job handed over, a result adopted) starts within this much stream time
+before a publication falls due (at most a quarter of the publish interval): its frames then never wait behind a
+job's copy of the window (up to a millisecond or two on a busy PC) when their sample comes (see
+:meth:`Pipeline.publication_near`)."""
 
 
 @dataclass
@@ -148,11 +153,13 @@ class Pipeline:
         self.t_first: float | None = None
         self._next_publish: float | None = None
         self._poll_deferred = False  # the worker was not polled on the last sample (it published)
+        self._rest: tuple[OnlineEstimate, list[AssembledSample]] | None = None  # see on_signal(split=True)
+        self._quiet_s = min(QUIET_S, 0.25 / s.publish.rate_hz)  # see publication_near
         self._window_since: float | None = None  # stream time the last window job was submitted
         self._next_physical: float | None = None
         self._physical: DrivelineParameters | None = None
         self._refit_pending = False
-        self._detect_pending: tuple[OnlineEstimate, float, float] | None = None  # see _publish
+        self._detect_pending: tuple[OnlineEstimate, float, float] | None = None  # see _publish_rest
         self._estimate: OnlineEstimate | None = None
         self._resets_seen = 0
         self._reset_times: list[float] = []
@@ -232,20 +239,63 @@ class Pipeline:
         self.assembler.counters.count(fault)
 
     # -- input -----------------------------------------------------------------------------------
-    def on_signal(self, sample: SignalSample) -> list[Publication]:
-        """One decoded value from a frame."""
+    def on_signal(self, sample: SignalSample, split: bool = False) -> list[Publication]:
+        """One decoded value from a frame.
+
+        ``split``: return as soon as a publication's estimate is made, with the
+        :class:`EstimateOut` last, whose frame the live service owes the bus at
+        once; the rest of that publication (its sample's update of the model
+        included: a publication's estimate is of the model as its sample finds
+        it), and of the samples this value completed, come from :meth:`finish`,
+        which must be called next.  The publications and the state are the same
+        as without it.
+        """
+        if self._rest is not None:
+            raise RuntimeError("Pipeline.on_signal: the split publication before was not finished (call finish())")
         samples = self.assembler.push(sample)  # checks the timestamp (see online_id.service.assembly)
         if samples:
             if self.t_first is None:
                 self.t_first = samples[0].t_s
             publishes = self._next_publish is not None and samples[-1].t_s >= self._next_publish
-            if not publishes or self._poll_deferred:
+            if self._poll_deferred or not (publishes or self.publication_near(samples[-1].t_s)):
                 # adopt finished slow work before the samples use the model; not on a sample that publishes
                 # (adopting a window fit takes up to a millisecond): its estimate goes out first, the result
-                # is adopted on the next sample (an inline worker, as replay's, has nothing to adopt here)
+                # is adopted on the next sample (an inline worker, as replay's, has nothing to adopt here);
+                # with a worker process, not within QUIET_S before it either
                 self.worker.poll()
-            self._poll_deferred = publishes and not self._poll_deferred
-        return self._consume(samples, self.assembler.now_s)
+                self._poll_deferred = False
+            else:
+                self._poll_deferred = publishes
+        return self._consume(samples, self.assembler.now_s, split)
+
+    def finish(self) -> list[Publication]:
+        """What :meth:`on_signal` with ``split`` left: the rest of its publication, then the samples after it."""
+        if self._rest is None:
+            return []
+        est, samples = self._rest
+        self._rest = None
+        out: list[Publication] = []
+        self._run(samples, out, made=est)
+        return out
+
+    @property
+    def split_pending(self) -> bool:
+        """:meth:`on_signal` with ``split`` left the rest of a publication for :meth:`finish`."""
+        return self._rest is not None
+
+    @property
+    def publishes_next(self) -> bool:
+        """With a worker process: the next sample publishes (the live loop readies the publication's encoding)."""
+        return (self.worker.asynchronous and self._next_publish is not None
+                and 0.0 <= self._next_publish - self.t_s <= self.assembler.dt)
+
+    def publication_near(self, t_s: float) -> bool:
+        """With a worker process: a publication falls due within ``QUIET_S`` of stream time ``t_s`` (or fell due
+        less than that ago and waits for its sample), and no slow work starts (see ``QUIET_S``).  Always False
+        with the inline worker, whose jobs take no stream time: a replay's schedule depends only on the
+        samples."""
+        return (self.worker.asynchronous and self._next_publish is not None
+                and abs(self._next_publish - t_s) <= self._quiet_s)
 
     def tick(self, now_s: float) -> list[Publication]:
         """The stream clock moved without a frame (silence on the bus, the end of a log)."""
@@ -304,7 +354,7 @@ class Pipeline:
             self._raw.append((a.t_s, a.dyno_speed, a.engine_speed, a.dyno_torque))
         self.estimator.update(a.dyno_speed, a.engine_speed, a.dyno_torque)
 
-    def _consume(self, samples: list[AssembledSample], now_s: float) -> list[Publication]:
+    def _consume(self, samples: list[AssembledSample], now_s: float, split: bool = False) -> list[Publication]:
         out: list[Publication] = []
         self.t_s = now_s
         jump = self.assembler.take_time_jump()
@@ -316,7 +366,29 @@ class Pipeline:
                 out.append(stop)
             self._set_state(ServiceState.INPUT_TIMEOUT, now_s, out,
                             f"input timeout: {', '.join(self.assembler.timed_out_roles)} silent")
-        for a in samples:
+        self._run(samples, out, split)
+        return out
+
+    def _run(self, samples: list[AssembledSample], out: list[Publication], split: bool = False,
+             made: OnlineEstimate | None = None) -> None:
+        """The samples into the estimator, publications and slow work into ``out`` (``split``: see on_signal;
+        ``made``: the estimate of the publication on ``samples[0]``, which the split made)."""
+        for i, a in enumerate(samples):
+            if self._next_publish is None:
+                self._next_publish = a.t_s
+                self._next_physical = a.t_s
+                self._set_state(ServiceState.LEARNING, a.t_s, out)
+            est = made if i == 0 else None
+            if est is None and a.t_s >= self._next_publish:
+                # a publication: the estimate is the model's as this sample finds it (its update comes after,
+                # with the rest of the publication): the live loop sends it before the sample's work
+                self._next_publish += 1.0 / self.settings.publish.rate_hz
+                if self._next_publish <= a.t_s:  # after a gap: no burst of publications
+                    self._next_publish = a.t_s + 1.0 / self.settings.publish.rate_hz
+                est = self._publish_estimate(a.t_s, out)
+                if split:
+                    self._rest = (est, samples[i:])
+                    return
             self.process(a)
             self.t_s = a.t_s
             rels = self.estimator.rels
@@ -329,24 +401,20 @@ class Pipeline:
             exc = self.excitation.step(a.t_s, healthy, self.estimator.speed_rpm)
             if exc:
                 out.append(exc)
-            if self._next_publish is None:
-                self._next_publish = a.t_s
-                self._next_physical = a.t_s
-                self._set_state(ServiceState.LEARNING, a.t_s, out)
-            if a.t_s >= self._next_publish:
-                self._next_publish += 1.0 / self.settings.publish.rate_hz
-                if self._next_publish <= a.t_s:  # after a gap: no burst of publications
-                    self._next_publish = a.t_s + 1.0 / self.settings.publish.rate_hz
-                out.extend(self._publish(a.t_s))
+            if est is not None:
+                out.extend(self._publish_rest(est, a.t_s))
             elif self._detect_pending is not None:
                 self._run_pending_detection(out)
             # slow work starts on a sample that publishes nothing, so it never delays an estimate; with the
-            # process worker it runs beside the stream and is adopted when it is back (``worker.poll``)
+            # process worker it runs beside the stream and is adopted when it is back (``worker.poll``), and
+            # it waits while a publication is near
+            elif self.publication_near(a.t_s):
+                if a.t_s + self.assembler.dt >= self._next_publish:
+                    self.estimator.prepare_estimate()  # the next sample publishes (see prepare_estimate)
             elif self.estimator.refit_due and not self.worker.busy(WINDOW):
                 self._submit_refit()
             elif self._refit_pending and not self.worker.busy(PHYSICAL):
                 self._submit_physical()
-        return out
 
     def poll_worker(self) -> int:
         """Adopt the results of finished slow work (also done before every sample)."""
@@ -461,10 +529,20 @@ class Pipeline:
             return ServiceState.NO_EXCITATION
         return ServiceState.TRACKING if est.valid else ServiceState.LEARNING
 
-    def _publish(self, t_s: float) -> list[Publication]:
-        out: list[Publication] = []
-        est = self.estimator.estimate()
+    def _publish_estimate(self, t_s: float, out: list[Publication]) -> OnlineEstimate:
+        """The estimate of a publication into ``out``, first of its publications (the rest: _publish_rest)."""
+        est = self.estimator.estimate(defer_std=True)  # completed by _publish_rest
         self._estimate = est
+        phys = self._physical
+        nan = float("nan")
+        out.append(EstimateOut(t_s, est.f0_hz, est.zeta, phys.c_s if phys and phys.c_s else nan,
+                               phys.d_s if phys and phys.d_s else nan, est.valid))
+        return est
+
+    def _publish_rest(self, est: OnlineEstimate, t_s: float) -> list[Publication]:
+        """The rest of the publication of ``est``: the state it gives, its quality, the status."""
+        out: list[Publication] = []
+        est = self._estimate = self.estimator.complete_estimate(est)
         state = self._judge(est, t_s)
         self._set_state(state, t_s, out, est.why if state == ServiceState.LEARNING else "")
         if est.valid and (self._physical is None or t_s >= self._next_physical):
@@ -476,11 +554,6 @@ class Pipeline:
             # pole tracking, learning and detection (about 1 ms) run on the next sample, after this
             # publication has gone out: an estimate never waits for them, an alert comes 1 sample later
             self._detect_pending = (est, t_s, self.estimator.speed_rpm)
-        phys = self._physical
-        nan = float("nan")
-        # the estimate first: its frame goes out before the others of this publication
-        out.insert(0, EstimateOut(t_s, est.f0_hz, est.zeta, phys.c_s if phys and phys.c_s else nan,
-                                  phys.d_s if phys and phys.d_s else nan, est.valid))
         out.append(QualityOut(t_s, est.residual_rms, est.fpe, est.excitation_nm, est.samples_used))
         out.append(self.status(t_s))
         return out

@@ -21,11 +21,15 @@ memory and cost whatever the run's length.
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 
 BIN_S = 10e-6
 N_BINS = 10_000  # 100 ms; longer reactions fall in the overflow bin (their maximum is kept)
 MAX_MEASURABLE_S = 10.0
+_SUMMARY = re.compile(r"(?:^|[:;] )(?P<what>[a-z][A-Za-z ]*?) p50 (?P<p50>[\d.]+) ms, p99 (?P<p99>[\d.]+) ms, "
+                      r"max (?P<max>[\d.]+) ms over (?P<n>\d+) outputs", re.MULTILINE)
 
 
 class ReactionTimes:
@@ -66,3 +70,13 @@ class ReactionTimes:
         return {"n": self.n, "unmeasurable": self.unmeasurable,
                 "p50_ms": 1e3 * self.percentile_s(50), "p99_ms": 1e3 * self.percentile_s(99),
                 "max_ms": 1e3 * self.max_s}
+
+
+def read_summaries(text: str) -> dict[str, dict[str, float]]:
+    """The figures of every :meth:`ReactionTimes.summary` in ``text`` (a service's log), by what each measured:
+    ``{"reaction": {"p50": ms, "p99": ms, "max": ms, "n": count}, "processing CPU": {...}, ...}``; a summary
+    saying its time was not measured is left out.  The first of each name counts."""
+    out: dict[str, dict[str, float]] = {}
+    for m in _SUMMARY.finditer(text):
+        out.setdefault(m["what"], {k: float(m[k]) for k in ("p50", "p99", "max", "n")})
+    return out

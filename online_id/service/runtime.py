@@ -78,30 +78,45 @@ class Runtime:
         self._remap = ids
         self.frames_in = 0
         self.frames_out = 0
+        self._rest: list = []  # the values of a frame after the one whose publication publications() split
         self.on_publish: Any = None  # also hand every list of publications here (the service's telemetry)
 
-    def frames(self, pubs: list[Publication]) -> list[OutFrame]:
+    def frames(self, pubs: list[Publication], skip_first: bool = False) -> list[OutFrame]:
+        """The frames of ``pubs`` (``skip_first``: without the first frame of ``pubs[0]``, which
+        :meth:`first_frame` gave)."""
         out: list[OutFrame] = []
         if self.on_publish is not None:
             self.on_publish(pubs)
-        for pub in pubs:
-            for ident, data in self.encoder.encode(pub):
+        for k, pub in enumerate(pubs):
+            for ident, data in self.encoder.encode(pub, skip_first=skip_first and k == 0):
                 out.append((self._remap.get(ident, ident), data))
         self.frames_out += len(out)
         return out
+
+    def first_frame(self, pub: Publication) -> OutFrame | None:
+        """The first frame of ``pub`` alone (of an :class:`EstimateOut`, its OidEstimate; None for an output the
+        DBC lacks); ``frames(pubs, skip_first=True)`` gives the rest."""
+        frame = self.encoder.encode_first(pub)
+        if frame is None:
+            return None
+        self.frames_out += 1
+        return self._remap.get(frame[0], frame[0]), frame[1]
 
     def on_frame(self, t_s: float, arbitration_id: int, data: bytes, is_extended: bool = False,
                  is_error: bool = False) -> list[OutFrame]:
         """One received frame; returns the frames to publish."""
         pubs = self.publications(t_s, arbitration_id, data, is_extended, is_error)
+        pubs += self.finish()
         return self.frames(pubs) if pubs else []
 
     def publications(self, t_s: float, arbitration_id: int, data: bytes, is_extended: bool = False,
                      is_error: bool = False) -> list[Publication]:
-        """One received frame; returns what it publishes, not yet encoded (:meth:`frames` encodes them).
+        """One received frame; returns what it publishes, not yet encoded (:meth:`frames` encodes them), up to
+        and including the estimate of its first publication: :meth:`finish`, which must follow, gives the rest.
 
-        The live service encodes and sends a publication's first frame, its OidEstimate, before it encodes
-        the others; replay and the tests take :meth:`on_frame`.
+        The live service encodes and sends that estimate's frame (:meth:`first_frame`) before the rest of
+        the publication is made, and before the samples after it in the frame are taken (see
+        :meth:`Pipeline.on_signal` with ``split``); replay and the tests take :meth:`on_frame`.
         """
         self.frames_in += 1
         if is_error:
@@ -129,8 +144,25 @@ class Runtime:
             done = self.pipeline.on_command(int(res.command), t_s)
             return done + self._answer(t_s, int(res.command), ACCEPTED, res.freshness)
         pubs: list[Publication] = []
-        for sample in res:
-            pubs.extend(self.pipeline.on_signal(sample))
+        pipeline = self.pipeline
+        for k, sample in enumerate(res):
+            pubs.extend(pipeline.on_signal(sample, split=True))
+            if pipeline.split_pending:
+                self._rest = res[k + 1:]
+                break
+        if not pubs and pipeline.publishes_next:
+            self.encoder.rehearse()  # the next sample publishes: its OidEstimate's encoding into the caches now
+        return pubs
+
+    def finish(self) -> list[Publication]:
+        """The rest of what the last :meth:`publications` left (nothing if it made no publication)."""
+        pipeline = self.pipeline
+        if not pipeline.split_pending:
+            return []
+        pubs = pipeline.finish()
+        rest, self._rest = self._rest, []
+        for sample in rest:
+            pubs.extend(pipeline.on_signal(sample))
         return pubs
 
     def _answer(self, t_s: float, command: int, result: int, freshness: int | None) -> list[Publication]:
