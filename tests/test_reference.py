@@ -13,6 +13,7 @@ import pytest
 from scipy.signal import lfilter
 
 from online_id.service import pipeline as pl
+from online_id.service.policy import MINIMA_SPREAD_F
 from online_id.bench import evaluate as ev
 from online_id.bench.scenario import BenchScenario, Fault, OperatingPoint
 from online_id.bench.simulate import simulate_bench
@@ -250,7 +251,7 @@ def test_a_withheld_frequency_alarm_stays_withheld_only_within_the_spread_of_min
     withheld = [e for e in healthy.events if e.kind == "withheld" and e.data.get("kind") == "frequency"]
     rechecked = [e for e in withheld if "another minimum" in e.message]
     stands = [e for e in withheld if "recheck_t_s" in e.data]
-    if abs(shift - 1.0) < pl.MINIMA_SPREAD_F:
+    if abs(shift - 1.0) < MINIMA_SPREAD_F:
         assert not [a for a in healthy.alerts if a.kind == AlertKind.FREQ_DRIFT], healthy.alerts
         assert 1 <= len(rechecked) <= 2 and len(stands) >= 2, [e.message[:90] for e in withheld]
         assert all(e.t_s > rechecked[0].t_s and abs(e.data["change_pct"]) < 0.8 for e in stands)

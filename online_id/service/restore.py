@@ -38,7 +38,8 @@ from online_id.config import Settings
 from online_id.estimation.reference import ReferenceWindow
 from online_id.errors import InputDataError
 from online_id.io.statefile import StateReset, _plain, keep_rejected, load_state
-from online_id.service.pipeline import STATE_VERSION, Pipeline
+from online_id.service.persistence import STATE_VERSION
+from online_id.service.pipeline import Pipeline
 from online_id.records import ROLES, AlertKind, AlertOut, SignalSample
 
 TRIAL_S = 0.5

@@ -1,0 +1,631 @@
+"""The detection policy of the pipeline: pole tracks, learned baselines per operating point, the backlash
+test and the engaged flank, the visit's first estimates, rechecks of a withheld alarm against the cell's
+own data, and the alarms raised (see :mod:`online_id.monitoring` for the statistics themselves).
+
+:class:`DetectionPolicy` is a part of :class:`~online_id.service.pipeline.Pipeline` (a mixin): it reads
+the estimate the pipeline made and the pipeline's settings, worker and event log, and keeps its own
+baselines, detector and visit state."""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import math
+
+import numpy as np
+
+from online_id.diagnose.bench_data import DEFAULT_PULSES_PER_REV
+from online_id.diagnose.linearity import BacklashTest, backlash_test
+from online_id.monitoring.cells import BandStats
+from online_id.monitoring.detection import (DAMPING, FREQUENCY, Alarm, alarm_message, when_text)
+from online_id.monitoring import engaged as engaged_flank
+from online_id.monitoring.engaged import EngagedChange, EngagedReading
+from online_id.estimation.online import OnlineEstimate
+from online_id.estimation.reference import ReferenceWindow, judge, refit_each
+from online_id.monitoring.visit import VisitReference
+from online_id.service.events import LINEARITY, WINDOW, Event
+from online_id.records import (
+    AlertKind,
+    AlertOut,
+    Publication,
+    ServiceState,
+)
+
+
+BACKLASH_TEST_MAX_S = 30.0  # the backlash test takes at most this much of an operating point's steady samples
+PENDING = None  # a multi-start check is running in the worker: decide later
+VERIFY_FRESH_S = 5.0  # a multi-start check older than this is not used for a decision
+RECHECK_WAIT_S = 10.0  # a recheck of a reference window older than this is dropped (see _confirm)
+# the two nearly equal minima of a model that does not fit exactly (backlash) differ by 1-3 % in the resonance
+# (see online_id.monitoring.detection): a frequency change a recheck withheld stands only within this
+MINIMA_SPREAD_F = 0.03
+ACCEPTED_SIGMAS = 3.0  # ... while the estimate moves no farther from the baseline than this many of its own stds
+STEADY_S = 5.0  # learning needs the estimates this long ago within the dead bands (or 3 own stds), see _steady
+SPREAD_RATIO_REPORTED = 5.0  # a learned spread this many times the estimator's own uncertainty is reported
+
+
+class DetectionPolicy:
+    """Detection on the estimates of a :class:`~online_id.service.pipeline.Pipeline` (see module notes)."""
+
+    def _track_and_detect(self, est: OnlineEstimate, t_s: float, speed: float, out: list[Publication]) -> None:
+        """Pole tracks, baseline learning (1 Hz) and change detection, at the publish rate.
+
+        ``est``, ``t_s`` and ``speed`` are those of the publication (it runs on the sample after it).
+        """
+        d = self.settings.detection
+        load = est.load_nm
+        self.tracker.update(t_s=t_s, speed_rpm=speed, poles=est.poles)
+        healthy = (est.valid and not est.frozen and self.state == ServiceState.TRACKING
+                   and est.excitation_nm >= d.min_excitation_nm)
+        learnable = False
+        settling = False
+        # the first fits at a new operating point start cold and, where the model does not fit exactly
+        # (backlash), may sit for a while in another local minimum: learning and detection wait settle_s
+        # after the estimate becomes healthy at another speed than it last was
+        if not healthy:
+            self._healthy_since = None
+            self._recent.clear()
+        else:
+            self._recent.append((t_s, est.f0_hz, est.zeta))
+            while self._recent and self._recent[0][0] < t_s - STEADY_S - 1.0:
+                self._recent.popleft()
+            if self._healthy_since is None or t_s < self._healthy_since:
+                same = (self._healthy_rpm is not None
+                        and abs(speed - self._healthy_rpm) <= self.settings.model.max_speed_span_rpm)
+                self._healthy_since = t_s - (d.settle_s if same else 0.0)
+                if not same:
+                    self._visit += 1
+            self._healthy_rpm = speed
+            # full detection resumes settle_detect_s after the estimate is healthy at the new point (the refit
+            # window holds only the new point from its first fit on: what the wait covers is the first cold
+            # refits); a deviation it sees then is confirmed by a multi-start refit before it is raised.
+            # Before, only a change of the frequency beyond settle_min_freq_change_pct is detected (what a
+            # local minimum does not do; a fault just before a change of point is then not held back by the
+            # settle time); the damping waits. Learning waits the longer settle_s: a baseline must not hold a
+            # transient, and a change that comes with the new point meets the detector first
+            settled = t_s - self._healthy_since >= d.settle_detect_s
+            settling = not settled
+            learnable = t_s - self._healthy_since >= d.settle_s
+        if self._next_learn is None or t_s < self._next_learn - 10.0:
+            self._next_learn = t_s
+        if (healthy and learnable and self.detector.active is None and t_s >= self._next_learn
+                and self._steady(est, t_s)):
+            self._next_learn = t_s + 1.0  # about one independent-ish estimate per second
+            est = self._learn(est, t_s, speed, load)
+            load = est.load_nm
+        if healthy and d.backlash_test_s > 0 and not self.worker.busy(LINEARITY):
+            if not self.baseline.nonlinear and self._visit_tested != self._visit:
+                self._test_backlash(t_s, speed, load)
+            elif self.baseline.nonlinear and d.engaged_flank and (self._visit_tested != self._visit
+                                                                  or t_s >= self._next_engaged):
+                self._test_backlash(t_s, speed, load, engaged_flank.WINDOW_S)
+        stats = self._baseline_for(speed, load)
+        if (stats is None and healthy and self.baseline.nonlinear and self._visit_not_compared != self._visit
+                and self.baseline.learned_range_rpm is not None):
+            # on a shaft with backlash the resonance moves with the operating point (rising with the load's
+            # magnitude): where no learned cell bounds it (a load below them all, farther than they span, or
+            # no cell yet), the visit's own first settled estimates serve, then the cell's,
+            # and a change that comes with the visit shows at the established points (it shows everywhere)
+            self._visit_not_compared = self._visit
+            self.events.append(Event(t_s, "not_compared", f"at {speed:.0f} rpm, {load:.1f} Nm no learned cell is "
+                                     f"compared with: the shaft shows backlash, so its resonance moves with the "
+                                     f"load, and no learned cell bounds it here; the estimates are compared with "
+                                     f"the first estimates of this visit", {}))
+        if self._visit_serves(stats):
+            self._visit_sample(est, t_s, speed, load, healthy and not settling, stats)
+            stats = self._with_visit(stats, load)
+        self._stats = stats
+        alarm = self.detector.update(
+            t_s=t_s, speed_rpm=speed, f0_hz=est.f0_hz, zeta=est.zeta, f0_std_hz=est.f0_std_hz,
+            zeta_std=est.zeta_std, baseline=stats, suppressed=not healthy,
+            confirm=lambda kind: self._confirm(kind, stats, t_s),
+            frequency_only_beyond=d.settle_min_freq_change_pct / 100.0 if settling else None,
+        )
+        if alarm is not None:
+            self._raise(alarm, out)
+            self._next_alarm_repeat = t_s + 1.0
+        elif self.detector.active is not None and t_s >= self._next_alarm_repeat and not self._engaged_out:
+            # a latched alarm is repeated on CAN once a second until acknowledged (not logged again)
+            self._next_alarm_repeat = t_s + 1.0
+            out.append(self._alert_out(self.detector.active, t_s))
+        if self._engaged_out:  # an engaged-flank change (raised when its backlash test came back)
+            out.extend(self._engaged_out)
+            self._engaged_out.clear()
+
+    def _test_backlash(self, t_s: float, speed: float, load: float, window_s: float = BACKLASH_TEST_MAX_S) -> None:
+        """The backlash test (:mod:`online_id.diagnose.linearity`) on this operating point's steady samples, in the
+        worker, once the speed has been steady for ``detection.backlash_test_s`` (at most the last ``window_s``).
+
+        Until one point shows backlash, once per visit. On a shaft that showed backlash, with
+        ``detection.engaged_flank``, every ``EVERY_S`` of a visit on the last ``WINDOW_S`` of steady samples: its
+        engaged flank's resonance and damping go to :attr:`engaged` (:mod:`online_id.monitoring.engaged`)."""
+        least = self.settings.detection.backlash_test_s
+        steady = min(self.estimator.window.steady_s, window_s)
+        rate = self.settings.input.sample_rate_hz
+        if steady < least or len(self._raw) < least * rate:
+            return
+        self._visit_tested = self._visit
+        self._next_engaged = t_s + engaged_flank.EVERY_S
+        n = min(len(self._raw), int(steady * rate))
+        rows = np.asarray(list(itertools.islice(self._raw, len(self._raw) - n, None)), dtype=float)
+        visit = self._visit
+
+        def done(test: BacklashTest | None, error: str | None) -> None:
+            self.backlash_tests += 1
+            if test is None:
+                self.events.append(Event(t_s, "backlash_test", f"backlash test at {speed:.0f} rpm not done: {error}",
+                                         {"error": error}))
+                return
+            self.last_backlash_test = test
+            if test.shows_backlash(self.settings.detection.backlash_gain_pct / 100.0) and not self.baseline.nonlinear:
+                self.baseline.backlash = {**test.as_dict(), "source": self.run_label}
+                if not self.settings.detection.engaged_flank:
+                    self._raw.clear()  # no test runs any more
+                # a cell held for disagreeing with another point's baseline: that baseline predicts nothing here
+                n = self.baseline.release()
+                self.events.append(Event(t_s, "backlash", f"the shaft shows backlash at {test.speed_rpm:.0f} rpm: a "
+                                         f"dead zone of the twist removes {100 * test.gain:.0f} % of the one-step "
+                                         f"error (t = {test.t_stat:.1f}); other operating points' baselines are no "
+                                         f"longer compared with" + (f", {n} held cell(s) released" if n else ""),
+                                         test.as_dict() | {"released": n}))
+            if self.baseline.nonlinear and self.settings.detection.engaged_flank:
+                reading = EngagedReading(t_s, visit, speed, load, test.engaged_f0_hz, test.engaged_zeta, self.run_label)
+                learn = self.detector.active is None and self.state == ServiceState.TRACKING
+                for change in self.engaged.offer(reading, learn=learn):
+                    self._raise_engaged(change)
+
+        # the compression orders the test declares: the model's, else the bench diagnosis's default (a test with
+        # none failed on every point of a config without model.pulses_per_rev)
+        pulses = self.settings.model.pulses_per_rev or DEFAULT_PULSES_PER_REV
+        self.worker.submit(LINEARITY, backlash_test, (rows[:, 0], rows[:, 3], rows[:, 1], rows[:, 2], pulses), done)
+
+    def _raise_engaged(self, change: EngagedChange) -> None:
+        """A change of the engaged flank: latched by the detector (acknowledged as its own alarms are), raised
+        unless an alarm of its kind of the same or a higher level is latched (an escalation keeps its onset)."""
+        latched = next((a for a in self.detector.alarms if a.kind == change.kind), None)
+        since = latched.since_t_s if latched is not None else change.since_t_s
+        stiff = None if change.stiffness_change is None else 100.0 * change.stiffness_change
+        pct = 100.0 * change.change
+        frequency = change.kind == FREQUENCY
+        ref = f"{change.reference:.2f} Hz" if frequency else f"zeta {change.reference:.4f}"
+        message = (alarm_message(change.kind, change.level, pct, stiff, since, change.speed_rpm,
+                                 what=f"driveline engaged flank's {'resonance' if frequency else 'damping'}")
+                   + f" (cell {change.speed_rpm:.0f} rpm, {change.load_nm:.0f} Nm, against the engaged-flank "
+                   f"reference of {change.learned} backlash tests ({ref})"
+                   + (f", learned from {change.source}" if change.source else "")
+                   + f"; threshold {100 * change.threshold:.1f} %)")
+        alarm = Alarm(change.kind, change.level, since, change.detected_t_s, change.speed_rpm, pct, stiff, message)
+        if not self.detector.latch(alarm):
+            return
+        self._record(self._alert_out(alarm, alarm.detected_t_s), self._engaged_out,
+                     alarm.as_dict() | {"baseline_kind": "engaged", "baseline_source": change.source,
+                                        "threshold_pct": 100 * change.threshold})
+        self._next_alarm_repeat = self.t_s + 1.0
+
+    def _steady(self, est: OnlineEstimate, t_s: float) -> bool:
+        """Whether the estimate stood still over the last ``STEADY_S``: its frequency within the dead band
+        (or three of its own standard deviations) of the estimate then, its damping within half the damping
+        dead band (or three of its own standard deviations). A baseline is learned from steady estimates
+        only: a change of the driveline shows first as estimates that move while the fit window takes it in
+        (for about the window's length), and a cell that learns them takes in the change (a +50 % damping
+        change came into a cell learning at the time as +32 % on plant 11703: the damping moves through its
+        20 % dead band within the 5 s)."""
+        then = next(((f, z) for t, f, z in self._recent if t >= t_s - STEADY_S - 1e-6), None)
+        if then is None or self._recent[0][0] > t_s - STEADY_S + 0.5:
+            return False  # not yet STEADY_S of healthy estimates
+        std_f = est.f0_std_hz if math.isfinite(est.f0_std_hz) else 0.0
+        std_z = est.zeta_std if math.isfinite(est.zeta_std) else 0.0
+        return (abs(est.f0_hz - then[0]) <= max(self.detector.min_change_f * abs(then[0]), 3.0 * std_f)
+                and abs(est.zeta - then[1]) <= max(0.5 * self.detector.min_change_zeta * abs(then[1]), 3.0 * std_z))
+
+    def _baseline_for(self, speed: float, load: float, learning: bool = False) -> BandStats | None:
+        """What an estimate is compared with: its own cell, learned, or still learning (not held) with its first
+        estimates (frozen: ``provisional_count`` of them, then ``freeze_count``) once it holds them (the same
+        operating point: a learned cell at another load of the band differs by 0.1-0.5 % per Nm with backlash);
+        else a learned cell of the band at another load or of an adjacent band (:meth:`Baseline.lookup`); else
+        the pooled baseline (for detection the pool's spread is doubled, for the learning check,
+        ``learning``, it is not). On a shaft that showed backlash (:attr:`Baseline.nonlinear`) no other single
+        point serves: the learned cells of smaller and larger loads bound the resonance
+        (:meth:`Baseline.bracketed`, its bounds widened by the order's slack; None where none does)."""
+        n = self.baseline.provisional_count
+        own = self.baseline.cell(speed, load, frozen=True)
+        if own is not None and own.count >= n:
+            return own  # as it is: its spread is widened while it holds fewer than freeze_count estimates
+        stats = self.baseline.lookup(speed, load)
+        nonlinear = self.baseline.nonlinear
+        if stats is not None and (not nonlinear or self._own(stats, speed, load)):
+            return stats
+        if nonlinear:
+            # a shaft with backlash: its resonance moves with the operating point, but rises with the magnitude of
+            # the load; the learned cells of smaller and larger loads bound it (None where nothing does)
+            pool = self.baseline.bracketed(speed, load)
+        else:
+            pool = self.baseline.pooled(speed, load, min_n=n)
+        if pool is not None and not learning and pool.kind == "pooled":
+            # for detection, doubled: it stands for a point it has not seen (a bracket's bounds hold the slack)
+            pool = dataclasses.replace(pool, std_f=2.0 * pool.std_f, std_zeta=2.0 * pool.std_zeta)
+        return pool
+
+    def _visit_serves(self, stats: BandStats | None) -> bool:
+        """Whether the first estimates of the visit serve where ``stats`` (what :meth:`_baseline_for` gives)
+        does: on a shaft with backlash, where no learned cell of this point serves (its damping; its frequency
+        too where no learned cell bounds the point, or bounds it on one side only)."""
+        return self.baseline.nonlinear and (stats is None or stats.kind == "bracketed")
+
+    def _visit_sample(self, est: OnlineEstimate, t_s: float, speed: float, load: float, settled: bool,
+                      bounds: BandStats | None) -> None:
+        """Offer a settled estimate (about one a second) to the first estimates of this visit
+        (:mod:`~online_id.monitoring.visit`); one that the detector would count as outside the one-sided ``bounds``
+        (beyond the dead band) does not join, so that there the bound goes on serving."""
+        d = self.settings.detection
+        ref = self._visit_ref
+        if ref is not None and not ref.matches(self._visit, load, d.load_band_nm):
+            ref = self._visit_ref = None  # another visit, or the load moved: another operating point
+        if not settled:
+            return
+        if bounds is not None and bounds.outside_f(est.f0_hz, self.detector.min_change_f, 0.0):
+            return  # beyond the dead band of the bound the learned cells set: a change must not become the reference
+        if ref is None:
+            ref = self._visit_ref = VisitReference(self._visit, load, self.baseline.band_of(speed),
+                                                   min_count=self.baseline.provisional_count,
+                                                   size=self.baseline.freeze_count,
+                                                   min_rel_std_f=self.baseline.min_rel_std_f,
+                                                   min_rel_std_zeta=self.baseline.min_rel_std_zeta)
+            self._next_visit_sample = t_s
+        if t_s >= self._next_visit_sample:
+            self._next_visit_sample = t_s + 1.0  # about one independent-ish estimate per second
+            solution = self.estimator.solution
+            if (ref.add(t_s, est.f0_hz, est.zeta, load, self.detector.min_change_f, solution,
+                        self.detector.min_change_zeta) and len(ref.f) <= ref.min_count and solution is not None):
+                job = self.estimator.verify_job()  # the data of the frozen first estimates, for a recheck
+                if job is not None:
+                    ref.window = ReferenceWindow(job.y, job.u, solution, speed, load, t_s)
+
+    def _with_visit(self, stats: BandStats | None, load: float) -> BandStats | None:
+        """``stats``, or the first estimates of this visit where they serve (:meth:`_visit_serves`) and hold
+        ``provisional_count`` estimates: their frequency where nothing or one side bounds the point; their damping
+        where the learned cells do not measure how far it moves between points (fewer than
+        ``MIN_CELLS_DAMPING``, :meth:`Baseline.bracketed`: it moves 3-57 % between points with backlash, and
+        was not compared at all), in a two-sided bracket too (:attr:`BandStats.zeta_visit`)."""
+        ref = self._visit_ref
+        if not self._visit_serves(stats) or ref is None or not ref.matches(self._visit, load,
+                                                                           self.settings.detection.load_band_nm):
+            return stats
+        visit = ref.stats()
+        if visit is None or stats is None:
+            return visit or stats
+        measured = math.isfinite(stats.std_zeta)  # the learned cells measure how far the damping moves between points
+        if not math.isfinite(stats.above_f + stats.below_f):  # bounded on one side only: the visit's frequency
+            return visit if not measured else dataclasses.replace(
+                visit, mean_zeta=stats.mean_zeta, std_zeta=stats.std_zeta, tolerance_zeta=stats.tolerance_zeta,
+                between_zeta=stats.between_zeta, zeta_visit=False)
+        return stats if measured else dataclasses.replace(
+            stats, mean_zeta=visit.mean_zeta, std_zeta=visit.std_zeta, tolerance_zeta=0.0, between_zeta=math.nan,
+            widen=visit.widen, zeta_visit=True)
+
+    @staticmethod
+    def _of_visit(stats: BandStats, kind: str) -> bool:
+        """Whether an alarm of ``kind`` against ``stats`` is checked against the visit's first estimates (their
+        solution and window): of the visit's own baseline (kind ``"visit"``), or of a bracket's damping that is
+        the visit's (:attr:`BandStats.zeta_visit`)."""
+        return stats.kind == "visit" or (kind == DAMPING and stats.zeta_visit)
+
+    def _own(self, stats: BandStats, speed: float, load: float) -> bool:
+        """Whether ``stats`` is the baseline of the cell of ``speed`` and ``load`` itself (not the pool's or
+        another band's or load's)."""
+        if stats.kind == "learning":
+            return True  # only a cell's own first estimates serve it while it learns
+        return stats.kind in ("learned", "reference") and self._at(stats, speed, load)
+
+    def _at(self, stats: BandStats, speed: float, load: float) -> bool:
+        """Whether ``speed`` and ``load`` fall in the band and load cell of ``stats`` (any load if it has none)."""
+        return (stats.band[0] <= speed < stats.band[1]
+                and not abs(stats.load_nm - load) > 0.5 * self.baseline.load_band_nm)
+
+    def _learn(self, est: OnlineEstimate, t_s: float, speed: float, load: float) -> OnlineEstimate:
+        """One estimate into the baseline of its cell, unless the cell is learned or the estimate disagrees.
+
+        A cell still learning compares each estimate with what serves it
+        (:meth:`_baseline_for`: a learned cell, the pooled baseline, or its
+        own first estimates). Where that is the cell's own baseline, an
+        estimate that deviates beyond the dead band plus three spreads is not
+        learned (a change during learning must not be absorbed into the
+        baseline): it only feeds the detector. Where it is another operating
+        point's (the pool, another band or load), the disagreement is
+        ambiguous and the estimate is learned into a *held* cell, which is no
+        baseline of another point until an estimate at an established cell
+        agrees with that cell's own baseline (:meth:`Baseline.release`, see
+        :mod:`~online_id.monitoring.baseline`). On a shaft that showed
+        backlash the bounds the learned cells of other loads set serve
+        (:meth:`_baseline_for`, :meth:`Baseline.bracketed`): an estimate
+        outside them is learned into a held cell; where nothing bounds the
+        point from below, the first estimates of the visit serve
+        (:mod:`~online_id.monitoring.visit`): an estimate
+        that disagrees with them is learned into a held cell too.
+        """
+        d = self.settings.detection
+        cell = self.baseline.cell(speed, load)
+        learned = cell is not None and cell.count >= d.min_count
+        # a new cell is learned from the best of several starts, not from whichever of the nearly equal
+        # minima of a mismatched model (backlash) the warm-started refits happen to follow
+        verified = self._verify("learn", t_s) if cell is None else False
+        if verified is PENDING:
+            return est
+        if verified:
+            est = self.estimator.estimate()
+            self._estimate = est
+            load = est.load_nm
+        if not (est.valid and math.isfinite(load) and math.isfinite(est.f0_hz) and est.zeta > 0):
+            return est
+        # where nothing else bounds the point, an estimate that disagrees with the visit's first ones is held
+        ref = self._with_visit(self._baseline_for(speed, load, learning=True), load)
+        # the damping with half its dead band (see BandStats.disagrees): a change on its way in must not be learned
+        why = (ref.disagrees(est.f0_hz, est.zeta, self.detector.min_change_f, 0.5 * self.detector.min_change_zeta)
+               if ref is not None else None)
+        own = ref is not None and self._own(ref, speed, load)
+        n = self.baseline.release() if why is None and own else 0  # held cells: the driveline did not change
+        if n:
+            self.events.append(Event(t_s, "released", f"{n} held cell(s) released: at {speed:.0f} rpm, "
+                                     f"{load:.1f} Nm the estimate agrees with the cell's own {ref.kind} baseline "
+                                     f"({est.f0_hz:.3f} Hz against {ref.mean_f:.3f} Hz), so the driveline did "
+                                     f"not change since", {"cells": n}))
+        if learned:
+            return est  # a learned cell stays fixed until re-learned
+        versus = _versus(why, est, ref) if why is not None else ""
+        if why is not None and own:
+            self.baseline.reject(speed_rpm=speed, load_nm=load)
+            self._rejected += 1
+            if t_s >= self._next_reject_event:
+                self._next_reject_event = t_s + 60.0
+                self.events.append(Event(t_s, "not_learned", f"{why} estimate not learned at {speed:.0f} rpm, "
+                                         f"{load:.1f} Nm: it disagrees with the {ref.kind} baseline ({versus})",
+                                         {"kind": why, "baseline": ref.kind}))
+            return est
+        if why is not None and not self.baseline.is_held(speed, load):
+            self.events.append(Event(t_s, "held", f"cell {speed:.0f} rpm, {load:.1f} Nm held: its {why} estimate "
+                                     f"disagrees with the {ref.kind} baseline ({versus}); it serves no point until "
+                                     f"an established cell agrees with its own", {"kind": why, "baseline": ref.kind}))
+        self.baseline.learn(speed_rpm=speed, f0_hz=est.f0_hz, zeta=est.zeta, load_nm=load,
+                            f0_std_hz=est.f0_std_hz, zeta_std=est.zeta_std, source=self.run_label,
+                            reference=self.reference_run, held=why is not None)
+        solution = self.estimator.solution
+        if solution is not None:
+            self._references[self.baseline.key(speed)] = solution
+        done = self.baseline.cell(speed, load)
+        if why is None and solution is not None and done is not None:
+            self._keep_window(done, speed, load, t_s, solution)
+        if done is not None and done.count == d.min_count:
+            ratio = done.spread_ratio
+            self.events.append(Event(t_s, "learned", f"cell {speed:.0f} rpm, {load:.1f} Nm learned: f0 "
+                                     f"{done.mean_f:.3f} +- {done.std_f:.3f} Hz, zeta {done.mean_zeta:.4f}"
+                                     + (" (held: no baseline until released)" if done.kind == "held" else ""),
+                                     done.as_dict()))
+            if math.isfinite(ratio) and ratio > SPREAD_RATIO_REPORTED:
+                self.events.append(Event(t_s, "wide_baseline", f"baseline at {speed:.0f} rpm, {load:.1f} Nm: "
+                                         f"spread {done.std_f:.3f} Hz is {ratio:.0f} times the estimator's own "
+                                         f"uncertainty ({done.uncertainty_f:.4f} Hz): the driveline moved "
+                                         f"while it was learned", done.as_dict()))
+        return est
+
+    def _confirm(self, kind: str, stats: BandStats, t_s: float) -> bool | None:
+        """Before a new drift alarm: does the change stand a second look at the window, and a recheck of the
+        data the baseline was learned from? True: raise it; False: withhold it; None: a check runs in the worker
+        (the detector asks again at its next interval)."""
+        check = self._rechecks.get(kind)
+        if check is not None and (t_s - check["t_s"] > RECHECK_WAIT_S or check["band"] != stats.band):
+            del self._rechecks[kind]  # of an alarm the detector no longer asks about: this one starts afresh
+            check = None
+        if check is None and self._still_accepted(kind, stats, t_s):
+            return False
+        if check is None:
+            verdict = self._second_look(kind, stats, t_s)
+            if verdict is not True:
+                return verdict
+        return self._recheck(kind, stats, t_s)
+
+    def _still_accepted(self, kind: str, stats: BandStats, t_s: float) -> bool:
+        """Does a recheck's finding that the cell's own data give the current resonance still stand?
+
+        Each recheck's fits carry their own noise: asking the same question every few tens of seconds until
+        one answer differs is how plant 1017 of the fault-free hours raised a warning (withheld at 2031 s,
+        the estimate the same 31.08 Hz at 2075 s, a loss 1.6 % against the 1 % tie in the second recheck).
+        The finding stands, and the alarm is withheld without another recheck, only where it can be the
+        hop between minima it describes, and nothing since says otherwise: a frequency change within
+        ``MINIMA_SPREAD_F`` of the baseline, at the same cell in the same visit, with the estimate within
+        the recheck's tolerance of the value it accepted and no farther from the baseline than
+        ``ACCEPTED_SIGMAS`` of its own standard deviations (over a long visit a healthy estimate wanders by
+        more than one). A larger change (plant 13703 of family (a): a recheck withheld a 7.3 % drop after a
+        15 % stiffness loss, the next one raised it) or an estimate moving on towards the alarm's side is
+        rechecked afresh each time.
+        """
+        done = self._accepted
+        est = self._estimate
+        if kind != FREQUENCY or done is None or est is None or not math.isfinite(est.f0_hz):
+            return False
+        step = est.f0_hz / done["f0_hz"] - 1.0
+        own = est.f0_std_hz / est.f0_hz if math.isfinite(est.f0_std_hz) else 0.0
+        if (done["band"] != stats.band or done["visit"] != self._visit or abs(step) > done["tolerance"]
+                or math.copysign(1.0, done["change"]) * step > ACCEPTED_SIGMAS * own):
+            self._accepted = None
+            return False
+        self.events.append(Event(
+            t_s, "withheld", f"{kind} alarm withheld: the estimate is where the recheck at {when_text(done['t_s'])} "
+            f"found the cell's own data give it ({100 * step:+.2f} %, within its {100 * done['tolerance']:.1f} % "
+            f"tolerance, no farther from the baseline than {ACCEPTED_SIGMAS:.0f} of its own standard deviations)",
+            {"kind": kind, "change_pct": 100 * step, "recheck_t_s": done["t_s"]}))
+        return True
+
+    def _second_look(self, kind: str, stats: BandStats, t_s: float) -> bool | None:
+        """Does a refit of the window from several starts still deviate?
+
+        The starts include the solution the band's baseline was learned from
+        (see :class:`~online_id.monitoring.detection.ChangeDetector`, *confirm*).
+        None while the refit runs in the worker.
+        """
+        if self._of_visit(stats, kind) and self._visit_ref is not None:
+            ref = self._visit_ref.solution  # the minimum the visit's first estimates sat in
+        else:
+            key = self.baseline.key(0.5 * (stats.band[0] + stats.band[1]))
+            near = sorted(self._references, key=lambda k: abs(k - key))  # a pool: the nearest learned band's
+            ref = self._references[near[0]] if near else None
+        # where the baseline's own minimum fits the window nearly as well as the best, the data do not tell them
+        # apart: a mismatched model (backlash) has nearly equal minima whose damping differs by 30-40 % and whose
+        # resonance differs by 1-3 %, and the estimate may sit in either for minutes at a learned operating point
+        if self._verify(("confirm", kind), t_s, (ref,), self._tie(kind)) is PENDING:
+            return None
+        est = self.estimator.estimate()
+        if kind == FREQUENCY:  # beyond the bounds of a bracketed baseline
+            change, width = stats.excess_f(est.f0_hz) / stats.mean_f, self.detector.min_change_f
+        else:
+            change, width = est.zeta / stats.mean_zeta - 1.0, self.detector.min_change_zeta
+        if not math.isfinite(change) or abs(change) > width:
+            return True
+        self.events.append(Event(t_s, "withheld", f"{kind} alarm withheld: a refit of the window from other starts "
+                                 f"is {100 * change:+.1f} % from the baseline, inside the "
+                                 f"{100 * width:.1f} % dead band", {"kind": kind, "change_pct": 100 * change}))
+        return False
+
+    def _keep_window(self, cell: BandStats, speed: float, load: float, t_s: float, solution: np.ndarray) -> None:
+        """Keep the window of a cell's first estimates, the ones its frozen reference holds (up to
+        ``provisional_count``), for :meth:`_recheck`; later estimates do not replace it (one learned after a
+        change the learning check let through would make the recheck compare the change with itself)."""
+        if cell.count > self.baseline.provisional_count:
+            return
+        job = self.estimator.verify_job()
+        if job is None:
+            return
+        key = self.baseline.key(speed)
+        kept = [w for w in self._windows.get(key, []) if not self._at(cell, w.speed_rpm, w.load_nm)]
+        self._windows[key] = kept + [ReferenceWindow(job.y, job.u, solution, speed, load, t_s)]
+
+    def _tie(self, kind: str) -> float:
+        """The share of loss within which two minima are not told apart (``detection.*_tie_pct``), for ``kind``."""
+        d = self.settings.detection
+        return (d.damping_tie_pct if kind == DAMPING else d.frequency_tie_pct) / 100.0
+
+    def _reference_window(self, stats: BandStats, kind: str) -> ReferenceWindow | None:
+        """The window of the first estimates of the cell of ``stats``, where ``stats`` is a cell's own baseline
+        (learned, learning or from a reference run), or of this visit's (kind ``"visit"``, or the damping of a
+        bracket that holds the visit's, :attr:`BandStats.zeta_visit`)."""
+        if self._of_visit(stats, kind):
+            ref = self._visit_ref
+            return ref.window if ref is not None and ref.visit == self._visit else None
+        if stats.kind not in ("learned", "learning", "reference"):
+            return None
+        windows = self._windows.get(self.baseline.key(0.5 * (stats.band[0] + stats.band[1])), [])
+        return next((w for w in windows if self._at(stats, w.speed_rpm, w.load_nm)), None)
+
+    def _recheck(self, kind: str, stats: BandStats, t_s: float) -> bool | None:
+        """The data the cell's baseline was learned from, refitted from the current window solution: is the
+        change still there within one minimum of the criterion? (:mod:`~online_id.estimation.reference`)
+
+        Withheld where the reference data in the current minimum give the
+        current estimate again (within the dead band plus one standard
+        deviation of the comparison) and fit there within the second look's
+        tie of their own minimum: the estimate moved to another minimum, the
+        driveline did not change. Raised where no window serves or a fit
+        fails. A recheck the detector has not asked about again within
+        ``RECHECK_WAIT_S`` (or asks about at another band) is dropped, and the
+        next alarm starts with a second look.
+        """
+        check = self._rechecks.get(kind)
+        if check is None:
+            window, solution = self._reference_window(stats, kind), self.estimator.solution
+            est = self.estimator.estimate()
+            if window is None or solution is None or est is None:
+                return True
+            # the tolerance: the dead band plus one standard deviation of the difference of two single estimates
+            damping = kind == DAMPING
+            value, own, spread = ((est.zeta, est.zeta_std, stats.std_zeta) if damping
+                                  else (est.f0_hz, est.f0_std_hz, stats.std_f))
+            noise = math.hypot(*(x if math.isfinite(x) else 0.0 for x in (own, spread))) / value if value > 0 else 0.0
+            width = self.detector.min_change_zeta if damping else self.detector.min_change_f
+            check = self._rechecks[kind] = {"t_s": t_s, "band": stats.band, "window": window, "f0_hz": est.f0_hz,
+                                            "zeta": est.zeta, "solution": solution, "result": None,
+                                            "submitted": False,
+                                            "tolerance": width + (noise if math.isfinite(noise) else 0.0)}
+        if not check["submitted"]:
+            if self.worker.busy(WINDOW):
+                return PENDING
+            check["submitted"] = True
+            window = check["window"]
+
+            def finished(fits, error: str | None) -> None:
+                check["result"] = (fits, error)
+
+            self.worker.submit(WINDOW, refit_each, (window.y, window.u, self.estimator.orders,
+                                                    (window.solution, check["solution"])), finished)
+        if check["result"] is None:
+            return PENDING
+        del self._rechecks[kind]
+        fits, error = check["result"]
+        damping, tolerance = kind == DAMPING, check["tolerance"]
+        r = judge(fits, self.estimator.dt, check["f0_hz"], check["zeta"], damping, tolerance, self._tie(kind)) \
+            if error is None else None
+        if r is None or not r.withhold:
+            return True
+        change = stats.excess_f(check["f0_hz"]) / stats.mean_f if stats.mean_f > 0 else math.nan
+        if not damping and 0.0 < abs(change) <= MINIMA_SPREAD_F:
+            self._accepted = {"band": stats.band, "visit": self._visit, "t_s": t_s, "tolerance": tolerance,
+                              "f0_hz": check["f0_hz"], "change": change}
+        window = check["window"]
+        what = f"{r.zeta:.4f}" if damping else f"{r.f0_hz:.3f} Hz"
+        whose = ("of this visit's first estimates" if self._of_visit(stats, kind) else
+                 f"cell {window.speed_rpm:.0f} rpm, {window.load_nm:.1f} Nm was learned from")
+        self.events.append(Event(
+            t_s, "withheld", f"{kind} alarm withheld: the data {whose} ({when_text(window.t_s)}), refitted from "
+            f"the current window solution, give {what}, {100 * r.change:+.1f} % from the current estimate, within the "
+            f"{100 * tolerance:.1f} % tolerance (dead band and the comparison's noise; loss "
+            f"{100 * r.loss_ratio:+.1f} % against their own solution): the estimate moved to another minimum "
+            f"of the criterion, not the driveline",
+            {"kind": kind, "change_pct": 100 * r.change, "tolerance_pct": 100 * tolerance,
+             "loss_ratio_pct": 100 * r.loss_ratio, "reference_t_s": window.t_s}))
+        return False
+
+    def _alert_out(self, alarm: Alarm, t_s: float) -> AlertOut:
+        kind = AlertKind.FREQ_DRIFT if alarm.kind == "frequency" else AlertKind.DAMPING_DRIFT
+        return AlertOut(t_s, kind, alarm.level, alarm.change_pct, alarm.speed_rpm, alarm.message)
+
+    def _raise(self, alarm: Alarm, out: list[Publication]) -> None:
+        stats = self._stats
+        data = alarm.as_dict()
+        if stats is not None:
+            load = self._estimate.load_nm if self._estimate is not None else float("nan")
+            cell = f"cell {alarm.speed_rpm:.0f} rpm" + (f", {load:.0f} Nm" if math.isfinite(load) else "")
+            alarm = dataclasses.replace(alarm, message=f"{alarm.message} ({cell}, against {_against(stats)})")
+            data |= {"message": alarm.message, "baseline_kind": stats.kind, "baseline_source": stats.source}
+        self._record(self._alert_out(alarm, alarm.detected_t_s), out, data)
+
+
+def _versus(why: str, est: OnlineEstimate, ref: BandStats) -> str:
+    """The disagreeing quantity of ``est`` against ``ref`` for an event: "26.412 Hz against 26.583 +- 0.053 Hz"."""
+    if why == FREQUENCY and ref.kind == "bracketed":
+        return f"{est.f0_hz:.3f} Hz against {_bounds(ref)}, +- {ref.std_f:.3f} Hz"
+    if why == FREQUENCY:
+        return f"{est.f0_hz:.3f} Hz against {ref.mean_f:.3f} +- {ref.std_f:.3f} Hz"
+    return f"zeta {est.zeta:.4f} against {ref.mean_zeta:.4f} +- {ref.std_zeta:.4f}"
+
+
+def _against(stats: BandStats) -> str:
+    """What an alarm was raised against, for people: "the learned baseline of 1500 rpm, 20 Nm (24.10 Hz), learned
+    from run 3", "the pooled baseline (...)", "the bounds of the learned cells of other loads (...)", "the first
+    estimates of this visit since t = 67.0 s (22.28 Hz)"."""
+    if stats.kind == "visit":
+        return (f"the first estimates of {stats.source} ({stats.mean_f:.2f} Hz"
+                + (f", zeta {stats.mean_zeta:.4f})" if stats.zeta_visit else
+                   "), the damping against the learned cells of other loads"))
+    what = (f"the pooled baseline ({stats.mean_f:.2f} Hz)" if stats.kind == "pooled" else
+            f"the bounds of the learned cells of other loads ({_bounds(stats)})" if stats.kind == "bracketed" else
+            f"the {stats.kind} baseline of {0.5 * (stats.band[0] + stats.band[1]):.0f} rpm"
+            + (f", {stats.load_nm:.0f} Nm" if math.isfinite(stats.load_nm) else "") + f" ({stats.mean_f:.2f} Hz)")
+    return (what + (f", learned from {stats.source}" if stats.source else "")
+            + (f", the damping against the first estimates of this visit ({stats.mean_zeta:.4f})"
+               if stats.zeta_visit else ""))
+
+
+def _bounds(stats: BandStats) -> str:
+    """A bracketed baseline's bounds for people: ``f0 >= 20.10 Hz``, ``f0 <= ...`` or ``20.10-20.50 Hz``."""
+    lo, hi = stats.bounds_f
+    if math.isfinite(lo) and math.isfinite(hi):
+        return f"{lo:.2f}-{hi:.2f} Hz"
+    return f"f0 >= {lo:.2f} Hz" if math.isfinite(lo) else f"f0 <= {hi:.2f} Hz"
