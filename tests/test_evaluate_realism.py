@@ -99,7 +99,7 @@ def test_each_crossing_visit_says_what_the_service_did(monkeypatch, n_cyl, f0):
     c = summary["crossings"]
     assert c["before_fault"]["outcomes"] == {"held": 1, "tracked": 1, "false alarm": 1}
     assert c["after_fault"]["outcomes"] == {"detected": 1, "wrong kind": 1, "latched": 1}
-    assert c["after_fault"]["first_alarm_at_crossing"] == 0  # res: warned first at 160 s? no: fault-level only
+    assert c["after_fault"]["first_alarm_at_crossing"] == 1  # res at 160 s in a visit; res2 at 100 s between
     row = next(r for r in summary["faults"] if r["family"] == "a")
     assert (row["wrong_kind_runs"], row["wrong_kind_first"], row["wrong_kind_alarms"]) == (1, 1, 1)
     text = table(summary)
@@ -108,36 +108,36 @@ def test_each_crossing_visit_says_what_the_service_did(monkeypatch, n_cyl, f0):
 
 def test_false_alarms_at_crossings_are_counted_apart_from_the_rest(monkeypatch):
     spec = _crossing_spec(None, None)
-    res = _fake_run(monkeypatch, spec, [(50.0, AlertKind.FREQ_DRIFT, 1), (100.0, AlertKind.FREQ_DRIFT, 1),
-                                        (170.0, AlertKind.DAMPING_DRIFT, 2)], valid_until=lambda t: True)
+    res = _fake_run(monkeypatch, spec, [(50.0, AlertKind.FREQ_DRIFT, 1), (84.5, AlertKind.DAMPING_DRIFT, 2),
+                                        (100.0, AlertKind.FREQ_DRIFT, 1)], valid_until=lambda t: True)
     assert res.false_alarms == 3
     c = ev.summarize([res])["crossings"]
-    # 50 s in the first visit; 170 s in the ramp after the last (its estimates' alarm comes a little later)
+    # 50 s in the first visit; 84.5 s in the ramp after it (its estimates' alarm comes a little later)
     assert c["fault_free"]["false_alarms"] == 2 and c["fault_free_elsewhere"]["false_alarms"] == 1
     assert c["fault_free"]["hours"] == pytest.approx(80.0 / 3600.0)
     assert c["fault_free"]["false_alarms_per_1000h"] == pytest.approx(2 / (80.0 / 3600.0) * 1000.0)
     assert ev.summarize([dataclasses.replace(res, crossings=[])]).get("crossings") is None
 
 
-def test_the_lagged_worker_hands_results_back_after_the_lag_and_keeps_the_lane_busy():
-    clock = [0.0]
-    for lag in (0.0, 0.3, 1.7):
-        w = bf.LaggedWorker(lag, clock=lambda: clock[0])
-        got = []
-        clock[0] = 10.0
-        w.submit("window", lambda x: 2 * x, (21,), lambda r, e: got.append((clock[0], r, e)))
-        w.submit("physical", lambda: 1 / 0, (), lambda r, e: got.append((clock[0], r, e)))
-        assert w.busy("window") and w.busy("physical") and not w.busy("linearity")
-        with pytest.raises(RuntimeError):
-            w.submit("window", lambda: 0, (), lambda r, e: None)
-        clock[0] = 10.0 + lag - 0.01
-        assert w.poll() == (2 if lag == 0.0 else 0)
-        clock[0] = 10.0 + lag
-        w.poll()
-        assert sorted(g[1:] for g in got if g[2] is None) == [(42, None)]
-        assert [g[2].split(":")[0] for g in got if g[2] is not None] == ["ZeroDivisionError"]
-        assert all(g[0] >= 10.0 + lag - (0.01 if lag == 0.0 else 0.0) for g in got)
-        assert not w.busy("window") and w.stats.failed == {"physical": 1}
+@pytest.mark.parametrize("lag", [0.0, 0.3, 1.7])
+def test_the_lagged_worker_hands_results_back_after_the_lag_and_keeps_the_lane_busy(lag):
+    clock = [10.0]
+    w = bf.LaggedWorker(lag, clock=lambda: clock[0])
+    got = []
+    w.submit("window", lambda x: 2 * x, (21,), lambda r, e: got.append((clock[0], r, e)))
+    w.submit("physical", lambda: 1 / 0, (), lambda r, e: got.append((clock[0], r, e)))
+    assert w.busy("window") and w.busy("physical") and not w.busy("linearity")
+    with pytest.raises(RuntimeError):
+        w.submit("window", lambda: 0, (), lambda r, e: None)
+    if lag > 0:
+        clock[0] = 10.0 + 0.9 * lag
+        assert w.poll() == 0 and got == [] and w.busy("window")
+    clock[0] = 10.0 + lag
+    assert w.poll() == 2
+    assert sorted(g[1:] for g in got if g[2] is None) == [(42, None)]
+    assert [g[2].split(":")[0] for g in got if g[2] is not None] == ["ZeroDivisionError"]
+    assert all(g[0] == 10.0 + lag for g in got)
+    assert not w.busy("window") and w.stats.failed == {"physical": 1}
     with pytest.raises(ValueError):
         bf.LaggedWorker(-1.0)
 
@@ -149,14 +149,16 @@ def test_frames_are_lost_and_late_as_asked_and_stay_in_order(loss, jitter, seed)
     realism = ev.BenchRealism(frame_loss=loss, jitter_s=jitter)
     frames = bf.bench_frames(data, realism, seed)
     sent = 3 * len(data)
-    assert len(frames) / sent == pytest.approx(1.0 - loss, abs=max(0.01, 3 * np.sqrt(loss / sent)))
+    assert len(frames) / sent == pytest.approx(1.0 - loss, abs=4.0 * np.sqrt(loss * (1.0 - loss) / sent) + 1e-12)
     t = np.array([f[0] for f in frames])
-    assert np.all(np.diff(t) >= 0.0)
-    late = t - np.array([data.time_s[int(round(x))] for x in np.floor(t * 1000.0 - jitter * 1000.0 + 1e-6)
-                         .clip(0, len(data) - 1)])
-    assert late.min() >= -1e-9
+    assert np.all(np.diff(t) >= 0.0)  # received in order
+    late_ms = t * 1000.0 - np.floor(t * 1000.0 + 1e-6)  # after the sample's time (1 kHz)
     if jitter == 0.0:
-        assert set(np.round(t * 1000.0, 6) % 1.0) == {0.0}  # every frame at its sample's time
+        assert np.abs(late_ms).max() < 1e-6  # every frame at its sample's time
+    elif jitter < 0.001:  # less than a period: each frame within the jitter of its sample's time
+        assert late_ms.max() <= 1000.0 * jitter + 1e-6 and late_ms.mean() > 0.3 * 1000.0 * jitter
+    else:
+        assert 0.3 < late_ms.mean() < 0.7  # spread over the period
     with pytest.raises(ValueError):
         ev.BenchRealism(frame_loss=1.0)
 
