@@ -184,3 +184,23 @@ def test_frames_with_loss_jitter_and_lag_still_track_the_resonance(f0, n_cyl, se
     assert est.f0_hz == pytest.approx(f0, rel=0.03)
     assert pipe.counters.samples > 0.9 * len(data)
     assert max(busy) > 0.0  # a refit was in flight when a publication went out
+
+
+@pytest.mark.parametrize("argv,bad", [(["--frame-loss", "1.5"], "1.5"), (["--worker-lag", "-1"], "-1.0"),
+                                      (["--bench-realism", "--frame-jitter", "nan"], "nan")])
+def test_the_command_rejects_bad_realism_in_one_line(cli_error, argv, bad):
+    msg = cli_error(["evaluate", "--hours", "0", "--fault-plants", "0", *argv])
+    assert msg.startswith("error: Expected --frame-loss in [0, 1)") and bad in msg and "\n" not in msg.strip()
+
+
+def test_bench_realism_fills_what_is_not_given():
+    from argparse import Namespace
+
+    from online_id.offline.evaluate import _realism
+
+    args = Namespace(frame_loss=None, frame_jitter=0.004, worker_lag=None, bench_realism=True, crossings=False)
+    assert _realism(args) == ev.BenchRealism(0.01, 0.004, 0.5) and args.crossings
+    none = Namespace(frame_loss=None, frame_jitter=None, worker_lag=None, bench_realism=False, crossings=False)
+    assert _realism(none) is None and not none.crossings
+    lag = Namespace(frame_loss=None, frame_jitter=None, worker_lag=0.2, bench_realism=False, crossings=False)
+    assert _realism(lag) == ev.BenchRealism(0.0, 0.0, 0.2)
