@@ -51,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
             spent["n"] += 1
             spent["cpu"] += time.process_time() - t0
 
-    import online_id.pipeline as pipeline
+    import online_id.service.pipeline as pipeline
     pipeline.backlash_test = timed
     print("| plant | backlash | run CPU on / off, median [s] | on / off | tests on / off | CPU per test [s] "
           "| warning delay on / off [s] |")

@@ -17,7 +17,7 @@ saved every 5 s.
 * **Reaction in the service** (``service_reaction_ms``): the service itself
   measures, for every frame whose processing publishes, the time from the
   kernel's arrival stamp of that frame to the last of its output frames sent
-  (``online_id.reaction``; it reports it when it stops).  This is the
+  (``online_id.service.reaction``; it reports it when it stops).  This is the
   latency from the trigger frame to the OidEstimate on the service's side of
   the socket, the same on SocketCAN.
 * **Latency end to end**: from the sender's ``perf_counter()`` just before the send of
@@ -60,8 +60,8 @@ from harness import live_config, live_settings, run_live  # noqa: E402
 from online_id.bench.scenario import BenchScenario, OperatingPoint  # noqa: E402
 from online_id.bench.simulate import simulate_bench  # noqa: E402
 from online_id.io.dbc import encode_inputs, load_dbc  # noqa: E402
-from online_id.offload import InlineWorker  # noqa: E402
-from online_id.runtime import Runtime  # noqa: E402
+from online_id.service.offload import InlineWorker  # noqa: E402
+from online_id.service.runtime import Runtime  # noqa: E402
 
 GROUP = "239.74.163.51"
 REACTION = re.compile(r"reaction p50 (?P<p50>[\d.]+) ms, p99 (?P<p99>[\d.]+) ms, max (?P<max>[\d.]+) ms over (?P<n>\d+)")

@@ -56,9 +56,9 @@ from online_id.bench import BenchScenario, OperatingPoint, simulate_bench  # noq
 from online_id.config import MqttSettings, Settings  # noqa: E402
 from online_id.io.dbc import encode_inputs  # noqa: E402
 from online_id.io.mqtt import MqttTelemetry  # noqa: E402
-from online_id.offload import InlineWorker  # noqa: E402
+from online_id.service.offload import InlineWorker  # noqa: E402
 from online_id.records import EstimateOut, QualityOut, ServiceState, StatusOut  # noqa: E402
-from online_id.runtime import Runtime  # noqa: E402
+from online_id.service.runtime import Runtime  # noqa: E402
 
 
 class Timed:

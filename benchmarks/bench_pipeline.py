@@ -100,8 +100,8 @@ from online_id.bench import BenchScenario, OperatingPoint, simulate_bench
 from online_id.config import BusSettings, InertiaSettings, ModelSettings, Settings
 from online_id.io.bus import CanBus
 from online_id.io.dbc import encode_inputs, load_dbc
-from online_id.runtime import Runtime, role_mapping
-from online_id.service import Service
+from online_id.service.runtime import Runtime, role_mapping
+from online_id.service.live import Service
 
 TARGET_FPS = 37_000.0
 # 1 Mbit/s, standard ID, 8 data bytes: 98 stuffable bits (SOF to CRC) + 24 worst-case stuff bits + 10 (CRC

@@ -12,7 +12,7 @@ from another process, and measures how long after the bench started the
 first valid OidEstimate is published, while ``load`` other processes spin
 at normal priority (``python -c "while True: pass"``, one per core at most
 as many as given). Each plant is also run in-process through the same
-runtime (the harness's ``first_valid_in_process``: ``online_id.runtime.Runtime``
+runtime (the harness's ``first_valid_in_process``: ``online_id.service.runtime.Runtime``
 with the inline worker): the stream time of its first valid estimate is
 what the method needs, whatever the machine; the live figure minus it is
 what the machine's load added (the refits, which run in the service's

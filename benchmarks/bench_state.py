@@ -31,7 +31,7 @@ from online_id.bench import evaluate as ev
 from online_id.bench.scenario import BenchScenario, OperatingPoint
 from online_id.bench.simulate import simulate_bench
 from online_id.io.statefile import save_state
-from online_id.pipeline import run_bench_data
+from online_id.service.pipeline import run_bench_data
 
 CELLS = (0, 4, 12, 24)
 

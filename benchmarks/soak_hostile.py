@@ -6,7 +6,7 @@ Usage::
                                       [--mode authenticated|plain] [--check-s 600] [--out DIR] [--inline]
 
 A replay-equivalent of ``--hours`` of a bench at 1 kHz through the service's
-own code path (:class:`~online_id.runtime.Runtime`: decode, assemble,
+own code path (:class:`~online_id.service.runtime.Runtime`: decode, assemble,
 estimate, detect, publish), with its slow work in a worker process as the
 live service has it (``--inline``: in this process, as replay has it).  The stream is fed as
 fast as this process goes (about 30x real time); with the worker process it waits for the worker where it
@@ -62,9 +62,9 @@ from online_id.bench.simulate import simulate_bench  # noqa: E402
 from online_id.config import CommandSettings, InertiaSettings, ModelSettings, Settings  # noqa: E402
 from online_id.io.dbc import encode_inputs, load_dbc  # noqa: E402
 from online_id.io.dbc_output import OutputEncoder  # noqa: E402
-from online_id.offload import InlineWorker, ProcessWorker  # noqa: E402
+from online_id.service.offload import InlineWorker, ProcessWorker  # noqa: E402
 from online_id.records import ServiceState  # noqa: E402
-from online_id.runtime import Runtime  # noqa: E402
+from online_id.service.runtime import Runtime  # noqa: E402
 
 LAG_S = 3.0  # stream seconds the stream may run ahead of a window refit in flight (process worker)
 CHUNK_S = 120.0

@@ -22,6 +22,7 @@ import yaml
 
 from online_id.estimation.settings import IdentificationSettings, InertiaSettings
 from online_id.errors import ConfigError, FieldError
+from online_id.monitoring import defaults as detection_defaults
 
 OUTPUT_MESSAGE_NAMES = ("OidEstimate", "OidShaft", "OidQuality", "OidStatus", "OidAlert", "OidExcitation",
                         "OidFreshness")
@@ -162,16 +163,16 @@ class DetectionSettings:
     """Wear and fault detection: baselines per speed band and load, and sequential change detection."""
 
     enabled: bool = True
-    band_rpm: float = 250.0
-    load_band_nm: float = 2.0
-    min_count: int = 20
-    pool_tolerance_pct: float = 0.5
-    k: float = 0.5
-    h_warning: float = 8.0
-    h_fault: float = 16.0
+    band_rpm: float = detection_defaults.BAND_RPM
+    load_band_nm: float = detection_defaults.LOAD_BAND_NM
+    min_count: int = detection_defaults.MIN_COUNT
+    pool_tolerance_pct: float = detection_defaults.POOL_TOLERANCE_PCT
+    k: float = detection_defaults.K
+    h_warning: float = detection_defaults.H_WARNING
+    h_fault: float = detection_defaults.H_FAULT
     min_excitation_nm: float = 2.0
-    min_freq_change_pct: float = 0.5
-    min_damping_change_pct: float = 20.0
+    min_freq_change_pct: float = detection_defaults.MIN_FREQ_CHANGE_PCT
+    min_damping_change_pct: float = detection_defaults.MIN_DAMPING_CHANGE_PCT
     damping_tie_pct: float = 1.0
     frequency_tie_pct: float = 1.0
     settle_s: float = 6.0

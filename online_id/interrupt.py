@@ -12,7 +12,7 @@ SIGTERM.  A second signal while the first one's clean-up runs is ignored, so
 that the clean-up finishes.
 
 The service (``online-id run``) sets its own handlers once it is built
-(:func:`online_id.service.run_service`: stop the loop, save, exit 0); a
+(:func:`online_id.service.live.run_service`: stop the loop, save, exit 0); a
 signal during its start-up ends it with status 0 too (nothing was changed yet).
 
 Before ``main`` runs, in the first ~0.1 s while the interpreter itself starts,

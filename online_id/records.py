@@ -168,7 +168,7 @@ class ExcitationOut:
 @dataclass(frozen=True)
 class FreshnessOut:
     """The command freshness value: the last one accepted (the next command carries this + 1 .. + 64), and
-    whether commands must carry a MAC (see :mod:`online_id.commands`)."""
+    whether commands must carry a MAC (see :mod:`online_id.service.commands`)."""
 
     t_s: float
     freshness: int
@@ -176,3 +176,7 @@ class FreshnessOut:
 
 
 Publication = EstimateOut | QualityOut | StatusOut | AlertOut | ExcitationOut | FreshnessOut
+
+
+DEMAND_COLUMN = "torque_demand_nm"
+"""The bench CSV column of the recorded test-torque demand [Nm] (``simulate --with-demand`` writes it)."""

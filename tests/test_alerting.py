@@ -7,8 +7,8 @@ import time
 from online_id.config import AlertSettings, Settings
 from online_id.io.journal import Journal, encode_entry
 from online_id.records import AlertKind, AlertOut
-from online_id.offload import InlineWorker
-from online_id.service import Service
+from online_id.service.offload import InlineWorker
+from online_id.service.live import Service
 
 
 def parse(datagram: bytes) -> dict:
@@ -40,7 +40,7 @@ def test_alert_goes_to_journal_and_hook(tmp_path, monkeypatch):
     jpath = tmp_path / "journal.sock"
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     sock.bind(str(jpath))
-    monkeypatch.setattr("online_id.service.Journal", lambda: Journal(str(jpath)))
+    monkeypatch.setattr("online_id.service.live.Journal", lambda: Journal(str(jpath)))
     out = tmp_path / "hook.txt"
     hook = tmp_path / "hook.sh"
     hook.write_text(f'#!/bin/sh\nenv | grep ^ONLINE_ID_ | sort > "{out}"\n')
@@ -67,7 +67,7 @@ def test_ack_and_relearn_send_the_command_frame(capsys):
     from online_id.cli import main
     from online_id.io.bus import CanBus
     from online_id.io.dbc import BenchCommand, InputDecoder, load_dbc
-    from online_id.runtime import Runtime
+    from online_id.service.runtime import Runtime
 
     channel = f"ack-{os.getpid()}"
     dec = InputDecoder(load_dbc(None))

@@ -7,22 +7,47 @@ from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parent.parent / "online_id"
 
-# what each room may import of the project (besides itself); imports under `if TYPE_CHECKING:` do not count
+# What each room may import of the project (besides itself), from the bottom up; imports under
+# `if TYPE_CHECKING:` do not count.  A room is a package under online_id/ or a module at its top level; the
+# top level holds only what serves all of it.  Every room is listed (test_every_room_has_a_rule).
+BASE = {"errors", "records", "units", "progress", "config"}
+CORE = {"analysis", "estimation", "monitoring", "diagnose"}
 ALLOWED = {
+    # the base: serves every room
+    "errors": set(),
+    "records": set(),
+    "units": {"errors"},
+    "progress": set(),
+    "config": {"errors", "estimation", "monitoring"},  # the identification's settings, detection's defaults
+    # the numerical core: no I/O, no clocks
     "analysis": {"errors", "records"},
     "estimation": {"errors", "records", "analysis"},
     "monitoring": {"errors", "records", "analysis"},
-    "excitation": {"errors", "records"},
+    "diagnose": {"errors", "records", "units", "analysis", "estimation"},
+    # adapters to files, CAN, MQTT
     "io": {"errors", "records"},
-    "assembly": {"errors", "records"},
-    "diagnose": {"errors", "records", "analysis", "estimation"},
-    "bench": {"errors", "records", "excitation", "config", "bench", "pipeline"},
-    "pipeline": {"errors", "records", "analysis", "estimation", "monitoring", "excitation", "assembly", "config",
-                 "offload", "diagnose"},
-    "offload": {"scheduling"},
-    "evaluation": {"errors", "records", "bench"},  # judges the diagnosis from outside: through its CLI only
-    "scheduling": set(),
+    # the streaming path shared by the live service and replay
+    "service": BASE | CORE | {"io"},
+    # what reads recordings into samples (a CAN log as the service would)
+    "ingest": BASE | CORE | {"io", "service"},
+    # the bench simulator and the detection evaluation that drives the pipeline
+    "bench": BASE | CORE | {"service"},
+    # tables and figures
+    "report": BASE | CORE,
+    # the work behind the offline commands; the Dask runner of the archive runs evaluations too
+    "offline": BASE | CORE | {"io", "service", "ingest", "bench", "report", "archive"},
+    # a test centre's archive
+    "archive": BASE | CORE | {"io", "service", "ingest", "bench", "report"},
+    # the evaluations of the diagnosis on simulated benches and rigs (the chain family: see CHAIN below)
+    "evaluation": BASE | CORE | {"io", "bench", "ingest", "offline", "archive"},  # archive: the Dask runner
+    # the command line on top of everything
+    "interrupt": {"io"},
+    "cli": None,  # may import every room
+    "__main__": {"cli"},
 }
+CHAIN = {"errors", "records", "bench", "evaluation"}
+"""What the chain family's modules (online_id.evaluation.chain*) may import: they judge the diagnosis from outside,
+through its command line only, so that nothing of the diagnosis shapes the benches it is judged on."""
 
 
 def _module_name(path: Path) -> str:
@@ -66,18 +91,40 @@ def _room(module: str) -> str:
     return parts[1] if len(parts) > 1 else ""
 
 
-def test_rooms_import_only_what_lies_below_them():
-    mods = _modules()
-    bad = []
-    for name, path in mods.items():
+def _layering_breaks() -> set[str]:
+    bad = set()
+    for name, path in _modules().items():
         room = _room(name)
-        if room not in ALLOWED:
+        if ALLOWED.get(room, set()) is None:
             continue
         for imp in _imports(path, top_level_only=False):
             target = _room(imp)
-            if target and target != room and target not in ALLOWED[room]:
-                bad.append(f"{name} imports {imp}")
-    assert not bad, "layering broken:\n" + "\n".join(sorted(set(bad)))
+            if target and target != room and target not in ALLOWED.get(room, set()) and target != "__version__":
+                bad.add(f"{name} imports {imp}")
+    return bad
+
+
+def test_the_chain_family_judges_from_outside():
+    bad = set()
+    for name, path in _modules().items():
+        if name.startswith("online_id.evaluation.chain"):
+            for imp in _imports(path, top_level_only=False):
+                target = _room(imp)
+                if target not in CHAIN or (target == "evaluation" and imp != "online_id.evaluation"
+                                                and not imp.startswith("online_id.evaluation.chain")):
+                    bad.add(f"{name} imports {imp}")
+    assert not bad, "the chain family reaches into the product:\n" + "\n".join(sorted(bad))
+
+
+def test_every_room_has_a_rule():
+    rooms = {_room(name) for name in _modules()} - {""}
+    assert rooms - set(ALLOWED) == set(), "rooms without a rule in ALLOWED"
+    assert set(ALLOWED) - rooms == set(), "rules of rooms that no longer exist"
+
+
+def test_rooms_import_only_what_lies_below_them():
+    bad = _layering_breaks()
+    assert not bad, "layering broken:\n" + "\n".join(sorted(bad))
 
 
 def test_no_import_cycles_between_modules():
@@ -113,7 +160,7 @@ def test_numerical_rooms_do_not_load_io_libraries():
     code = (
         "import sys, online_id.estimation.identification, online_id.estimation.online, online_id.estimation.kalman, "
         "online_id.analysis.poles, online_id.monitoring.detection, online_id.monitoring.tracks, "
-        "online_id.monitoring.baseline, online_id.pipeline, online_id.bench.simulate; "
+        "online_id.monitoring.baseline, online_id.service.pipeline, online_id.bench.simulate; "
         "bad = [m for m in ('can', 'cantools', 'matplotlib', 'online_id.io') if m in sys.modules]; "
         "print(','.join(bad))"
     )

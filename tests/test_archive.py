@@ -283,7 +283,7 @@ def test_the_service_and_the_offline_commands_run_without_dask(tmp_path):
         "        if name.split('.')[0] in ('dask', 'distributed', 'pyarrow'):\n"
         "            raise ImportError(f'No module named {name!r}', name=name)\n"
         "sys.meta_path.insert(0, Hide())\n"
-        "import online_id.service, online_id.pipeline, online_id.cli.identify, online_id.cli.diagnose\n"
+        "import online_id.service.live, online_id.service.pipeline, online_id.cli.identify, online_id.cli.diagnose\n"
         "import online_id.cli.evaluate, online_id.cli.replay, online_id.cli.trend, online_id.cli.archive\n"
         "import online_id.archive.runner, online_id.archive.trend, online_id.archive.table\n"
         "from online_id.cli import main\n"
@@ -333,7 +333,7 @@ def test_a_long_recording_is_cut_into_segments_each_a_task(archive, tmp_path):
 
 @pytest.mark.slow
 def test_archive_diagnose_adds_the_effects_of_online_id_diagnose(archive, reference, tmp_path, capsys):
-    from online_id.cli.diagnose import bench_series
+    from online_id.ingest.bench_series import bench_series
     from online_id.diagnose.bench_diagnosis import diagnose_bench
 
     path = recordings(archive)[0]

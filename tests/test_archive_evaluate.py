@@ -38,3 +38,23 @@ def test_evaluate_on_a_local_dask_cluster_gives_the_runs_of_the_process_pool(tmp
     f = dask["summary"]["fault_free"]
     assert f["false_alarms_per_1000h"] == pytest.approx(1000.0 * f["false_alarms"] / f["hours"])
     assert dask["summary"]["settings"]["dask"] == "local cluster, 2 workers"
+
+
+@pytest.mark.slow
+def test_evaluate_diagnose_cases_on_a_local_dask_cluster_are_the_process_pools(tmp_path):
+    """The diagnosis evaluation's cases as Dask tasks give the cases of the process pool; a task that fails is a
+    failed case on every path, never left out."""
+    pytest.importorskip("distributed")
+    from online_id.evaluation import diagnose_benches as ev
+
+    jobs = [("sensor_delay", 41, "bench", ("no_demand",)), ("clean", 43, "structures", ("no_demand",))]
+    pool = ev.run_cases(jobs, 2)
+    dask = ev.run_cases(jobs + [("no_such_kind", 1, "bench", ("no_demand",))], 2, dask=True)
+
+    def same(r):
+        return {k: ({kk: vv for kk, vv in v.items() if kk != "seconds"} if isinstance(v, dict) else v)
+                for k, v in r.items() if k != "seconds"}
+
+    assert [same(r) for r in dask[:2]] == [same(r) for r in pool]
+    failed = dask[2]
+    assert failed["kind"] == "no_such_kind" and "no_such_kind" in failed["no_demand"]["error"]

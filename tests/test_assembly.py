@@ -10,7 +10,7 @@ sys.path.insert(0, str(Path(__file__).parent / "live"))
 
 from harness import first_valid_in_process, live_plant, live_settings  # noqa: E402
 
-from online_id.assembly import SampleAssembler  # noqa: E402
+from online_id.service.assembly import SampleAssembler  # noqa: E402
 from online_id.bench.simulate import simulate_bench  # noqa: E402
 from online_id.io.dbc import encode_inputs, load_dbc  # noqa: E402
 from online_id.records import FrameFault, SignalSample  # noqa: E402

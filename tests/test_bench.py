@@ -31,7 +31,7 @@ from online_id.bench import (
     scenario_to_dict,
     simulate_bench,
 )
-from online_id.excitation import prbs_hold_samples
+from online_id.analysis.excitation import prbs_hold_samples
 from online_id.cli import simulate as cli_simulate
 from online_id.errors import ConfigError
 

@@ -5,13 +5,13 @@ import json
 import numpy as np
 import pytest
 
-from online_id.benchlog import read_bench, read_bench_log
+from online_id.ingest.benchlog import read_bench, read_bench_log
 from online_id.cli import main
 from online_id.config import Settings
 from online_id.errors import InputDataError
 from online_id.io.canlog import SUFFIXES, write_log
 from online_id.io.dbc import encode_inputs
-from online_id.signals import read_bench_csv
+from online_id.ingest.signals import read_bench_csv
 
 
 def _bench(path_csv, n, seed):

@@ -23,11 +23,7 @@ print("LOADED", " ".join(sorted(m for m in {heavy!r} if m in sys.modules)))
 """
 
 
-SLOW_HELP = {"diagnose": "its parser's defaults come from the diagnosis package (scipy, numba)"}
-
-
-@pytest.mark.parametrize("command", [pytest.param(c, marks=pytest.mark.xfail(strict=True, reason=SLOW_HELP[c]))
-                                     if c in SLOW_HELP else c for c in sorted(SUBCOMMANDS)])
+@pytest.mark.parametrize("command", sorted(SUBCOMMANDS))
 def test_help_imports_no_heavy_library(command):
     out = subprocess.run([sys.executable, "-c", PROBE.format(heavy=HEAVY), command], capture_output=True,
                          text=True, timeout=120)

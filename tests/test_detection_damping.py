@@ -51,7 +51,7 @@ def test_the_confirm_of_each_kind_prefers_the_baselines_minimum_within_its_own_t
     nearly equal minima differ by 30-40 % in the damping and 1-3 % in the resonance)."""
     from online_id.config import DetectionSettings, Settings
     from online_id.monitoring.cells import BandStats
-    from online_id.pipeline import PENDING, Pipeline
+    from online_id.service.pipeline import PENDING, Pipeline
 
     pipe = Pipeline(Settings(detection=DetectionSettings(damping_tie_pct=1.2, frequency_tie_pct=2.5)))
     pipe._references = {6: np.arange(3.0)}

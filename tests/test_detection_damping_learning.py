@@ -19,7 +19,7 @@ import pytest
 from online_id.bench import evaluate as ev
 from online_id.bench.scenario import BenchScenario, Fault, OperatingPoint
 from online_id.bench.simulate import simulate_bench
-from online_id.pipeline import run_bench_data
+from online_id.service.pipeline import run_bench_data
 from online_id.records import AlertKind
 
 

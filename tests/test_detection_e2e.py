@@ -14,7 +14,7 @@ import pytest
 from online_id.bench import evaluate as ev
 from online_id.bench.simulate import simulate_bench
 from online_id.io.statefile import load_state, save_state
-from online_id.pipeline import Pipeline
+from online_id.service.pipeline import Pipeline
 from online_id.records import AlertKind, AlertOut, SignalSample
 
 

@@ -18,7 +18,7 @@ from online_id.bench.simulate import simulate_bench
 from online_id.cli import main
 from online_id.offline.bench_files import write_can_log
 from online_id.io.statefile import load_state, save_state
-from online_id.pipeline import run_bench_data
+from online_id.service.pipeline import run_bench_data
 from online_id.records import AlertKind
 
 
@@ -226,7 +226,7 @@ def test_a_cells_own_first_estimates_serve_detection_as_they_are_and_a_pool_doub
     for a point it has not seen). Doubling the cell's own too kept a -5 % loss on plant 11702 (a) from
     being alarmed at all; without it, 10.7 s."""
     from online_id.config import Settings
-    from online_id.pipeline import Pipeline
+    from online_id.service.pipeline import Pipeline
 
     pipe = Pipeline(Settings())
     rng = np.random.default_rng(n)

@@ -294,11 +294,12 @@ def test_the_demand_column_is_read_with_the_signals_in_one_pass(tmp_path, sign):
     default name; with --no-demand, none."""
     import dataclasses
 
-    from online_id.cli.diagnose import DEMAND_COLUMN, bench_series
+    from online_id.ingest.bench_series import bench_series
+    from online_id.records import DEMAND_COLUMN
     from online_id.config import Settings
-    from online_id.cli.diagnose import DEFAULT_PULSES_PER_REV
+    from online_id.diagnose.bench_data import DEFAULT_PULSES_PER_REV
     from online_id.diagnose.bench_data import TARGET_FS_HZ, prepare
-    from online_id.signals import read_bench_csv
+    from online_id.ingest.signals import read_bench_csv
 
     rng = np.random.default_rng(3)
     n = 10000  # 10 s at 1 kHz: one steady operating point (a bench diagnosis needs 8 s)

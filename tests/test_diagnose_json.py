@@ -91,3 +91,62 @@ def test_bench_diagnose_and_identify_json_are_strict(tmp_path, capsys):
     strict_loads(capsys.readouterr().out)
     assert main(["identify", str(csv), "--json"]) == 0
     strict_loads(capsys.readouterr().out)
+
+
+def test_evaluation_writers_are_strict():
+    """Every module that writes the diagnosis' or an evaluation's JSON writes it through the strict writer
+    (a NaN raises there, or becomes null), never with ``json.dump``'s default ``allow_nan=True``."""
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent / "online_id"
+    modules = ["evaluation/diagnose_benches.py", "evaluation/diagnose_rigs.py", "evaluation/chain.py", "evaluation/chain_files.py",
+               "offline/diagnose.py", "offline/diagnose_report.py", "offline/identify.py", "cli/evaluate_diagnose.py",
+               "cli/evaluate_rig.py", "cli/evaluate_chain.py"]
+    loose = []
+    for name in modules:
+        for node in ast.walk(ast.parse((root / name).read_text(encoding="utf-8"))):
+            if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+                    and node.func.attr in ("dump", "dumps") and getattr(node.func.value, "id", "") == "json"
+                    and not any(k.arg == "allow_nan" and getattr(k.value, "value", True) is False
+                                for k in node.keywords)):
+                loose.append(f"{name}:{node.lineno}")
+    assert not loose, f"json.dump(s) without allow_nan=False: {loose}"
+
+
+def test_chain_family_results_are_strict_with_an_undefined_figure(tmp_path, monkeypatch):
+    """The chain family's records, summary and results file stay strict JSON where a record holds NaN."""
+    from online_id.evaluation import chain
+
+    def fake_case(seed, quick, out, *args):
+        return {"seed": seed, "kind": "clean", "variant": "", "layout": "bench", "magnitude": float("nan"),
+                "decile": None, "failure": None, "named": "none", "kind_right": True, "params_right": None,
+                "error_lower": None, "false_effect": False, "simulate_s": 0.0, "diagnose_s": float("inf")}
+
+    monkeypatch.setattr(chain, "run_case", fake_case)
+    monkeypatch.setattr(chain, "ProcessPoolExecutor", _InProcessPool)
+    monkeypatch.setattr(chain, "confusion_png", lambda records, path: None)
+    chain.run_family([1, 2], tmp_path, jobs=1, report=lambda s: None)
+    doc = strict_loads((tmp_path / "results.json").read_text())
+    assert doc["cases"][0]["magnitude"] is None and doc["cases"][0]["diagnose_s"] is None
+    for line in (tmp_path / "results.jsonl").read_text().splitlines():
+        strict_loads(line)
+
+
+class _InProcessPool:
+    """A ``ProcessPoolExecutor`` stand-in that runs each call at once in this process."""
+
+    def __init__(self, max_workers=None):
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def submit(self, fn, *args):
+        from concurrent.futures import Future
+        fut = Future()
+        fut.set_result(fn(*args))
+        return fut

@@ -20,7 +20,7 @@ from online_id.config import ModelSettings, Settings
 from online_id.monitoring import engaged as E
 from online_id.monitoring.detection import DAMPING, FREQUENCY, Alarm, ChangeDetector
 from online_id.monitoring.engaged import EngagedFlank, EngagedReading
-from online_id.pipeline import COMMAND_ACK, Pipeline, run_bench_data
+from online_id.service.pipeline import COMMAND_ACK, Pipeline, run_bench_data
 from online_id.records import AlertKind
 
 SEEDS = (3, 17, 29, 41)

@@ -15,15 +15,15 @@ import os
 import numpy as np
 import pytest
 
-from online_id.assembly import SampleAssembler
+from online_id.service.assembly import SampleAssembler
 from online_id.config import Settings, load_config
 from online_id.errors import ConfigError, InputDataError
 from online_id.io.canlog import read_log, write_log
 from online_id.io.statefile import save_state
-from online_id.pipeline import Pipeline
+from online_id.service.pipeline import Pipeline
 from online_id.records import ROLES, SignalSample
-from online_id.restore import restore_pipeline
-from online_id.signals import read_bench_csv
+from online_id.service.restore import restore_pipeline
+from online_id.ingest.signals import read_bench_csv
 
 SEED = int(os.environ.get("ONLINE_ID_FUZZ_SEED", "16"))
 

@@ -13,18 +13,18 @@ import time
 
 import pytest
 
-from online_id.assembly import SampleAssembler
+from online_id.service.assembly import SampleAssembler
 from online_id.cli import main
-from online_id.commands import FRESHNESS_FILE, MAC_FAILURES_MAX, keep_freshness
+from online_id.service.commands import FRESHNESS_FILE, MAC_FAILURES_MAX, keep_freshness
 from online_id.config import CommandSettings, MappingSettings, Settings, load_config
 from online_id.errors import ConfigError
 from online_id.io.bus import CanBus
 from online_id.io.dbc import BenchCommand, encode_command, encode_inputs, load_dbc
 from online_id.io.dbc_output import OutputEncoder
-from online_id.offload import InlineWorker
+from online_id.service.offload import InlineWorker
 from online_id.records import FrameFault, SignalSample
-from online_id.runtime import Runtime, role_mapping
-from online_id.service import Service
+from online_id.service.runtime import Runtime, role_mapping
+from online_id.service.live import Service
 
 DB = load_dbc(None)
 ENC = OutputEncoder(DB)

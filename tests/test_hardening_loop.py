@@ -14,14 +14,14 @@ import time
 import numpy as np
 import pytest
 
-from online_id.assembly import SampleAssembler
+from online_id.service.assembly import SampleAssembler
 from online_id.config import Settings, StateSettings
 from online_id.io.bus import Frame
 from online_id.io.canlog import write_log
 from online_id.io.dbc import encode_inputs, load_dbc
-from online_id.offload import InlineWorker
+from online_id.service.offload import InlineWorker
 from online_id.records import ROLES, FrameFault, ServiceState, SignalSample
-from online_id.service import Service
+from online_id.service.live import Service
 
 DB = load_dbc(None)
 T0 = 1_790_000_000.0
@@ -121,7 +121,7 @@ def test_an_absurd_first_stamp_is_a_bad_time_not_a_clock_step(absurd):
 
 
 def test_a_failed_final_save_exits_non_zero(tmp_path):
-    from online_id.service import STATE_FILE
+    from online_id.service.live import STATE_FILE
 
     s = Settings(state=StateSettings(directory=str(tmp_path), save_interval_s=3600.0))
     # once running, the state file's place is taken (a full or broken disk): the last save cannot replace it

@@ -20,7 +20,7 @@ from online_id.config import CommandSettings, Settings
 from online_id.io.dbc import encode_inputs, load_dbc
 from online_id.io.dbc_output import OutputEncoder
 from online_id.records import FrameFault, ServiceState
-from online_id.runtime import Runtime
+from online_id.service.runtime import Runtime
 
 DB = load_dbc(None)
 ENC = OutputEncoder(DB)

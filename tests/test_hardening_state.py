@@ -16,10 +16,10 @@ from online_id.config import Settings, StateSettings
 from online_id.errors import InputDataError
 from online_id.io.dbc import encode_inputs, load_dbc
 from online_id.io.statefile import MAX_STATE_BYTES, StateReset, load_state, save_state
-from online_id.offload import InlineWorker
-from online_id.restore import restore_pipeline
-from online_id.runtime import Runtime
-from online_id.service import STATE_FILE, Service
+from online_id.service.offload import InlineWorker
+from online_id.service.restore import restore_pipeline
+from online_id.service.runtime import Runtime
+from online_id.service.live import STATE_FILE, Service
 
 
 @pytest.fixture(scope="module")

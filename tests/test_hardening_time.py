@@ -14,16 +14,16 @@ from pathlib import Path
 
 import pytest
 
-from online_id.assembly import JUMP_CONFIRM, SampleAssembler
+from online_id.service.assembly import JUMP_CONFIRM, SampleAssembler
 from online_id.bench.scenario import BenchScenario, OperatingPoint
 from online_id.bench.simulate import simulate_bench
 from online_id.config import Settings
 from online_id.io.canlog import write_log
 from online_id.io.dbc import encode_inputs, load_dbc
 from online_id.io.dbc_output import OutputEncoder
-from online_id.pipeline import Pipeline
+from online_id.service.pipeline import Pipeline
 from online_id.records import ROLES, FrameFault, ServiceState, SignalSample
-from online_id.runtime import Runtime
+from online_id.service.runtime import Runtime
 
 DB = load_dbc(None)
 ENC = OutputEncoder(DB)

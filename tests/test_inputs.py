@@ -5,7 +5,7 @@ import pytest
 
 from online_id.config import ColumnSettings, UnitSettings
 from online_id.errors import InputDataError
-from online_id.signals import read_bench_csv
+from online_id.ingest.signals import read_bench_csv
 
 HEADER = "time_s,dyno_speed_rpm,engine_speed_rpm,dyno_torque_nm\n"
 

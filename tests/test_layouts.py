@@ -12,10 +12,10 @@ import pytest
 
 from online_id.bench.rig import loggers_rig, random_rig, simulate_rig
 from online_id.cli import build_parser, main
-from online_id.cli.diagnose_records import read_records
+from online_id.offline.diagnose_records import read_records
 from online_id.cli.evaluate_rig import write_rig, written_angles
 from online_id.errors import ConfigError, InputDataError
-from online_id.rig_evaluation import rig_data
+from online_id.evaluation.diagnose_rigs import rig_data
 
 UNITS = ("deg", "rad", "rev", "counts")
 

@@ -77,9 +77,6 @@ def test_documented_command_reads_the_two_logger_layout(example):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="diagnosis engine (issue 36 part 3): at one motor speed the baseline "
-                   "holds the once-per-revolution line as an undamped pole pair at 1x motor speed "
-                   "(54.4 Hz, damping 0.000) and no test names it")
 def test_documented_command_names_the_once_per_revolution_line(example):
     truth, doc, _ = example
     assert (truth["disturbance"]["shaft"], truth["disturbance"]["order"]) == ("motor", 1.0)

@@ -11,7 +11,7 @@ import pytest
 
 from online_id.cli import main
 from online_id.config import ColumnSettings, UnitSettings
-from online_id.signals import read_bench_csv, speed_warnings
+from online_id.ingest.signals import read_bench_csv, speed_warnings
 
 COLUMNS = ColumnSettings("time_s", "a", "b", "torque")
 

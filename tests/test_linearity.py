@@ -26,7 +26,7 @@ from online_id.errors import ConfigError
 from online_id.diagnose.linearity import backlash_test
 from online_id.monitoring.baseline import Baseline
 from online_id.config import Settings
-from online_id.pipeline import Pipeline, run_bench_data
+from online_id.service.pipeline import Pipeline, run_bench_data
 from online_id.records import AlertKind
 
 RPM = np.pi / 30.0

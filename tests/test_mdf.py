@@ -5,11 +5,11 @@ import json
 import numpy as np
 import pytest
 
-from online_id.benchlog import read_bench
+from online_id.ingest.benchlog import read_bench
 from online_id.cli import main
 from online_id.config import ColumnSettings, Settings
 from online_id.errors import InputDataError
-from online_id.signals import read_bench_mdf
+from online_id.ingest.signals import read_bench_mdf
 
 TINY = "operating_points: [{speed_rpm: 1200, duration_s: 2}]\nseed: 2\n"
 SHORT = "operating_points: [{speed_rpm: 1400, duration_s: 11}, {speed_rpm: 2100, duration_s: 11}]\nseed: 5\nc_s: 5200\n"

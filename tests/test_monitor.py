@@ -19,7 +19,7 @@ from online_id.records import AlertKind, AlertOut, EstimateOut, ServiceState, St
 def _service(channel, stop, config=None):
     """A stand-in for the service: the runtime of the live service answering on a virtual bus."""
     from online_id.config import load_config
-    from online_id.runtime import Runtime
+    from online_id.service.runtime import Runtime
 
     runtime = Runtime(load_config(config))
     with CanBus("virtual", channel) as bus:

@@ -24,9 +24,9 @@ from online_id.errors import ConfigError  # noqa: E402
 from online_id.io.bus import CanBus  # noqa: E402
 from online_id.io.dbc import encode_inputs  # noqa: E402
 from online_id.io.mqtt import MqttTelemetry, payload  # noqa: E402
-from online_id.offload import InlineWorker  # noqa: E402
+from online_id.service.offload import InlineWorker  # noqa: E402
 from online_id.records import AlertKind, AlertOut, EstimateOut, QualityOut, ServiceState, StatusOut  # noqa: E402
-from online_id.service import Service  # noqa: E402
+from online_id.service.live import Service  # noqa: E402
 
 needs_broker = pytest.mark.skipif(EXE is None, reason=MISSING)
 

@@ -14,8 +14,8 @@ import pytest
 from online_id.bench.scenario import BenchScenario, OperatingPoint
 from online_id.bench.simulate import simulate_bench
 from online_id.config import InertiaSettings, ModelSettings, Settings
-from online_id.offload import InlineWorker, ProcessWorker
-from online_id.pipeline import Pipeline, run_bench_data
+from online_id.service.offload import InlineWorker, ProcessWorker
+from online_id.service.pipeline import Pipeline, run_bench_data
 
 
 def _square(x: float) -> float:
@@ -146,7 +146,7 @@ def test_pipeline_with_the_process_worker_matches_the_inline_pipeline(seed: int,
 
         pipe_ref: list[Pipeline] = []
         try:
-            import online_id.pipeline as pl
+            import online_id.service.pipeline as pl
 
             original = pl.Pipeline
 

@@ -1,9 +1,9 @@
-"""The service's reaction-time histogram (online_id.reaction)."""
+"""The service's reaction-time histogram (online_id.service.reaction)."""
 
 import numpy as np
 import pytest
 
-from online_id.reaction import BIN_S, ReactionTimes
+from online_id.service.reaction import BIN_S, ReactionTimes
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from scipy.signal import lfilter
 
-from online_id import pipeline as pl
+from online_id.service import pipeline as pl
 from online_id.bench import evaluate as ev
 from online_id.bench.scenario import BenchScenario, Fault, OperatingPoint
 from online_id.bench.simulate import simulate_bench
@@ -20,9 +20,9 @@ from online_id.estimation.model import ArmaxOrders
 from online_id.estimation.pem import fit_armax
 from online_id.estimation.reference import ReferenceWindow, judge, refit_each
 from online_id.io.statefile import save_state
-from online_id.offload import InlineWorker
-from online_id.pipeline import run_bench_data
-from online_id.restore import restore_pipeline
+from online_id.service.offload import InlineWorker
+from online_id.service.pipeline import run_bench_data
+from online_id.service.restore import restore_pipeline
 from online_id.records import AlertKind
 
 DT = 1.0 / 500.0

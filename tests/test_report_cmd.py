@@ -10,7 +10,7 @@ from online_id.cli import main
 from online_id.config import Settings
 from online_id.analysis.poles import Pole
 from online_id.io.statefile import save_state
-from online_id.pipeline import Pipeline
+from online_id.service.pipeline import Pipeline
 from online_id.records import AlertKind, AlertOut
 
 SHORT_BENCH = """
@@ -183,7 +183,7 @@ def test_out_is_a_file(tmp_path, cli_error):
 
 def test_final_estimate_is_not_valid_when_the_service_ended_in_input_timeout():
     from online_id.offline.report import final_estimate
-    from online_id.report import EstimateSeries
+    from online_id.report.figures import EstimateSeries
 
     t = np.arange(5.0)
     est = EstimateSeries(t, np.full(5, 1500.0), np.full(5, 25.0), np.full(5, 0.05), np.array([1, 1, 1, 0, 0], bool))
@@ -216,7 +216,7 @@ def test_state_report_units_and_no_validity_claim(tmp_path):
 
 def test_fmt_prints_no_negative_zero():
     """An order line's damping of -1e-5 reads 0.0000 in the pole table, the column width kept."""
-    from online_id.report import fmt
+    from online_id.report.figures import fmt
 
     assert fmt(-1e-5, "8.4f") == "  0.0000" and fmt(-1e-5, ".4f") == "0.0000"
     assert fmt(-0.5, "8.4f") == " -0.5000" and fmt(-1e-9, ".3g") == "-1e-09"

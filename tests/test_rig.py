@@ -15,7 +15,7 @@ from online_id.diagnose.diagnosis import _guard, ErrorFigures
 from online_id.diagnose.shafts import assign_order, parse_shafts, snap_ratio
 from online_id.errors import ConfigError, InputDataError
 from online_id.io.table_csv import write_csv_columns
-from online_id.rig_evaluation import identifiable_orders, rig_data, rig_spec, run_case
+from online_id.evaluation.diagnose_rigs import identifiable_orders, rig_data, rig_spec, run_case
 
 
 def _records(seed: int, **overrides):

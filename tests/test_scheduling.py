@@ -4,8 +4,8 @@ import threading
 
 import pytest
 
-from online_id.offload import ProcessWorker
-from online_id.scheduling import SHORT_SLICE_NS, current_slice_ns, default_slice, request_short_slice
+from online_id.service.offload import ProcessWorker
+from online_id.service.scheduling import SHORT_SLICE_NS, current_slice_ns, default_slice, request_short_slice
 
 
 def test_the_loop_gets_a_short_slice_and_the_worker_goes_back_to_the_default() -> None:

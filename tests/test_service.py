@@ -22,10 +22,10 @@ from online_id.errors import BusError
 from online_id.io.bus import CanBus
 from online_id.io.dbc import encode_inputs, load_dbc
 from online_id.io.dbc_output import OutputEncoder
-from online_id.offload import InlineWorker
+from online_id.service.offload import InlineWorker
 from online_id.records import FrameFault, ServiceState
-from online_id.runtime import Runtime
-from online_id.service import Service
+from online_id.service.runtime import Runtime
+from online_id.service.live import Service
 
 DB = load_dbc(None)
 ENC = OutputEncoder(DB)

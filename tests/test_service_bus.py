@@ -10,8 +10,8 @@ import pytest
 from online_id.config import BusSettings, Settings
 from online_id.errors import BusError
 from online_id.io.bus import CanBus
-from online_id.offload import InlineWorker
-from online_id.service import Service
+from online_id.service.offload import InlineWorker
+from online_id.service.live import Service
 
 
 def _service(factory, reopen_max_s: float = 30.0) -> tuple[Service, io.StringIO]:

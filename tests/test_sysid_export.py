@@ -60,7 +60,7 @@ def test_json_models_simulate_in_python_control_as_the_fit(exported):
 def test_simulation_model_reproduces_the_fits_simulated_output(exported):
     """The exported B_sim/A_sim in python-control gives the simulated output identify's compare drew."""
     from online_id.analysis.poles import SPEED_DEPENDENT
-    from online_id.benchlog import read_bench
+    from online_id.ingest.benchlog import read_bench
     from online_id.config import Settings
     from online_id.estimation.identification import compare_point, identify, point_signals
     from online_id.estimation.pem import simulate_model

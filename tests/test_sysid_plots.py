@@ -5,14 +5,14 @@ import numpy as np
 import pytest
 
 from online_id.monitoring.cells import BandStats
-from online_id.report import AlertMark, EngagedSeries, EstimateSeries, TrackSeries
+from online_id.report.figures import AlertMark, EngagedSeries, EstimateSeries, TrackSeries
 
 
 @pytest.fixture
 def figures(monkeypatch):
     """The figures the plot functions make, drawn but not written."""
-    import online_id.plots.identification as pid
-    import online_id.report as rep
+    import online_id.report.identification as pid
+    import online_id.report.figures as rep
 
     kept = []
 
@@ -54,7 +54,7 @@ def identified():
 
 
 def test_compare_legend_beside_the_data_and_measured_on_top(identified, figures, tmp_path):
-    from online_id.plots.identification import write_identification_plots
+    from online_id.report.identification import write_identification_plots
 
     result, data = identified
     write_identification_plots(result, data, tmp_path, resid=True)
@@ -86,7 +86,7 @@ def _track(tid, cls, f, order=None, t0=0.0, n=50):
 
 
 def test_all_tracked_poles_names_order_lines_and_no_far_driveline(figures, tmp_path):
-    from online_id.report import plot_versus_speed
+    from online_id.report.figures import plot_versus_speed
 
     est = EstimateSeries(np.arange(50.0), np.linspace(1000, 2000, 50), np.full(50, 25.0), np.full(50, 0.05),
                          np.ones(50, bool))
@@ -106,7 +106,7 @@ def _band():
 
 
 def test_state_report_time_axis_has_no_empty_span_and_labels_stay_inside(figures, tmp_path):
-    from online_id.report import plot_tracks_over_time
+    from online_id.report.figures import plot_tracks_over_time
 
     tracks = [_track(1, "driveline", 25.0, t0=40.0)]
     alerts = [AlertMark(0.5, 2, "freq_drift fault"), AlertMark(40.2, 1, "freq_drift warning"),
@@ -122,7 +122,7 @@ def test_state_report_time_axis_has_no_empty_span_and_labels_stay_inside(figures
 
 
 def test_tracks_over_time_shows_the_engaged_readings_that_raised_an_alarm(figures, tmp_path):
-    from online_id.report import plot_tracks_over_time
+    from online_id.report.figures import plot_tracks_over_time
 
     est = EstimateSeries(np.arange(100.0), np.full(100, 1500.0), np.full(100, 25.0), np.full(100, 0.05),
                          np.ones(100, bool))
@@ -142,7 +142,7 @@ def test_residual_spectrum_panels_have_tick_numbers(tmp_path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from online_id.plots.residuals import psd_before_after
+    from online_id.report.residuals import psd_before_after
 
     f = np.linspace(0, 250, 500)
     fig, axes = plt.subplots(2, 1, sharex=True)

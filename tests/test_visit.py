@@ -153,7 +153,7 @@ def test_what_the_visit_serves_next_to_the_bounds_the_learned_cells_set(seed):
     # an infinite spread), their damping where they do; the visit's frequency where one side or none is bounded,
     # the bounds where both are
     from online_id.config import Settings
-    from online_id.pipeline import Pipeline, _against
+    from online_id.service.pipeline import Pipeline, _against
 
     rng = np.random.default_rng([seed, 19])
     pipe = Pipeline(Settings())

@@ -6,7 +6,7 @@ import numpy as np
 
 from online_id.config import Settings
 from online_id.io.statefile import load_state, save_state
-from online_id.pipeline import COMMAND_ACK, COMMAND_RELEARN, Pipeline
+from online_id.service.pipeline import COMMAND_ACK, COMMAND_RELEARN, Pipeline
 from online_id.records import AlertKind
 
 

@@ -8,11 +8,11 @@ Both tasks are module-level functions of one picklable argument, so that
   recording's length, and so the bench, start time and segments to cut it
   into.
 * :func:`process` identifies one segment as ``online-id identify`` does
-  (:func:`~online_id.benchlog.read_bench` and
+  (:func:`~online_id.ingest.benchlog.read_bench` and
   :func:`~online_id.estimation.identification.identify` with its defaults: the
   order grid fitted on the best-excited 40 s of each operating point) and,
   in ``diagnose`` mode, diagnoses the recording as ``online-id diagnose`` does
-  (:func:`~online_id.cli.diagnose.bench_series` and
+  (:func:`~online_id.ingest.bench_series.bench_series` and
   :func:`~online_id.diagnose.bench_diagnosis.diagnose_bench`).  Its rows are
   those of :mod:`online_id.archive.table`; an error of the recording is one
   row with its one-line message.
@@ -107,7 +107,7 @@ def probe(job: ProbeJob) -> Probe:
             if header.duration_s is not None:
                 span = (0.0, header.duration_s)
         if job.segment_s and span is None:
-            from online_id.benchlog import read_bench
+            from online_id.ingest.benchlog import read_bench
 
             data = read_bench(path, job.settings)
             span = (float(data.time_s[0]), float(data.time_s[-1]))
@@ -152,7 +152,7 @@ def _window(data, window: tuple[float, float] | None):
 
 def process(job: Job) -> list[dict[str, Any]]:
     """The table rows of one segment (see module notes)."""
-    from online_id.benchlog import read_bench
+    from online_id.ingest.benchlog import read_bench
     from online_id.estimation.identification import identify
 
     s = job.settings
@@ -175,7 +175,7 @@ def process(job: Job) -> list[dict[str, Any]]:
 
 def diagnose_recording(path: str, s: Settings) -> tuple[str | None, str]:
     """(effects, result line) of ``online-id diagnose PATH`` with its defaults; an error is the result line."""
-    from online_id.cli.diagnose import bench_series
+    from online_id.ingest.bench_series import bench_series
     from online_id.diagnose.bench_diagnosis import diagnose_bench
 
     try:

@@ -9,7 +9,7 @@ import numpy as np
 
 from online_id.archive.trend import DAY_S, NONE, BenchTrend, TrendSettings
 from online_id.monitoring.detection import FREQUENCY
-from online_id.report import pyplot, save_figure
+from online_id.report.figures import pyplot, save_figure
 
 
 def _dates(t_s: np.ndarray) -> list[dt.datetime]:

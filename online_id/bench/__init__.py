@@ -1,6 +1,6 @@
 """Test-bench simulator and excitation signals."""
 
-from online_id.excitation import mls, prbs_signal
+from online_id.analysis.excitation import mls, prbs_signal
 from online_id.bench.scenario import (
     Backlash,
     BenchScenario,

@@ -1,7 +1,7 @@
 """Evaluation of wear and fault detection on simulated benches (no I/O; the CLI prints and plots).
 
 Two kinds of run, each a simulated bench fed sample by sample through the
-service pipeline (:func:`~online_id.pipeline.run_bench_data`: the same
+service pipeline (:func:`~online_id.service.pipeline.run_bench_data`: the same
 assembler, estimator, baselines and detector as the live service):
 
 * **fault-free hours** -- a random plant (resonance 16-34 Hz, damping ratio
@@ -64,7 +64,7 @@ from online_id.bench.scenario import (
 )
 from online_id.bench.simulate import simulate_bench
 from online_id.config import ModelSettings, Settings
-from online_id.pipeline import COMMAND_ACK, Pipeline, run_bench_data
+from online_id.service.pipeline import COMMAND_ACK, Pipeline, run_bench_data
 from online_id.records import AlertKind, AlertOut, EstimateOut
 
 DRIFT_KINDS = (AlertKind.FREQ_DRIFT, AlertKind.DAMPING_DRIFT)
@@ -419,7 +419,7 @@ def settings_for(spec: RunSpec) -> Settings:
 
 Feed = Callable[..., Pipeline]
 """``feed(data, settings, on_output=..., state=..., run_label=...) -> Pipeline``: bench data through the
-service pipeline (:func:`~online_id.pipeline.run_bench_data`, or the frame path of
+service pipeline (:func:`~online_id.service.pipeline.run_bench_data`, or the frame path of
 ``online_id.offline.bench_feed``)."""
 
 

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from online_id.bench import plant
-from online_id.excitation import prbs_hold_samples, prbs_signal
+from online_id.analysis.excitation import prbs_hold_samples, prbs_signal
 from online_id.bench.scenario import BenchScenario, PiGains, scenario_to_dict
 from online_id.records import BenchData
 

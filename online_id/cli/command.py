@@ -170,8 +170,8 @@ def relearn_from(log: str, directory: Path | None, settings) -> int:
     """Learn the baselines from a reference log into the state of ``directory`` (see module notes)."""
     from online_id.offline.replay import keep, replay, restore, state_file
     from online_id.progress import Progress
-    from online_id.runtime import Runtime
-    from online_id.service import state_path
+    from online_id.service.runtime import Runtime
+    from online_id.service.live import state_path
 
     path = state_file(directory) if directory is not None else state_path(settings)
     if path is None:

@@ -3,7 +3,7 @@
 ``IN.{csv,mf4} OUT.{log,asc,blf,mf4}`` encodes the samples of a bench CSV
 or an MDF 4 signal recording as the DBC's input frames;
 ``IN.{log,asc,blf,mf4} OUT.{csv,mf4}`` decodes and assembles a recording
-as the service would (see :mod:`online_id.benchlog`) and writes the default
+as the service would (see :mod:`online_id.ingest.benchlog`) and writes the default
 bench columns (``time_s, dyno_speed_rpm, engine_speed_rpm, dyno_torque_nm``,
 torque positive = braking), which every offline command reads without a
 config.  An ``.mf4`` output holds the other kind than the input (frames from

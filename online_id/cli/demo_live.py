@@ -20,7 +20,7 @@ from online_id.io.dbc import encode_inputs, load_dbc
 from online_id.io.dbc_output import OutputEncoder
 from online_id.io.player import send_paced
 from online_id.records import ServiceState
-from online_id.service import Service
+from online_id.service.live import Service
 
 
 STALL_S = 120.0  # the demo gives up when its service takes no frame for this long (however slow the machine)

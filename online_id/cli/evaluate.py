@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from online_id.cli import command_help
+from online_id.cli.dask_options import add_dask_options
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
@@ -22,13 +23,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    help="random plants on which every fault case runs (default 4)")
     p.add_argument("--seed", type=int, default=1, help="seed of the random plants and conditions (default 1)")
     p.add_argument("--jobs", type=int, default=None, help="parallel processes (default: all cores)")
-    d = p.add_mutually_exclusive_group()
-    d.add_argument("--dask", action="store_true",
-                   help="run the cases as Dask tasks on a local cluster of --jobs worker processes (needs the "
-                        "archive extra); the results are those of the process pool")
-    d.add_argument("--scheduler", metavar="tcp://HOST:8786",
-                   help="run the cases as Dask tasks on this scheduler's workers (thousands of simulated hours "
-                        "on a cluster); a case that fails is reported and left out")
+    add_dask_options(p, "a case that fails is reported and left out")
     p.add_argument("--out", type=Path, metavar="DIR", help="write results.json, table.md and evaluation.png here")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON document")
     p.add_argument("--families", default="c", metavar="LIST",

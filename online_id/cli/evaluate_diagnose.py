@@ -11,6 +11,7 @@ from pathlib import Path
 from online_id.errors import ConfigError
 from online_id.io.jsonout import dumps
 from online_id.cli import command_help
+from online_id.cli.dask_options import add_dask_options
 
 
 def add_subparser(subparsers: argparse._SubParsersAction) -> None:
@@ -31,6 +32,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
                    "{no_demand: {...}, demand: {...}} as thresholds.json holds them); 'defaults': the ones "
                    "the diagnosis ships with")
     p.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
+    add_dask_options(p, "a case whose task fails is a failed case")
     p.add_argument("--family", choices=("bench", "structures"), default="bench",
                    help="bench family of the test cases: bench (the first), or structures (unmeasured masses "
                    "between or beyond the measured ones, cylinder imbalance, high orders, broadband resonances, "
@@ -74,7 +76,7 @@ def _read_cases(path: Path) -> list[dict]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from online_id import diagnose_evaluation as ev
+    from online_id.evaluation import diagnose_benches as ev
     from online_id.bench.diagnose_cases import KINDS
 
     from online_id.io.outfile import check_output
@@ -105,14 +107,15 @@ def run(args: argparse.Namespace) -> int:
             jobs = [("clean", ev.CALIBRATION_SEED0 + i, fam, paths)
                     for fam in (args.calibration_family or [args.family]) for i in range(n_cal)]
             calibration = ev.run_cases(jobs, args.jobs, _progress("calibration (clean benches)",
-                                                                  Path(args.out) / "calibration.jsonl"))
+                                                                  Path(args.out) / "calibration.jsonl"),
+                                       dask=args.dask, scheduler=args.scheduler)
         thresholds = ev.calibrate_paths(calibration)
         Path(args.out).mkdir(parents=True, exist_ok=True)
         (Path(args.out) / "thresholds.json").write_text(dumps(thresholds, indent=1) + "\n",
                                                         encoding="utf-8")
     jobs = [(k, args.seed + i, args.family, paths) for i in range(n_test) for k in KINDS]
-    results = (ev.run_cases(jobs, args.jobs, _progress("test benches", Path(args.out) / "cases.jsonl"))
-               if jobs else [])
+    results = (ev.run_cases(jobs, args.jobs, _progress("test benches", Path(args.out) / "cases.jsonl"),
+                            dask=args.dask, scheduler=args.scheduler) if jobs else [])
     for d in args.include:
         results += _read_cases(Path(d) / "cases.jsonl")
     seconds = time.monotonic() - t0

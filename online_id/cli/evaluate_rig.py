@@ -2,13 +2,12 @@
 
 ``simulate-rig`` writes one randomised rig as two CSV files (drive side and
 sensor side, each on its own clock) for ``online-id diagnose --second-file``;
-``evaluate-diagnose-rig`` runs :func:`online_id.rig_evaluation.evaluate`.
+``evaluate-diagnose-rig`` runs :func:`online_id.evaluation.diagnose_rigs.evaluate`.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -16,6 +15,7 @@ from dataclasses import replace
 
 from typing import TYPE_CHECKING
 from online_id.errors import ConfigError
+from online_id.io.jsonout import dumps
 from online_id.io.outfile import check_output
 from online_id.progress import Progress, add_quiet_option
 from online_id.cli import command_help
@@ -67,7 +67,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from online_id.rig_evaluation import calibrate, evaluate
+    from online_id.evaluation.diagnose_rigs import calibrate, evaluate
 
     if args.cases < 1 or args.jobs < 1:
         raise ConfigError(f"--cases and --jobs must be >= 1, got {args.cases} and {args.jobs}")
@@ -82,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
         else:
             summary = evaluate(args.cases, args.seed, args.magnitude, args.jobs, Path(args.out), progress)
     summary["wall_s"] = time.perf_counter() - t0
-    print(json.dumps(summary, indent=1, default=float))
+    print(dumps(summary, indent=1))
     return 0
 
 
@@ -116,7 +116,7 @@ def run_simulate(args: argparse.Namespace) -> int:
     import numpy as np
 
     from online_id.bench.rig import LAYOUTS, encoder_shafts, loggers_rig, lowest_mode_hz, simulate_rig
-    from online_id.rig_evaluation import rig_spec
+    from online_id.evaluation.diagnose_rigs import rig_spec
 
     if args.layout not in LAYOUTS:
         raise ConfigError(f"--layout: expected one of {', '.join(LAYOUTS)}, but got {args.layout!r}")
@@ -143,5 +143,5 @@ def run_simulate(args: argparse.Namespace) -> int:
     if spec.layout == "loggers":
         truth["encoders"] = {f"encoder{k}": {"shaft": name, "rate": rate}
                              for k, (name, rate) in enumerate(encoder_shafts(spec), 1)}
-    print(json.dumps(truth, indent=1))
+    print(dumps(truth, indent=1))
     return 0

@@ -39,7 +39,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from online_id.offline.replay import ResultsRuntime, keep, replay, restore, state_file, write_results
-    from online_id.report import fmt
+    from online_id.report.figures import fmt
 
     s = load_config(args.config)
     if args.out_mf4:

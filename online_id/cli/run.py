@@ -23,7 +23,7 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from online_id.service import run_service
+    from online_id.service.live import run_service
 
     s = with_bus_options(load_config(args.config), args)
     return run_service(s, max_s=args.max_seconds)

@@ -36,6 +36,10 @@ TARGET_FS_HZ = 500.0
 CUTOFF = 0.8  # passband edge, fraction of the decimated Nyquist frequency
 MIN_PLATEAU_S = 8.0
 PLATEAU_TOL_RPM = 100.0
+# the slope a plateau's 2 s-smoothed speed may have: the test torque of a soft bench moves the speed by tens
+# of rpm within seconds (a slope of 30 rpm/s cut every plateau of such a bench into pieces under 8 s);
+# the ramps between operating points leave a plateau by the 100 rpm tolerance
+PLATEAU_MAX_RATE_RPM_S = 120.0
 
 
 @dataclass(frozen=True)
@@ -148,7 +152,7 @@ def prepare(time_s: np.ndarray, torque_nm: np.ndarray, dyno_rad_s: np.ndarray,
     t_dec = np.arange(n) / path.fs_hz
     rpm = dec[1] * RPM_PER_RAD_S
     plateaus = find_plateaus(t_dec, rpm, min_duration_s=MIN_PLATEAU_S, tol_rpm=PLATEAU_TOL_RPM,
-                             smooth_s=2.0)
+                             smooth_s=2.0, max_rate_rpm_s=PLATEAU_MAX_RATE_RPM_S)
     skip = path.numtaps // path.q + 16  # filter start-up and the longest model lag
     min_len = int(MIN_PLATEAU_S * path.fs_hz)
     plateaus = [Plateau(max(p.start, skip), p.stop, p.speed_rpm, p.t_start_s, p.t_end_s)

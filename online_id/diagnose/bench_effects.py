@@ -107,9 +107,10 @@ def fundamental(orders: list[float] | tuple[float, ...], step: float = ORDER_GRI
     return n * step
 
 
-def family_reading(shaft: str, orders: list[float], pulses_per_rev: float) -> str:
-    """What a family of rotation orders on ``shaft`` points to (a physical reading for an engineer)."""
-    f0 = fundamental(orders)
+def family_reading(shaft: str, orders: list[float], pulses_per_rev: float, named: float | None = None) -> str:
+    """What a family of rotation orders on ``shaft``, named by ``named`` (default its fundamental), points to
+    (a physical reading for an engineer)."""
+    f0 = fundamental(orders) if named is None else named
     listed = ", ".join(f"{k:g}" for k in sorted(orders))
     if shaft == "engine":
         if f0 % 1.0:
@@ -155,7 +156,9 @@ class FixedTerm:
             return None
         w = 2.0 * np.pi * self.freq_hz * p.time_s[p.rows]
         cols = [np.sin(w), np.cos(w)]
-        if self.residuals:
+        # the band-passed residual belongs to the record the line was found in (not to the same record at
+        # another rate: there the line is the sinusoid alone)
+        if self.residuals and len(self.residuals[p.index]) == p.rows.size:
             b, a = iirpeak(self.freq_hz, self.q, fs=p.fs_hz)
             bp = lfilter(b, a, self.residuals[p.index])
             k0 = BALANCE_BP_LAG if eq == BALANCE else 1

@@ -1,6 +1,6 @@
 """One or two records (each on a uniform grid of its own clock) -> :class:`DiagnoseData`.
 
-No file I/O: the CLI reads the files (:mod:`online_id.cli.diagnose_records`)
+No file I/O: the CLI reads the files (:mod:`online_id.offline.diagnose_records`)
 and the rig evaluation passes simulated records; both end here.  A second
 record is aligned on the first (:func:`online_id.diagnose.align.estimate_clock`
 on a rotation signal both hold), interpolated at the first record's instants

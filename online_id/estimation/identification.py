@@ -538,6 +538,12 @@ def identify(
         driveline = parameters(
             mode.f0_hz, mode.zeta, fa, gain, J1=inertias.J1, J2=inertias.J2, J_total=inertias.J_total
         )
+        for name in ("J1", "J2", "c_s"):
+            value = getattr(driveline, name)
+            if value is not None and not value > 0:
+                warnings.append(f"{name} comes out {value:.3g} from {driveline.source}: not physical; the pole "
+                                "pair taken for the driveline may not be its resonance, or the anti-resonance "
+                                "and gain read from the model are off (give known inertias with --J1/--J2)")
         given = [k for k in ("J1", "J2", "J_total") if getattr(inertias, k) is not None]
         uncertainty = from_points(points, driveline, bands, given)
     return IdentificationResult(points, orders, sorting, driveline, 1.0 / dt, warnings, uncertainty)

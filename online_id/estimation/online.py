@@ -77,7 +77,7 @@ MOVED_REL = 0.005  # a resonance that moved this much between refits makes the n
 NEWEST_SIGMAS = 3.0
 """A fit of the newest seconds cuts a window whose estimate was valid only where its resonance differs from that
 estimate's by more than this many standard deviations of the difference (both estimates' own, combined). Traced
-on a simulated shaft with backlash (plant 2004 of ``evaluate --seed 2``): its 10 s fits hop between minima 1-2 %
+on a simulated shaft with backlash: its 10 s fits hop between minima 1-2 %
 apart, each hop probed the newest 5 s, and the probes, valid and within one standard deviation of the long fit,
 cut the window seven times in 35 s; the 5 s windows then sat 2.3 % low and raised two false warnings. A
 stiffness loss entering the window differed by 3-10 standard deviations on the simulated benches."""

@@ -8,8 +8,8 @@ resonances differ by 1-3 % and their damping by 30-40 %; which one the
 warm-started refits follow is a matter of history. A cell learned while the
 refits sat in one minimum, and an estimate that later moved to another, differ
 by a percent at the same operating point with nothing changed in the
-driveline. The criterion itself cannot always tell: on plant 1017 of
-``online-id evaluate`` (0.59 mrad of backlash) the minimum the refits found
+driveline. The criterion itself cannot always tell: on a simulated bench
+with 0.59 mrad of backlash the minimum the refits found
 after 2000 s (31.1 Hz) fits *every* window of that hour 0.5-1.9 % better
 than the one its cells were learned in (30.8 Hz), before 2000 s as well;
 while a genuine 5 % stiffness loss on another bench with backlash raised
@@ -38,11 +38,12 @@ comparison for the alarm to stand.
 The fit must also be as good: the reference data must fit in the current
 minimum within the tie of the second look (1 %) of their own minimum's
 loss. Alone the loss cannot tell a change from a move of minimum (above),
-but it catches a refit that stopped near its start: on plant 13704 of
-seed 13 (no backlash) a -50 % damping change, refitted on the healthy
+but it catches a refit that stopped near its start: on a simulated bench
+without backlash a -50 % damping change, refitted on the healthy
 reference data, stayed at the changed damping (-1.7 % from the current
-estimate) at a loss 6.1 % above the healthy minimum's; on 1017 the current
-minimum fits the reference data 1.7-2.0 % better than their own.
+estimate) at a loss 6.1 % above the healthy minimum's; on the bench with
+backlash above, the current minimum fits the reference data 1.7-2.0 % better
+than their own.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Model validation against the data: measured frequency response and MATLAB ``compare``-style fits.
 
-Numerical only (numpy, scipy); the plots are in :mod:`online_id.plots`.
+Numerical only (numpy, scipy); the plots are in :mod:`online_id.report`.
 
 Notes
 -----

@@ -79,7 +79,7 @@ Refits fall due at fixed sample counts. With ``auto`` they run inside
 :meth:`SlidingPem.prepare` checks the window and copies it into a
 :class:`RefitJob` (no fitting), :func:`solve` fits it (a pure function: the
 live service runs it in a worker process, off the receive path, see
-:mod:`online_id.offload`) and :meth:`SlidingPem.complete` adopts the result.
+:mod:`online_id.service.offload`) and :meth:`SlidingPem.complete` adopts the result.
 A result for a window that was cleared meanwhile (a gap) is discarded. With
 the inline worker of replay the three run back to back, so the schedule
 depends only on the samples and a replay is reproducible whatever the

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Callable
 
 from online_id.evaluation.chain_cases import draw_case
-from online_id.evaluation.chain_files import write_case
+from online_id.evaluation.chain_files import strict_json as dumps, write_case
 from online_id.evaluation.chain_score import confusion_png, score_case, summarise, table_markdown
 
 DEFAULT_TIMEOUT_S = 1800.0
@@ -71,7 +71,7 @@ def run_case(seed: int, quick: bool, out: Path, timeout_s: float = DEFAULT_TIMEO
     (directory / "diagnosis.stderr").write_text(stderr, encoding="utf-8")
     rec = score_case(truth, rc, stdout, stderr)
     rec.update(simulate_s=round(t1 - t0, 1), diagnose_s=round(t2 - t1, 1), returncode=rc, command=truth["command"])
-    (directory / "score.json").write_text(json.dumps(rec, indent=1) + "\n", encoding="utf-8")
+    (directory / "score.json").write_text(dumps(rec, indent=1) + "\n", encoding="utf-8")
     if not keep_data:
         for name in (truth["files"].get("csv"), truth["files"].get("drive"), truth["files"].get("sensor")):
             if name and (directory / name).exists():
@@ -114,11 +114,11 @@ def run_family(seeds: list[int], out: Path, quick: bool = False, jobs: int = 2, 
                        "simulate_s": 0.0, "diagnose_s": 0.0}
             records.append(rec)
             with sink.open("a", encoding="utf-8") as fh:
-                fh.write(json.dumps(rec) + "\n")
+                fh.write(dumps(rec) + "\n")
             report(_line(len(records), len(seeds), rec, time.monotonic() - t0))
     records.sort(key=lambda r: r["seed"])
     summary = summarise(records)
-    (out / "results.json").write_text(json.dumps({"seeds": seeds, "quick": quick,
+    (out / "results.json").write_text(dumps({"seeds": seeds, "quick": quick,
                                                   "program": program or default_program(),
                                                   "summary": summary, "cases": records}, indent=1) + "\n",
                                       encoding="utf-8")

@@ -126,13 +126,19 @@ def write_csv(path: Path, columns: list[Column]) -> None:
                header=",".join(c.name for c in columns), comments="")
 
 
+def strict_json(x, **kwargs) -> str:
+    """``x`` as strict JSON (numpy numbers as Python's, NaN and Infinity as null); this room writes no
+    JSON through ``online_id.io`` (it judges the tool from outside)."""
+    return json.dumps(_plain(x), allow_nan=False, **kwargs)
+
+
 def _plain(x):
     if isinstance(x, dict):
         return {str(k): _plain(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
+    if isinstance(x, (list, tuple, np.ndarray)):
         return [_plain(v) for v in x]
     if isinstance(x, (np.floating, float)):
-        return float(x)
+        return float(x) if np.isfinite(x) else None
     if isinstance(x, (np.integer,)):
         return int(x)
     if isinstance(x, np.bool_):
@@ -151,6 +157,6 @@ def write_case(spec: dict, files: dict[str, list[Column]], directory: Path, extr
     argv = command(spec)
     truth = dict(spec, command=["online-id"] + argv, rows={k: int(len(v[0].values)) for k, v in files.items()},
                  **(extra or {}))
-    (directory / "truth.json").write_text(json.dumps(_plain(truth), indent=1, allow_nan=False) + "\n",
+    (directory / "truth.json").write_text(strict_json(truth, indent=1) + "\n",
                                           encoding="utf-8")
     return argv

@@ -6,7 +6,7 @@ has room for. Here (see the DBC's ``OidCommand`` and ``docs/security.md``):
 
 * the MAC is HMAC-SHA256 (RFC 2104, FIPS 198-1) truncated to its first
   4 bytes (NIST SP 800-107 allows truncation; 32 bits against the 16 wrong
-  MACs a minute the service lets through, :mod:`online_id.commands`, leave a
+  MACs a minute the service lets through, :mod:`online_id.service.commands`, leave a
   forger one chance in 2^32 per try, 500 years of trying for an even chance);
   chosen over AES-CMAC because Python's standard library has it (no
   dependency on a crypto package) and every PLC or bench PC language can

@@ -22,7 +22,7 @@ Checks of the frames' integrity, as far as CAN allows:
 A CRC is no signature: any node on the bus can compute it.  It catches
 corrupt and random frames.  A command's freshness value and MAC (the
 ``CommandFreshness`` and ``CommandMac`` signals, :mod:`online_id.io.auth`)
-are read here and judged by :mod:`online_id.commands`, which keeps the
+are read here and judged by :mod:`online_id.service.commands`, which keeps the
 freshness and the key, with what a command may do.
 
 Output frames: :class:`~online_id.io.dbc_output.OutputEncoder` (that module imports this one, never

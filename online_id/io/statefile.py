@@ -6,7 +6,7 @@ most :data:`MAX_DEPTH` deep, a mapping at the top level, and every saved
 array (``{"__array__": [...], "dtype": ...}``) rectangular and of a numeric
 dtype (:data:`ARRAY_DTYPES`; never ``object``).  A file holding ``null``
 is an explicit reset (:class:`StateReset`).  What the mapping must hold is
-checked by the consumer (:mod:`online_id.restore`).
+checked by the consumer (:mod:`online_id.service.restore`).
 """
 
 from __future__ import annotations

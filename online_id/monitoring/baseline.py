@@ -91,6 +91,7 @@ import dataclasses
 import math
 from typing import Any, Mapping
 
+from online_id.monitoring import defaults
 from online_id.monitoring.cells import BandStats, Cell, cell_from_list
 from online_id.monitoring.checks import integer, number
 from online_id.errors import ConfigError, InputDataError
@@ -135,12 +136,12 @@ class Baseline:
     def __init__(
         self,
         *,
-        band_rpm: float = 250.0,
-        min_count: int = 20,
+        band_rpm: float = defaults.BAND_RPM,
+        min_count: int = defaults.MIN_COUNT,
         min_rel_std_f: float = 0.002,
         min_rel_std_zeta: float = 0.03,
-        load_band_nm: float = 2.0,
-        pool_tolerance_f: float = 0.005,
+        load_band_nm: float = defaults.LOAD_BAND_NM,
+        pool_tolerance_f: float = defaults.POOL_TOLERANCE_PCT / 100.0,
         pool_tolerance_zeta: float = 0.10,
         freeze_count: int | None = None,
         provisional_count: int = 3,

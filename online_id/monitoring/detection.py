@@ -28,9 +28,8 @@ unscaled where it is not known): the estimator's uncertainty calibrated
 against the scatter measured where the baseline was learned. On a shaft
 with backlash the model's damping uncertainty over-states how much the 1 Hz
 estimates scatter, by a factor of 1.7-2.5 (the residual holds the backlash,
-which does not change from one window to the next: plant 1510 of
-``online-id evaluate``, 3.0 % of zeta against 1.2 %; plant 13703 of family
-(a), 6.8 % against 3.3 %). There a +50 % change, seen as +36 % of which the
+which does not change from one window to the next: on two simulated benches
+3.0 % of zeta against 1.2 % and 6.8 % against 3.3 %). There a +50 % change, seen as +36 % of which the
 dead band leaves 16 %, counted as 2.3 standard deviations instead of 4.8,
 and was missed. A momentarily poor estimate still weighs less (the scaling
 keeps its ratio to the estimator's usual uncertainty there). The
@@ -60,7 +59,7 @@ loss is within ``detection.damping_tie_pct`` (1 %) of the best; the
 window then does not contradict the baseline and the alarm is withheld.
 The frequency alike (``detection.frequency_tie_pct``, 1 %): the same two
 minima differ by 1-3 % in the resonance. Where the data prefer the other
-minimum by more (plant 1017 of ``online-id evaluate``, 0.59 mrad of
+minimum by more (a simulated bench with 0.59 mrad of
 backlash: at a learned point the estimate sat 0.9 % above its baseline for
 four minutes, where the fit from the baseline's solution lost 1.7 % more
 than the best), the service rechecks against the cell's own data: the window
@@ -160,6 +159,7 @@ from dataclasses import asdict, dataclass
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Any, Callable, Mapping
 
+from online_id.monitoring import defaults
 from online_id.monitoring.checks import number
 from online_id.errors import ConfigError
 
@@ -285,16 +285,16 @@ class ChangeDetector:
     def __init__(
         self,
         *,
-        k: float = 0.5,
-        h_warning: float = 8.0,
-        h_fault: float = 16.0,
+        k: float = defaults.K,
+        h_warning: float = defaults.H_WARNING,
+        h_fault: float = defaults.H_FAULT,
         update_interval_s: float = 1.0,
         hysteresis: float = 0.5,
         correlation_s: float = 5.0,
         z_clip: float = 5.0,
         change_window_s: float = 5.0,
-        min_change_f: float = 0.005,
-        min_change_zeta: float = 0.20,
+        min_change_f: float = defaults.MIN_FREQ_CHANGE_PCT / 100.0,
+        min_change_zeta: float = defaults.MIN_DAMPING_CHANGE_PCT / 100.0,
     ) -> None:
         self.k = _num("k", k, strict=False)
         self.h_warning = _num("h_warning", h_warning)

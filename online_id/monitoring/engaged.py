@@ -9,8 +9,7 @@ the points of one bench. A learned cell serves its own point only, and the
 learned cells of smaller and larger loads bound a point between them
 (:meth:`~online_id.monitoring.baseline.Baseline.bracketed`); a point above
 every learned load is compared with nothing but its own visit's first
-estimates, so a change that comes with the visit (plant 12701 of
-``online-id evaluate``'s family (a): a 10 % stiffness loss on the ramp to
+estimates, so a change that comes with the visit (a 10 % stiffness loss on the ramp to
 a point 3 Nm above every learned one) goes unseen until a learned point is
 visited again.
 
@@ -67,6 +66,7 @@ from typing import Any
 
 import numpy as np
 
+from online_id.monitoring import defaults
 from online_id.monitoring.detection import DAMPING, FREQUENCY
 
 EVERY_S = 6.0  # a reading at most this often within a visit (the test's CPU: 0.16 s median)
@@ -126,7 +126,7 @@ class EngagedFlank:
         Relative damping change that counts as none (the detector's dead band).
     """
 
-    def __init__(self, dead_band_k: float = DEAD_BAND_K, dead_band_zeta: float = 0.20) -> None:
+    def __init__(self, dead_band_k: float = DEAD_BAND_K, dead_band_zeta: float = defaults.MIN_DAMPING_CHANGE_PCT / 100.0) -> None:
         self.dead_band_k = float(dead_band_k)
         self.dead_band_zeta = float(dead_band_zeta)
         self.learned: list[EngagedReading] = []

@@ -21,9 +21,9 @@ minima of the fit, which a visit's few estimates cannot tell from a change; the 
 ``Pipeline._confirm``): the second look refits the window from the minimum the reference sat in (:attr:`solution`),
 and the recheck refits the data of the reference's first estimates (:attr:`window`, a
 :class:`~online_id.estimation.reference.ReferenceWindow` the caller keeps) from the current solution, which gives the
-current estimate again where only the minimum moved. Before the visit held the damping, a damping change at a point
-no cell had learned on a shaft with backlash went into the point's cell and was never seen (plant 13700 of
-``online-id evaluate``'s family (a): -42 % at 2001 rpm, 3 s after the estimate was valid there).
+current estimate again where only the minimum moved. Without the visit's damping, a damping change at a point no
+cell has learned on a shaft with backlash would go into the point's cell and never be seen (-42 % at a new point,
+3 s after the estimate was valid there, on a simulated bench).
 """
 
 from __future__ import annotations

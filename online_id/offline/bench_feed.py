@@ -6,7 +6,7 @@ three things, and :func:`feed_frames` adds them:
 
 * **frames**: the samples are encoded to the input frames of the DBC
   (:func:`~online_id.io.dbc.encode_inputs`, alive counters included) and
-  decoded and assembled by the service's :class:`~online_id.runtime.Runtime`,
+  decoded and assembled by the service's :class:`~online_id.service.runtime.Runtime`,
   as replay and the live service do;
 * **loss and jitter**: a fraction of the frames is dropped at random, and
   each frame is received up to ``jitter_s`` late (uniform), never before the
@@ -30,9 +30,9 @@ import numpy as np
 
 from online_id.bench import evaluate as ev
 from online_id.config import Settings
-from online_id.offload import Callback, WorkerStats
-from online_id.pipeline import Pipeline
-from online_id.runtime import Runtime
+from online_id.service.offload import Callback, WorkerStats
+from online_id.service.pipeline import Pipeline
+from online_id.service.runtime import Runtime
 from online_id.io.dbc import RAD_S_PER_RPM, encode_inputs
 
 CHUNK_SAMPLES = 1 << 16  # encoded at a time: a multiple of every alive counter's wrap, so counters run on
@@ -112,8 +112,8 @@ def bench_frames(data, realism: ev.BenchRealism, seed: int, start: int = 0,
 
 def feed_frames(data, settings: Settings, realism: ev.BenchRealism, seed: int = 0, on_output=None,
                 state: dict | None = None, run_label: str = "") -> Pipeline:
-    """:func:`~online_id.pipeline.run_bench_data` through the frame path: ``data`` as frames with the loss and
-    jitter of ``realism`` into a :class:`~online_id.runtime.Runtime`, its slow work ``realism.worker_lag_s``
+    """:func:`~online_id.service.pipeline.run_bench_data` through the frame path: ``data`` as frames with the loss and
+    jitter of ``realism`` into a :class:`~online_id.service.runtime.Runtime`, its slow work ``realism.worker_lag_s``
     late (see module notes). ``on_output(pipeline, t_s, publications)`` as there."""
     fs = 1.0 / float(np.median(np.diff(data.time_s)))
     if abs(fs - settings.input.sample_rate_hz) > 1e-6 * fs:

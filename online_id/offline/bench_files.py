@@ -8,12 +8,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from online_id.io.table_csv import write_csv_columns
+from online_id.records import DEMAND_COLUMN
 
 if TYPE_CHECKING:
     from online_id.bench.simulate import BenchRecord
 
 CSV_FORMATS = ("%.6f", "%.4f", "%.4f", "%.4f")
-DEMAND_COLUMN = ("torque_demand_nm", "%.4f")  # the PRBS test-torque demand (CSV only; not a DBC signal)
+DEMAND_FORMAT = "%.4f"  # the PRBS test-torque demand (CSV only; not a DBC signal)
 
 
 
@@ -35,8 +36,8 @@ def write_csv(record: BenchRecord, path: Path, demand: bool = False) -> None:
         return
     formats = dict(zip(columns, CSV_FORMATS))
     if demand and record.test_torque_nm is not None:
-        columns[DEMAND_COLUMN[0]] = record.test_torque_nm
-        formats[DEMAND_COLUMN[0]] = DEMAND_COLUMN[1]
+        columns[DEMAND_COLUMN] = record.test_torque_nm
+        formats[DEMAND_COLUMN] = DEMAND_FORMAT
     write_csv_columns(path, columns, formats)
 
 

@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 from online_id.bench.simulate import RPM_PER_RAD_S, BenchRecord
-from online_id.benchlog import is_can_log, read_bench, read_bench_log
+from online_id.ingest.benchlog import is_can_log, read_bench, read_bench_log
 from online_id.offline.bench_files import write_csv
 from online_id.config import load_config
 from online_id.errors import ConfigError

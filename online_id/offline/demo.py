@@ -13,7 +13,7 @@ from online_id.bench.scenario import BenchScenario
 from online_id.bench.simulate import simulate_bench
 from online_id.config import IdentificationSettings, InertiaSettings
 from online_id.estimation.identification import identify
-from online_id.report import TerminalProgress, identification_table, plot_identification
+from online_id.report.figures import TerminalProgress, identification_table, plot_identification
 
 
 def run_offline(args: argparse.Namespace) -> int:

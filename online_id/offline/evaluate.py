@@ -18,7 +18,7 @@ from online_id.bench import evaluate as ev
 from online_id.errors import ConfigError, InputDataError
 from online_id.io.outfile import atomic_output, check_output
 from online_id.offline.bench_feed import run_spec
-from online_id.report import fmt, pyplot, save_figure
+from online_id.report.figures import fmt, pyplot, save_figure
 
 
 def table(summary: dict) -> str:

@@ -9,15 +9,15 @@ import sys
 
 import numpy as np
 
-from online_id.benchlog import read_bench
+from online_id.ingest.benchlog import read_bench
 from online_id.config import Settings
 from online_id.estimation.identification import HOLDOUT, IdentificationResult, identify
 from online_id.errors import ConfigError, EstimationError
 from online_id.io.jsonout import dumps
 from online_id.io.outfile import check_output
 from online_id.progress import Progress, progress_for
-from online_id.signals import speed_warnings
-from online_id.report import figures_text, fmt, identification_document, identification_table
+from online_id.ingest.signals import speed_warnings
+from online_id.report.figures import figures_text, fmt, identification_document, identification_table
 
 
 def _note(text: str) -> None:
@@ -46,7 +46,7 @@ def _seconds(value: float, flag: str) -> float | None:
 
 
 def run_recursive(args: argparse.Namespace, s: Settings) -> int:
-    from online_id.pipeline import run_bench_data
+    from online_id.service.pipeline import run_bench_data
 
     data = read_bench(args.path, s, _note)
     for text in speed_warnings(data, s.columns, s.units):
@@ -72,7 +72,7 @@ def run_recursive(args: argparse.Namespace, s: Settings) -> int:
 
 def plot_figures(args: argparse.Namespace, s: Settings, result: IdentificationResult) -> dict:
     """Draw what ``--plot`` asks for (only then is matplotlib imported; a directory re-reads the data)."""
-    from online_id.plots.identification import write_plots
+    from online_id.report.identification import write_plots
 
     return write_plots(result, args.plot, lambda: read_bench(args.path, s, lambda _note: None),
                        title=f"online-id identify {args.path}", pulses_per_rev=s.identification.pulses_per_rev,

@@ -14,11 +14,11 @@ from online_id.io.statefile import load_state, save_state
 from online_id.progress import Progress
 from online_id.records import AlertKind, AlertOut, EstimateOut, ExcitationOut, FrameFault, Publication, QualityOut, \
     ServiceState, StatusOut
-from online_id.runtime import OutFrame, Runtime
+from online_id.service.runtime import OutFrame, Runtime
 
 
 class ResultsRuntime(Runtime):
-    """A :class:`~online_id.runtime.Runtime` that keeps every publication with the engine speed at that moment."""
+    """A :class:`~online_id.service.runtime.Runtime` that keeps every publication with the engine speed at that moment."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -92,7 +92,7 @@ def write_results(path: str, log: str, runtime: ResultsRuntime, alerts: list[Ale
 
 def state_file(directory: Path) -> Path:
     """The state file in ``directory`` (the name the live service uses)."""
-    from online_id.service import STATE_FILE
+    from online_id.service.live import STATE_FILE
 
     if directory.exists() and not directory.is_dir():
         raise InputDataError(f"{directory}: --state expects a directory, but this is a file")

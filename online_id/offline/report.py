@@ -40,7 +40,7 @@ from online_id.errors import InputDataError, OnlineIdError
 from online_id.io.canlog import SUFFIXES as LOG_SUFFIXES
 from online_id.io.statefile import load_state
 from online_id.records import AlertKind, AlertOut, EstimateOut, Publication
-from online_id.report import (
+from online_id.report.figures import (
     AlertMark,
     EngagedSeries,
     EstimateSeries,
@@ -50,7 +50,7 @@ from online_id.report import (
     plot_tracks_over_time,
     plot_versus_speed,
 )
-from online_id.runtime import OutFrame
+from online_id.service.runtime import OutFrame
 
 STATE_SUFFIXES = (".json",)
 FIGURES = ("frequency_vs_speed.png", "damping_vs_speed.png", "tracks_over_time.png")
@@ -96,7 +96,7 @@ class ReportData:
 
 
 class RecordingRuntime(ResultsRuntime):
-    """A :class:`~online_id.runtime.Runtime` that keeps what the pipeline publishes.
+    """A :class:`~online_id.service.runtime.Runtime` that keeps what the pipeline publishes.
 
     Every publication passes :meth:`frames` on its way to the encoder; the
     estimates are kept with the engine speed of the estimator at that moment
@@ -504,7 +504,7 @@ def write_report(data: ReportData, out: Path) -> list[Path]:
                               title=f"driveline estimate over time, {name}", learned_t_s=learned,
                               engaged=data.engaged)
         if data.identification is not None and any(p.resid is not None for p in data.identification.points):
-            from online_id.plots.identification import plot_resid
+            from online_id.report.identification import plot_resid
 
             paths.append(out / "resid.png")
             plot_resid(data.identification, paths[-1], title=f"residual tests per operating point, {name}")
@@ -520,7 +520,7 @@ def write_report(data: ReportData, out: Path) -> list[Path]:
 
 def identify_residuals(data: ReportData, config: str | None) -> None:
     """``--resid``: identify the log per operating point (as ``identify``) and keep its residual tests."""
-    from online_id.benchlog import read_bench
+    from online_id.ingest.benchlog import read_bench
     from online_id.errors import EstimationError
     from online_id.estimation.identification import identify
 

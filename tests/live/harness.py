@@ -31,8 +31,8 @@ from online_id.config import InertiaSettings, ModelSettings, Settings
 from online_id.io.bus import CanBus
 from online_id.io.dbc import load_dbc
 from online_id.io.dbc_output import OutputEncoder
-from online_id.offload import InlineWorker
-from online_id.runtime import Runtime
+from online_id.service.offload import InlineWorker
+from online_id.service.runtime import Runtime
 
 STOPPED = re.compile(r"stopped: (?P<frames_in>\d+) frames in, (?P<frames_out>\d+) frames out, (?P<samples>\d+) samples, "
                      r"(?P<bad>\d+) bad frames, (?P<missing>\d+) missing frames, (?P<dropped>\d+) dropped by the kernel, "
@@ -71,7 +71,7 @@ def live_settings(truth: dict) -> Settings:
 
 def first_valid_in_process(frames: list, settings: Settings) -> float:
     """Stream seconds from the first of ``frames`` to the first valid OidEstimate (nan: none), in-process: the
-    service's runtime (:class:`online_id.runtime.Runtime`) with ``settings`` and the inline worker, so the
+    service's runtime (:class:`online_id.service.runtime.Runtime`) with ``settings`` and the inline worker, so the
     figure is what the method needs, whatever the machine (the refits run inline, they take no stream time)."""
     db = load_dbc(None)
     estimate_id = int(db.get_message_by_name("OidEstimate").frame_id)

@@ -3,7 +3,7 @@
 Each case (:mod:`online_id.bench.diagnose_cases`) is simulated and written
 as the bench CSV ``online-id simulate --with-demand`` writes (time, both
 speeds, dyno torque and the test-torque demand); the CSV is read back and prepared by
-:func:`online_id.cli.diagnose.bench_series`, the same reader and
+:func:`online_id.ingest.bench_series.bench_series`, the same reader and
 arguments as ``online-id diagnose bench.csv``, and diagnosed twice:
 
 - ``no_demand``: torque and both speeds only (the demand column ignored),
@@ -46,12 +46,13 @@ MIN_THRESHOLDS: dict[str, float] = {}  # per kind where the floor differs from M
 CALIBRATION_SEED0 = 100_000
 SMALLEST_DECILE = 0.1
 Z95 = 1.96
+FAILED = "error"  # what a case whose diagnosis raised is named: a failure, never "clean"
 
 
 def run_case(args: tuple) -> dict[str, Any]:
     """Simulate one case ``(kind, seed[, family[, paths]])``, write it as a bench CSV, diagnose it on the
     paths (default both)."""
-    from online_id.cli.diagnose import bench_series
+    from online_id.ingest.bench_series import bench_series
     from online_id.offline.bench_files import write_csv
     from online_id.config import load_config
     from online_id.diagnose.bench_diagnosis import T_CRIT, diagnose_bench
@@ -100,9 +101,28 @@ def path_result(result: dict, path: str) -> dict:
 
 
 def run_cases(jobs: list[tuple[str, int]], workers: int,
-              progress: Callable[[int, int, dict], None] | None = None) -> list[dict]:
-    """Run cases on ``workers`` processes (1 = in this process), in order."""
+              progress: Callable[[int, int, dict], None] | None = None, *, dask: bool = False,
+              scheduler: str | None = None) -> list[dict]:
+    """Run cases on ``workers`` processes (1 = in this process), in order; with ``dask`` as tasks on a local
+    Dask cluster of ``workers`` processes, with ``scheduler`` on that scheduler's workers. A task that fails on
+    the cluster (its worker lost, the case raised outside the diagnosis) is a failed case (``error`` on every
+    path), never left out."""
     out = []
+    if dask or scheduler:
+        from online_id.archive.runner import cluster, map_tasks
+
+        done = 0
+
+        def record(o) -> None:
+            nonlocal done
+            done += 1
+            if progress:
+                progress(done, len(jobs), o.value if o.ok else failed_case(jobs[o.index], o.error or "task lost"))
+
+        with cluster(scheduler, workers) as client:
+            outcomes = map_tasks(client, run_case, jobs, label="evaluate-diagnose", on_done=record, quiet=True)
+        return [o.value if o.ok else failed_case(jobs[o.index], o.error or "the task was lost (its worker died)")
+                for o in outcomes]
     if workers <= 1:
         for i, j in enumerate(jobs):
             out.append(run_case(j))
@@ -114,6 +134,23 @@ def run_cases(jobs: list[tuple[str, int]], workers: int,
             out.append(r)
             if progress:
                 progress(i + 1, len(jobs), r)
+    return out
+
+
+def failed_case(job: tuple, error: str) -> dict[str, Any]:
+    """The record of case ``job`` that gave no result: a failure on every path it was to run."""
+    kind, seed = job[:2]
+    family = job[2] if len(job) > 2 else "bench"
+    paths = tuple(job[3]) if len(job) > 3 else PATHS
+    try:
+        case = make_case(kind, seed, family=family)
+        out: dict[str, Any] = {"case": case.case_id, "kind": kind, "seed": seed, "family": family,
+                               "magnitude": case.magnitude, "truth": plain(dict(case.truth))}
+    except Exception as err:  # noqa: BLE001 - the case cannot even be made: still a failed case
+        out = {"case": f"{kind}-{seed}", "kind": kind, "seed": seed, "family": family, "magnitude": None,
+               "truth": {}, "error": f"{type(err).__name__}: {err}"}
+    for path in paths:
+        out[path] = {"error": error, "best": {}, "seconds": 0.0}
     return out
 
 
@@ -202,11 +239,13 @@ def _count(sel: list[dict], pred: Callable[[dict], bool]) -> dict | None:
 def summarise(results: list[dict], thresholds: dict[str, float], path: str = "no_demand") -> dict[str, Any]:
     """Confusion matrix, right-kind rates (with 95 % intervals), parameter figures, false effects."""
     labels = list(KINDS)
-    conf = np.zeros((len(labels), len(labels)), dtype=int)
+    named_labels = labels + [FAILED]
+    conf = np.zeros((len(labels), len(named_labels)), dtype=int)
     rows = []
     for r in results:
         res = path_result(r, path)
-        named, cand = classify(res["best"], thresholds)
+        # a diagnosis that raised named nothing: a failure of the case, never "clean"
+        named, cand = (FAILED, None) if res.get("error") else classify(res["best"], thresholds)
         checks = parameter_check(named, r["truth"], cand)
         # held-out error of the named effect's own measure (the delay's score is its size in ms and
         # the mode's the transfer gain: their held-out transfer gain is a parameter)
@@ -220,7 +259,7 @@ def summarise(results: list[dict], thresholds: dict[str, float], path: str = "no
         if r["kind"] == "backlash" and "passages" in r["truth"]:
             row["passages"] = r["truth"]["passages"]
         rows.append(row)
-        conf[labels.index(r["kind"]), labels.index(named)] += 1
+        conf[labels.index(r["kind"]), named_labels.index(named)] += 1
 
     per_kind = {}
     for kind in labels:
@@ -239,17 +278,22 @@ def summarise(results: list[dict], thresholds: dict[str, float], path: str = "no
             "median_freq_err_pct": _median(right, "freq_err_pct"),
             "median_delay_err_ms": _median(right, "delay_err_ms"),
             "median_gap_err_pct": _median(right, "gap_err_pct"),
-            "named_as": {k: sum(x["named"] == k for x in big) for k in labels if any(x["named"] == k for x in big)},
+            "named_as": {k: sum(x["named"] == k for x in big) for k in named_labels
+                         if any(x["named"] == k for x in big)},
         }
         if kind == "backlash":
             moving = [x for x in big if x.get("passages", 1) > 0]
             per_kind[kind]["right_first_with_passages"] = _count(moving, lambda x: x["named"] == kind)
             per_kind[kind]["without_passages"] = len(big) - len(moving)
     effect = [x for x in rows if x["kind"] != "clean" and x["magnitude"] >= SMALLEST_DECILE]
+    effect_all = [x for x in rows if x["kind"] != "clean"]
     clean = [x for x in rows if x["kind"] == "clean"]
     return {
-        "path": path, "labels": labels, "confusion": conf.tolist(), "per_kind": per_kind,
+        "path": path, "labels": labels, "named_labels": named_labels, "confusion": conf.tolist(),
+        "per_kind": per_kind,
         "overall_right_first": _count(effect, lambda x: x["named"] == x["kind"]),
+        "overall_right_first_all": _count(effect_all, lambda x: x["named"] == x["kind"]),
+        "error_lower_all": _count(effect_all, lambda x: x["error_lower"]),
         "false_effect_clean": _count(clean, lambda x: x["named"] != "clean"),
         "error_lower": _count(effect, lambda x: x["error_lower"]),
         "failed_cases": sum(1 for x in rows if x["error"]),
@@ -275,7 +319,8 @@ def table(summary: dict) -> str:
     """Markdown table of the per-kind figures, rates with their 95 % (Wilson) intervals."""
     lines = [f"path: {summary['path']}", "",
              "| true kind | cases (above smallest decile) | right kind first % (95 % interval) | "
-             "held-out error lower % | parameters | named instead |", "|---|---|---|---|---|---|"]
+             "right kind first %, all cases | held-out error lower % | parameters | named instead |",
+             "|---|---|---|---|---|---|---|"]
     for kind, s in summary["per_kind"].items():
         par = []
         if s["order_exact"] is not None:
@@ -294,14 +339,18 @@ def table(summary: dict) -> str:
                        f"{_pct(s['right_first_with_passages'], False)} %")
         other = ", ".join(f"{k} {v}" for k, v in s["named_as"].items() if k != kind)
         lines.append(f"| {kind} | {s['n']} ({s['n_above_decile']}) | {_pct(s['right_first'])} | "
+                     f"{_pct(s.get('right_first_all'), False)} | "
                      f"{_pct(s['error_lower'], False)} | {'; '.join(par)} | {other} |")
     ov, fe, el = summary["overall_right_first"], summary["false_effect_clean"], summary["error_lower"]
-    lines += ["", f"overall right kind first (effects above the smallest decile): {_pct(ov)} % "
-              f"({ov['k'] if ov else 0} of {ov['n'] if ov else 0})",
-              f"held-out error lower (same cases): {_pct(el)} %",
+    ova, ela = summary.get("overall_right_first_all"), summary.get("error_lower_all")
+    lines += ["", f"overall right kind first, all effect cases: {_pct(ova)} % "
+              f"({ova['k'] if ova else 0} of {ova['n'] if ova else 0}); above the smallest decile of "
+              f"magnitudes: {_pct(ov)} % ({ov['k'] if ov else 0} of {ov['n'] if ov else 0})",
+              f"held-out error lower: all effect cases {_pct(ela)} %, above the smallest decile {_pct(el)} %",
               f"clean benches reporting an effect: {_pct(fe)} % ({fe['k'] if fe else 0} of {fe['n'] if fe else 0})"]
     if summary.get("failed_cases"):
-        lines.append(f"cases that failed with an error: {summary['failed_cases']}")
+        lines.append(f"cases whose diagnosis raised (counted as failures, named '{FAILED}'): "
+                     f"{summary['failed_cases']}")
     return "\n".join(lines)
 
 
@@ -313,6 +362,8 @@ def plot_confusion(summary: dict, path: Path) -> None:
 
     conf = np.array(summary["confusion"], dtype=float)
     labels = [lab.replace("_disturbance", "").replace("_", " ") for lab in summary["labels"]]
+    named = [lab.replace("_disturbance", "").replace("_", " ")
+             for lab in summary.get("named_labels", summary["labels"])]
     norm = conf / np.maximum(conf.sum(axis=1, keepdims=True), 1)
     fig, ax = plt.subplots(figsize=(7.5, 6.5))
     ax.imshow(norm, cmap="Blues", vmin=0, vmax=1)
@@ -321,7 +372,7 @@ def plot_confusion(summary: dict, path: Path) -> None:
             if conf[i, j]:
                 ax.text(j, i, f"{int(conf[i, j])}", ha="center", va="center",
                         color="white" if norm[i, j] > 0.5 else "black")
-    ax.set_xticks(range(len(labels)), labels, rotation=40, ha="right")
+    ax.set_xticks(range(len(named)), named, rotation=40, ha="right")
     ax.set_yticks(range(len(labels)), labels)
     ax.set_xlabel("named first (clean = no significant effect)")
     ax.set_ylabel("true effect")

@@ -51,7 +51,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from online_id.scheduling import default_slice
+from online_id.service.scheduling import default_slice
 
 Callback = Callable[[Any, "str | None"], None]
 """``callback(result, error)``: ``error`` is None on success, else a one-line description."""

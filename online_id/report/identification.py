@@ -19,7 +19,7 @@ from online_id.errors import EstimationError
 from online_id.estimation.identification import IdentificationResult, PointResult, compare_point, point_signals
 from online_id.estimation.validation import Comparison, measured_response, model_response
 from online_id.records import BenchData
-from online_id.report import plot_identification, pyplot, save_figure
+from online_id.report.figures import plot_identification, pyplot, save_figure
 
 RPM_PER_RAD_S = 60.0 / (2.0 * np.pi)
 MIN_COHERENCE = 0.5  # measured points below it are drawn faint

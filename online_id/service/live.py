@@ -11,7 +11,7 @@ the service's), so that systemd sees it.
 
 Nothing slow runs in the receive loop: the window refits, multi-start
 checks and physical fits go to a worker process at the lowest CPU priority
-(:class:`~online_id.offload.ProcessWorker`) and are adopted between frames,
+(:class:`~online_id.service.offload.ProcessWorker`) and are adopted between frames,
 so a refit never stops the loop from reading the socket. The kernel's count
 of frames dropped on a full receive buffer is read once a second, counted
 (``MissingFrames`` in the status frame, ``dropped_frames`` in the counters)
@@ -41,19 +41,19 @@ import time
 from pathlib import Path
 from typing import Callable, TextIO
 
-from online_id.commands import FRESHNESS_FILE, keep_freshness
+from online_id.service.commands import FRESHNESS_FILE, keep_freshness
 from online_id.config import Settings
 from online_id.errors import BusError
 from online_id.io.bus import CanBus
 from online_id.io.statefile import save_state
 from online_id.io.journal import Journal
 from online_id.io.systemd import Notifier
-from online_id.offload import ProcessWorker
-from online_id.reaction import ReactionTimes
+from online_id.service.offload import ProcessWorker
+from online_id.service.reaction import ReactionTimes
 from online_id.records import AlertKind, AlertOut, FrameFault
-from online_id.restore import restore_pipeline
-from online_id.runtime import Runtime
-from online_id.scheduling import request_short_slice
+from online_id.service.restore import restore_pipeline
+from online_id.service.runtime import Runtime
+from online_id.service.scheduling import request_short_slice
 
 STATE_FILE = "online-id-state.json"
 RECV_TIMEOUT_S = 0.05  # the loop wakes at least this often on a silent bus (timeouts, worker results)
@@ -87,11 +87,11 @@ class Service:
         self.state_file = state_path(settings)
         self.last_frame_wall = 0.0
         self.last_frame_ts: float | None = None
-        self.reaction = ReactionTimes()  # input frame arrival -> its first output sent (see online_id.reaction)
+        self.reaction = ReactionTimes()  # input frame arrival -> its first output sent (see online_id.service.reaction)
         self.processing = ReactionTimes()  # the same output: from the loop receiving the frame to it sent
         self._last_state = None
         self._restore()
-        if self.state_file is not None:  # a command's freshness value outlives a restart (online_id.commands)
+        if self.state_file is not None:  # a command's freshness value outlives a restart (online_id.service.commands)
             keep_freshness(self.runtime.commands, self.state_file.with_name(FRESHNESS_FILE), self.say)
         self._n_alerts = self.runtime.pipeline.alerts_total
         self.runtime.pipeline.warm_up()  # compiled code loaded before the bus opens, not on the first frames

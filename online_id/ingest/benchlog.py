@@ -19,14 +19,14 @@ from typing import Callable
 
 import numpy as np
 
-from online_id.assembly import AssembledSample, AssemblyCounters, SampleAssembler
+from online_id.service.assembly import AssembledSample, AssemblyCounters, SampleAssembler
 from online_id.config import Settings
 from online_id.progress import Progress
 from online_id.errors import InputDataError
 from online_id.io.logformats import SUFFIXES
 from online_id.io.mdf import is_bus_log, is_mdf
 from online_id.records import ROLES, BenchData, FrameFault
-from online_id.signals import MIN_SAMPLES, read_bench_csv, read_bench_mdf
+from online_id.ingest.signals import MIN_SAMPLES, read_bench_csv, read_bench_mdf
 
 
 @dataclass
@@ -77,7 +77,7 @@ def read_bench_log(path: str | Path, s: Settings, progress: Progress | None = No
     # the CAN side (python-can, cantools) only when a log is read: a bench CSV does not load it
     from online_id.io.canlog import count_frames, read_log
     from online_id.io.dbc import CommandSample
-    from online_id.runtime import input_decoder
+    from online_id.service.runtime import input_decoder
 
     path = Path(path)
     decoder = input_decoder(s)

@@ -113,7 +113,7 @@ def write_bench_report(b: BenchDiagnosis, out: Path) -> list[Path]:
     import matplotlib.pyplot as plt
     from scipy.signal import welch
 
-    from online_id.plots.residuals import psd_before_after
+    from online_id.report.residuals import psd_before_after
 
     fig, axes = plt.subplots(2, 1, figsize=(8, 6.5), sharex=True)
     fs = b.series.fs_hz

@@ -5,7 +5,7 @@ size limit, strict JSON, numeric arrays only), then checks it before any of
 it is used:
 
 1. **Schema.** The top level has exactly the keys a fresh
-   :class:`~online_id.pipeline.Pipeline` saves (so the schema follows the
+   :class:`~online_id.service.pipeline.Pipeline` saves (so the schema follows the
    code), each of the same kind (mapping, list, or a finite number or null),
    the version of the code, and the pipeline's own items (learned-from
    solutions and windows, alerts) well formed. The learned-from windows
@@ -38,7 +38,7 @@ from online_id.config import Settings
 from online_id.estimation.reference import ReferenceWindow
 from online_id.errors import InputDataError
 from online_id.io.statefile import StateReset, _plain, keep_rejected, load_state
-from online_id.pipeline import STATE_VERSION, Pipeline
+from online_id.service.pipeline import STATE_VERSION, Pipeline
 from online_id.records import ROLES, AlertKind, AlertOut, SignalSample
 
 TRIAL_S = 0.5

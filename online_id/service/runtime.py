@@ -10,13 +10,13 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from online_id.commands import CommandGate
+from online_id.service.commands import CommandGate
 from online_id.config import MappingSettings, RoleSettings, Settings
 from online_id.errors import ConfigError
 from online_id.io.auth import read_key
 from online_id.io.dbc import CommandSample, CommandSignal, InputDecoder, RoleMapping, RoleSignal, load_dbc
 from online_id.io.dbc_output import OutputEncoder
-from online_id.pipeline import Pipeline
+from online_id.service.pipeline import Pipeline
 from online_id.records import FrameFault, FreshnessOut, Publication
 
 OutFrame = tuple[int, bytes]
@@ -52,7 +52,7 @@ class Runtime:
     """Decoder + pipeline + encoder (see module notes)."""
 
     settings: Settings
-    worker: Any = None  # where slow work runs (see online_id.offload); None: inline
+    worker: Any = None  # where slow work runs (see online_id.service.offload); None: inline
     pipeline: Pipeline = field(init=False)
     decoder: InputDecoder = field(init=False)
     encoder: OutputEncoder = field(init=False)
@@ -69,7 +69,7 @@ class Runtime:
                 raise ConfigError("commands.key_file: authenticated commands need a MAC signal in the command "
                                   "message (mapping.command_mac)")
             key = read_key(s.commands.key_file)
-        # what a command frame may do, its freshness and MAC (online_id.commands)
+        # what a command frame may do, its freshness and MAC (online_id.service.commands)
         self.commands = CommandGate(s.commands, key, self.decoder.command_freshness_bits)
         ids = {}
         for key, name in self.encoder.names.items():

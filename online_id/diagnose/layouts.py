@@ -1,6 +1,6 @@
 """Measured layouts: one or two records (e.g. a drive logger and a sensor logger) -> :class:`DiagnoseData`.
 
-No file I/O: :mod:`online_id.cli.diagnose_records` reads the files and the
+No file I/O: :mod:`online_id.offline.diagnose_records` reads the files and the
 options, the rig evaluation passes simulated records; both end here.
 
 Notes

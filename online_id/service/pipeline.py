@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from online_id.assembly import AssembledSample, SampleAssembler
+from online_id.service.assembly import AssembledSample, SampleAssembler
 from online_id.config import Settings
 from online_id.diagnose.bench_data import DEFAULT_PULSES_PER_REV
 from online_id.diagnose.linearity import BacklashTest, backlash_test
@@ -46,8 +46,8 @@ from online_id.analysis.physical import DrivelineParameters
 from online_id.monitoring.tracks import PoleTracker
 from online_id.monitoring.visit import VisitReference
 from online_id.errors import EstimationError
-from online_id.excitation import Excitation
-from online_id.offload import InlineWorker
+from online_id.analysis.excitation import Excitation
+from online_id.service.offload import InlineWorker
 from online_id.records import (
     AlertKind,
     AlertOut,
@@ -98,7 +98,7 @@ class Pipeline:
         self.settings = settings
         s = settings
         # slow work (window refits, multi-start checks, physical fits): at once in replay, in a worker process
-        # in the live service (see online_id.offload)
+        # in the live service (see online_id.service.offload)
         self.worker = worker if worker is not None else InlineWorker()
         self._verify_results: dict = {}  # purpose -> (t_s submitted, adopted) of finished multi-start checks
         self._verify_running: set = set()
@@ -234,7 +234,7 @@ class Pipeline:
     # -- input -----------------------------------------------------------------------------------
     def on_signal(self, sample: SignalSample) -> list[Publication]:
         """One decoded value from a frame."""
-        samples = self.assembler.push(sample)  # checks the timestamp (see online_id.assembly)
+        samples = self.assembler.push(sample)  # checks the timestamp (see online_id.service.assembly)
         if samples:
             if self.t_first is None:
                 self.t_first = samples[0].t_s
@@ -1191,7 +1191,7 @@ def run_bench_data(data, settings: Settings, progress=None, on_output=None, stat
     list of publications (e.g. to acknowledge alerts as an operator would).
     ``state``: a state of an earlier run to start from (``load_state(state,
     new_run=True)``); ``run_label`` marks the cells learned in this run.
-    ``worker``: where slow work runs (default: inline, see :mod:`online_id.offload`).
+    ``worker``: where slow work runs (default: inline, see :mod:`online_id.service.offload`).
     ``reference``: cells learned now are a reference run's (as ``relearn --from``).
     """
     import dataclasses

@@ -3,7 +3,7 @@
 Each case simulates a rig (:mod:`online_id.bench.rig`: 2-3 gear stages,
 two recorders on drifting clocks, encoder angles, jitter), puts the records
 through the same path as ``online-id diagnose --second-file``
-(:func:`online_id.layouts.assemble`: resampling, clocks estimated where they
+(:func:`online_id.diagnose.layouts.assemble`: resampling, clocks estimated where they
 plainly differ, shafts from angles, torsion, decimation) and diagnoses the motor
 speed from the torque demand.  True effects: a rotation-order disturbance on
 each shaft in turn, at an order that is identifiable (no faster shaft turns
@@ -13,7 +13,6 @@ measure the false-effect rate.
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
@@ -26,7 +25,8 @@ from online_id.bench.rig import OrderDisturbance, RigSpec, random_rig, simulate_
 from online_id.diagnose import DiagnoseData, diagnose
 from online_id.diagnose.align import resample_uniform
 from online_id.diagnose.residual_tests import RIG_LINE_RATIO, RIG_SPLIT_RATIO
-from online_id.layouts import Column, Layout, ShaftColumn, assemble
+from online_id.diagnose.layouts import Column, Layout, ShaftColumn, assemble
+from online_id.io.jsonout import dumps
 
 SAMPLE_RATE_HZ = 200.0
 SIM_HORIZON_S = 0.1  # the load loop's set point is unmeasured: longer simulations judge it, not the model
@@ -71,7 +71,7 @@ def rig_spec(seed: int, shaft: int | None, magnitude: float, order: int | None =
 
 def rig_layout(spec: RigSpec, clock: str = "auto") -> Layout:
     """The layout a user would give ``online-id diagnose`` for this rig's two files (angles, no ratios,
-    the clocks estimated where they plainly differ): what :func:`online_id.layouts.assemble` reads."""
+    the clocks estimated where they plainly differ): what :func:`online_id.diagnose.layouts.assemble` reads."""
     shafts = tuple(ShaftColumn(n, "angle", Column(0 if i == 0 else 1, f"{n}_angle_{spec.angle_suffix}"),
                                1.0 / spec.angle_scale, spec.angle_suffix) for i, n in enumerate(spec.names))
     return Layout(Column(0, "torque_demand_nm"), shafts[0].column, shafts, differentiate_output=True,
@@ -133,7 +133,26 @@ def run_case(seed: int, shaft: int | None, magnitude: float, na: int | None = No
 
 
 def _task(args: tuple) -> dict:
-    return run_case(*args)
+    """``run_case(*args)``; a case whose simulation or diagnosis raised is a failed case (named
+    ``error``, never clean), and the run goes on."""
+    try:
+        return run_case(*args)
+    except Exception as err:  # noqa: BLE001 - recorded as a failed case
+        return failed_case(args[0], args[1], args[2], f"{type(err).__name__}: {err}")
+
+
+def failed_case(seed: int, shaft: int | None, magnitude: float, message: str) -> dict:
+    """The row of a case that raised: every rate counts it as wrong."""
+    spec = rig_spec(seed, shaft, magnitude)
+    truth = spec.disturbance
+    return {"seed": seed, "ratios": list(spec.ratios), "names": list(spec.names),
+            "true_kind": "clean" if truth is None else "rotation_order_disturbance",
+            "true_shaft": None if truth is None else spec.names[truth.shaft],
+            "true_order": None if truth is None else truth.order, "magnitude": magnitude,
+            "found_kind": "error", "found_shaft": None, "found_order": None, "effects": [],
+            "rms_before": None, "rms_after": None, "error": message, "found_in_any_step": False,
+            "wrong_shaft_or_order": False, "order_exact": False, "shaft_right": False,
+            "max_line_ratio": None, "max_split_ratio": None, "seconds": 0.0}
 
 
 def _run_all(tasks: list[tuple], jobs: int, progress: Callable[[int, int, dict], None] | None = None) -> list[dict]:
@@ -176,8 +195,7 @@ def evaluate(cases: int, seed: int, magnitude: float, jobs: int = 1, out: Path |
     summary = summarise(uniq)
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
-        (out / "rig-evaluation.json").write_text(json.dumps({"summary": summary, "cases": uniq}, indent=1,
-                                                            default=float) + "\n", encoding="utf-8")
+        (out / "rig-evaluation.json").write_text(dumps({"summary": summary, "cases": uniq}, indent=1) + "\n", encoding="utf-8")
     return summary
 
 
@@ -203,7 +221,7 @@ def calibrate(cases: int, seed: int, jobs: int = 1, out: Path | None = None,
                "seconds_per_case": float(np.mean([x["seconds"] for x in rows]))}
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
-        (out / "rig-calibration.json").write_text(json.dumps({"summary": summary, "max_line_ratio": r.tolist(),
+        (out / "rig-calibration.json").write_text(dumps({"summary": summary, "max_line_ratio": r.tolist(),
                                                               "max_split_ratio": r2.tolist()},
                                                              indent=1) + "\n", encoding="utf-8")
     return summary
@@ -232,13 +250,21 @@ def summarise(rows: list[dict]) -> dict:
                 "shaft_right_pct": 100.0 * sum(r["shaft_right"] for r in rs) / n,
                 "found_in_any_step_pct": 100.0 * sum(r["found_in_any_step"] for r in rs) / n,
                 "wrong_shaft_or_order_pct": 100.0 * sum(r["wrong_shaft_or_order"] for r in rs) / n,
-                "error_lower_pct": 100.0 * sum(r["rms_after"] < r["rms_before"] for r in rs) / n}
+                "error_lower_pct": 100.0 * sum(r["rms_after"] is not None and r["rms_after"] < r["rms_before"]
+                                               for r in rs) / n,
+                "failed": sum(r["found_kind"] == "error" for r in rs)}
 
-    off = [abs(r["offset_est_s"] - r["offset_true_s"]) for r in rows]
-    drift = [abs(r["drift_est_ppm"] - r["drift_true_ppm"]) for r in rows]
+    ran = [r for r in rows if r["found_kind"] != "error"] or [{"offset_est_s": 0.0, "offset_true_s": 0.0,
+                                                               "drift_est_ppm": 0.0, "drift_true_ppm": 0.0}]
+    off = [abs(r["offset_est_s"] - r["offset_true_s"]) for r in ran]
+    drift = [abs(r["drift_est_ppm"] - r["drift_true_ppm"]) for r in ran]
     return {"rotation_order": rates(dist), "by_position": {k: rates(v) for k, v in sorted(by_pos.items())},
             "clean": {"cases": len(clean),
                       "false_effect_pct": 100.0 * sum(r["found_kind"] != "clean" for r in clean) / max(len(clean), 1)},
+            "failed_cases": sum(r["found_kind"] == "error" for r in rows),
+            "all_cases": {"cases": len(rows), "right_first_pct": 100.0 * sum(
+                r["found_kind"] == r["true_kind"] and (r["true_kind"] == "clean" or r["order_exact"] and r["shaft_right"])
+                for r in rows) / max(len(rows), 1)},
             "clock": {"estimated_pct": 100.0 * sum(r.get("clock_mode", "estimated") == "estimated" for r in rows)
                       / max(len(rows), 1),
                       "offset_err_max_ms": 1e3 * max(off), "offset_err_median_ms": 1e3 * float(np.median(off)),
