@@ -35,6 +35,20 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--plant-type", default="any", metavar="TYPE",
                    help="fault plants of this type only: any, backlash or 'no backlash' (default any; about 30 %% of "
                    "the random plants have backlash)")
+    r = p.add_argument_group("what a bench adds (docs/evaluation.md; default: none of it, perfect samples)")
+    r.add_argument("--crossings", action="store_true",
+                   help="every fault-free run and every run of families a and b also visits an operating point "
+                   "where an engine-order line lies within 25 %% of the resonance; report what the service did there")
+    r.add_argument("--frame-loss", type=float, default=None, metavar="FRACTION",
+                   help="feed CAN frames (DBC-encoded, decoded by the service's runtime) and drop this fraction")
+    r.add_argument("--frame-jitter", type=float, default=None, metavar="SECONDS",
+                   help="feed CAN frames, each received up to this much late (in order)")
+    r.add_argument("--worker-lag", type=float, default=None, metavar="SECONDS",
+                   help="feed CAN frames and adopt slow work (refits, checks, backlash test) this many stream "
+                   "seconds after it was submitted, as the service's worker process does")
+    r.add_argument("--bench-realism", action="store_true",
+                   help="all of it: --crossings --frame-loss 0.01 --frame-jitter 0.002 --worker-lag 0.5 "
+                   "(each can be given otherwise)")
     p.add_argument("--quick", action="store_true",
                    help="a bounded check: --hours 0.5 --fault-plants 2 --families a,b --jobs 2 unless given")
     p.add_argument("--from-results", type=Path, metavar="results.json",

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import multiprocessing
 import os
@@ -16,6 +17,7 @@ import numpy as np
 from online_id.bench import evaluate as ev
 from online_id.errors import ConfigError, InputDataError
 from online_id.io.outfile import atomic_output, check_output
+from online_id.offline.bench_feed import run_spec
 from online_id.report.figures import fmt, pyplot, save_figure
 
 
@@ -42,8 +44,9 @@ def table(summary: dict) -> str:
         "",
         "| family | fault | runs | detected | warning delay median / worst [s] "
         "| fault-level delay median / worst [s] | false alarms before the fault "
-        "| with backlash: detected, median [s] | without backlash: detected, median [s] |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
+        "| with backlash: detected, median [s] | without backlash: detected, median [s] "
+        "| wrong kind after the fault: runs (first) / alarms |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     if f.get("withheld") is not None and f["runs"]:
         lines[1:1] = ["", "Alarms the detector asked for and the confirm withheld (second look, recheck of the cell's "
@@ -61,7 +64,7 @@ def table(summary: dict) -> str:
             f"| {r.get('family', 'c')} | {r['case']} | {r['runs']} | {r['detected']} | {fmt(r['warning_delay_s_median'], '.1f')} / "
             f"{fmt(r['warning_delay_s_worst'], '.1f')} | {fmt(r['fault_delay_s_median'], '.1f')} / "
             f"{fmt(r['fault_delay_s_worst'], '.1f')} ({r['fault_level_reached']}/{r['runs']}) "
-            f"| {r['false_alarms_before_fault']} | {plants} |")
+            f"| {r['false_alarms_before_fault']} | {plants} | {_wrong(r)} |")
     faults = [r for r in summary["faults"] if r.get("family", "c") in ev.FAMILIES  # not the a+b rows again
               and r.get("withheld_after_fault") is not None]
     if faults:
@@ -69,7 +72,56 @@ def table(summary: dict) -> str:
                          for name in ("withheld_before_fault", "withheld_after_fault"))
         lines += ["", f"Alarms withheld in the fault runs: before the fault {_kinds(before)}; after it "
                   f"{_kinds(after)} (each one after the fault delayed a detection or was of the other kind)."]
+    crossing = summary.get("crossings")
+    if crossing:
+        lines += ["", *crossing_lines(crossing)]
+    realism = summary.get("settings", {}).get("realism")
+    if realism:
+        lines[0:0] = [f"Input: CAN frames through the service's runtime, {100 * realism['frame_loss']:g} % lost, "
+                      f"received up to {1000 * realism['jitter_s']:g} ms late; slow work adopted "
+                      f"{realism['worker_lag_s']:g} s after submission.", ""]
     return "\n".join(lines)
+
+
+def _wrong(r: dict) -> str:
+    """The wrong-kind cell of a fault row ("-" in a results.json of a version before the count)."""
+    if "wrong_kind_runs" not in r:
+        return "-"
+    return f"{r['wrong_kind_runs']} ({r['wrong_kind_first']}) / {r['wrong_kind_alarms']}"
+
+
+def crossing_lines(c: dict) -> list[str]:
+    """The crossing section of the table: what the service did where an engine-order line crosses the
+    resonance (outcomes per visit), and the false alarms there against elsewhere."""
+    def outcomes(part: dict) -> str:
+        return ", ".join(f"{k} {n}" for k, n in part["outcomes"].items()) or "none"
+
+    def rate(part: dict) -> str:
+        ci = part.get("false_alarms_per_1000h_ci")
+        return (f"{fmt(part['false_alarms_per_1000h'], '.0f')} per 1,000 h, 95 % interval "
+                f"{fmt(ci[0], '.0f')}-{fmt(ci[1], '.0f')}" if ci else "no hours")
+
+    free, away, pre, post = c["fault_free"], c["fault_free_elsewhere"], c["before_fault"], c["after_fault"]
+    valid = lambda part: f"{100 * part['valid_fraction']:.0f} %" if part.get("valid_fraction") is not None else "-"  # noqa: E731
+    return [
+        f"Order-line crossings (engine orders {', '.join(f'{o:g}' for o in c['orders'])} within 25 % of the "
+        f"resonance; {c['visits']} visits in {c['runs']} runs):",
+        "",
+        "| where | visits | hours | estimate valid | false alarms | what the service did (visits) |",
+        "|---|---:|---:|---:|---:|---|",
+        f"| fault-free runs, at crossings | {free['visits']} | {free['hours']:.2f} | {valid(free)} "
+        f"| {free['false_alarms']} ({rate(free)}) | {outcomes(free)} |",
+        f"| fault-free runs, elsewhere | - | {away['hours']:.2f} | - | {away['false_alarms']} ({rate(away)}) | - |",
+        f"| fault runs before the fault, at crossings | {pre['visits']} | {pre['hours']:.2f} | {valid(pre)} "
+        f"| {pre['false_alarms']} | {outcomes(pre)} |",
+        f"| fault runs after the fault, at crossings | {post['visits']} | {post['hours']:.2f} | {valid(post)} | - "
+        f"| {outcomes(post)}; the first alarm of the fault's kind raised at a crossing in "
+        f"{post['first_alarm_at_crossing']} of {post['fault_runs']} runs |",
+        "",
+        "held: estimate valid less than half the visit, no alarm; tracked: valid, no alarm; latched: the "
+        "fault's alarm raised before the visit; warned / detected: a warning / fault-level alarm of the fault's "
+        "kind raised in the visit (or the ramp after it); wrong kind: only an alarm of the other kind.",
+    ]
 
 
 def _kinds(counts: dict) -> str:
@@ -145,9 +197,26 @@ def _defaults(args: argparse.Namespace) -> None:
     if cases is not None and (not cases or any(c not in labels for c in cases)):
         raise ConfigError(f"--cases: expected labels among {', '.join(sorted(labels))}, but got {args.cases!r}")
     args.cases = cases
+    args.realism = _realism(args)
     if args.plant_type not in ("any",) + ev.PLANT_TYPES:
         raise ConfigError(f"--plant-type: expected one of any, {', '.join(repr(x) for x in ev.PLANT_TYPES)}, but got "
                           f"{args.plant_type!r}")
+
+
+def _realism(args: argparse.Namespace) -> ev.BenchRealism | None:
+    """The frames, loss, jitter and worker's lag asked for (``--bench-realism`` fills what is not given);
+    None: perfect samples, slow work inline."""
+    given = {"frame_loss": args.frame_loss, "jitter_s": args.frame_jitter, "worker_lag_s": args.worker_lag}
+    if args.bench_realism:
+        args.crossings = True
+        given = {k: getattr(ev.BENCH_REALISM, k) if v is None else v for k, v in given.items()}
+    if all(v is None for v in given.values()):
+        return None
+    try:
+        return ev.BenchRealism(**{k: 0.0 if v is None else v for k, v in given.items()})
+    except ValueError:
+        raise ConfigError(f"Expected --frame-loss in [0, 1), --frame-jitter >= 0 and --worker-lag >= 0, but got "
+                          f"{args.frame_loss}, {args.frame_jitter}, {args.worker_lag}") from None
 
 
 def run_evaluate(args: argparse.Namespace) -> int:
@@ -164,7 +233,8 @@ def run_evaluate(args: argparse.Namespace) -> int:
             raise InputDataError(f"{args.out}: cannot create the output directory ({err.strerror})") from None
     if args.from_results is not None:
         return _from_results(args)
-    specs = ev.plan(args.hours, args.fault_plants, args.seed, args.families, args.cases, args.plant_type)
+    specs = ev.plan(args.hours, args.fault_plants, args.seed, args.families, args.cases, args.plant_type,
+                    crossings=args.crossings, realism=args.realism)
     specs.sort(key=lambda s: -s.scenario.duration_s)  # longest first: the pool finishes together
     total_s = sum(s.scenario.duration_s for s in specs)
     where = (f"Dask scheduler {args.scheduler}" if args.scheduler else
@@ -176,7 +246,8 @@ def run_evaluate(args: argparse.Namespace) -> int:
     settings = {"hours": args.hours, "fault_plants": args.fault_plants, "plant_type": args.plant_type,
                 "seed": args.seed,
                 "families": list(args.families), "cases": list(args.cases) if args.cases else None,
-                "jobs": args.jobs,
+                "jobs": args.jobs, "crossings": args.crossings,
+                "realism": None if args.realism is None else dataclasses.asdict(args.realism),
                 "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"}
     failed: list[str] = []
 
@@ -207,11 +278,11 @@ def run_evaluate(args: argparse.Namespace) -> int:
             print(f"[failed] ({spec.family}) {spec.case} seed {spec.seed}: {o.error}", file=sys.stderr)
 
         with cluster(args.scheduler, args.jobs) as client:
-            map_tasks(client, ev.run, specs, label="evaluate", on_done=done, quiet=True)
+            map_tasks(client, run_spec, specs, label="evaluate", on_done=done, quiet=True)
     else:
         ctx = multiprocessing.get_context("fork")
         with ctx.Pool(args.jobs) as pool:
-            for r in pool.imap_unordered(ev.run, specs):
+            for r in pool.imap_unordered(run_spec, specs):
                 record(r)
     elapsed = time.monotonic() - t0
     settings["elapsed_s"] = round(elapsed, 1)
