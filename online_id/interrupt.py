@@ -112,5 +112,7 @@ def interruptible(process_ends: bool = False) -> Iterator[None]:
         for s, handler in previous.items():
             stays = s != signal.SIGALRM and (_received or process_ends)
             signal.signal(s, signal.SIG_IGN if stays else handler)
-        sys.unraisablehook = hook
+        # after a signal the console process only ends: the finalisers of what the signal cut short (an
+        # llvmlite pass builder half made while numba compiled) have nothing to report to the user
+        sys.unraisablehook = (lambda info: None) if _received and process_ends else hook
         _received.clear()
