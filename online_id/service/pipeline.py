@@ -102,8 +102,9 @@ class Pipeline:
         self.alerts: list[AlertOut] = []
         self.alerts_total = 0  # alerts raised since start (the list keeps the last MAX_EVENTS)
         # tracking, learning and detection on the published estimates (see online_id.service.policy)
-        self.policy = DetectionPolicy(settings, self.estimator.dt, self._worker, self._submit_window,
-                                      lambda: self.t_s, self.events, self._record)
+        self.policy = DetectionPolicy(settings, dt=self.estimator.dt, worker=self._worker,
+                                      submit_window=self._submit_window, clock=lambda: self.t_s,
+                                      events=self.events, record=self._record)
         self.commands = 0
         self.dropped_frames = 0  # frames the kernel dropped (full receive buffer), reported by the service
 
