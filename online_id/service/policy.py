@@ -210,9 +210,9 @@ class DetectionPolicy:
 
     def load(self, state: dict, n_params: int, new_run: bool = False) -> None:
         """Restore the items of :meth:`to_dict` from the state document ``state`` (solutions of ``n_params``
-        model parameters); ``new_run``: see :meth:`Pipeline.load_state
-        <online_id.service.pipeline.Pipeline.load_state>` (the tracks start afresh, the detector's stream
-        too)."""
+        model parameters).  ``new_run``: the state comes from an earlier run: the baselines, reference
+        solutions and windows, the engaged flank and the detector's statistics and latched alarms are
+        restored, the pole tracks and the detector's stream start afresh."""
         if "baseline" in state:
             self.baseline = Baseline.from_dict(state["baseline"])
         if "detector" in state:
