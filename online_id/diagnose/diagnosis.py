@@ -263,6 +263,8 @@ def _params(kind: str, model: AugmentedFit, cur: AugmentedFit, data: DiagnoseDat
     hint = hint or {}
     if kind == "additional_mode":
         f, zeta = fx.new_mode(cur.A, model.A, data.fs_hz)
+        if not np.isfinite(f):
+            return {"freq_hz": None, "damping": None, "unresolved": True}
         out = {"freq_hz": f, "damping": zeta}
         line = rotation_line(f, zeta, shaft_rates_hz(data))
         if line is not None:
@@ -340,17 +342,25 @@ def shaft_rates_hz(data: DiagnoseData) -> dict[str, float]:
 
 
 def modes_of(A: np.ndarray, fs_hz: float, rates_hz: dict[str, float] | None = None) -> list[dict]:
-    """Poles of ``A`` (one per conjugate pair) with frequency, damping and stability; a near-undamped pair
+    """Poles of ``A`` (one per conjugate pair) with frequency, damping and stability (``freq_hz`` only below
+    the Nyquist frequency; a negative real pole or a pair at or beyond it is ``unresolved``, with the
+    ``damped_hz`` of its angle, see :func:`~online_id.diagnose.effects.resolved`); a near-undamped pair
     at a multiple of a shaft's rate (``rates_hz``) carries ``line``: the shaft and order of that rotation
     line (:func:`~online_id.analysis.poles.rotation_line`)."""
     out = []
     for p in poles_of(A, 1.0 / fs_hz):
         z = complex(p.z)
+        kind = p.kind
+        if kind == "complex" and not fx.resolved(z):
+            kind = "unresolved"  # a negative real pole or a pair whose natural frequency is >= Nyquist
+        below = bool(np.isfinite(p.f_hz) and p.f_hz < 0.5 * fs_hz)
         m = {"z_real": z.real, "z_imag": z.imag, "abs_z": abs(z),
-             "freq_hz": p.f_hz if np.isfinite(p.f_hz) else None,
+             "freq_hz": p.f_hz if below else None,
              "damping": p.zeta if np.isfinite(p.zeta) else None,
-             "kind": p.kind, "stable": bool(abs(z) < 1.0)}
-        hit = rotation_line(p.f_hz, p.zeta, rates_hz or {}) if p.kind == "complex" else None
+             "kind": kind, "stable": bool(abs(z) < 1.0)}
+        if kind == "unresolved":
+            m["damped_hz"] = abs(float(np.angle(z))) * fs_hz / (2.0 * np.pi)
+        hit = rotation_line(p.f_hz, p.zeta, rates_hz or {}) if kind == "complex" else None
         if hit is not None:
             m["line"] = {"shaft": hit[0], "order": hit[1]}
         out.append(m)
@@ -571,6 +581,9 @@ def diagnose(data: DiagnoseData, *, na: int | None, nb: int | None, nc: int, nk:
             rms_new = float(np.sqrt(np.mean(e_new[val] ** 2)))
             fit_new = fit_percent(data.y[val], ysim_new[val])
             refused = _guard(fig, rms_new, fit_new) if ok else ""
+            if ok and params.get("unresolved"):
+                refused = ("the added poles are no pole pair below the Nyquist frequency (real or alternating "
+                           "poles of the equation error): not a mode")
             if ok and "rotation_line" in params:
                 line = params["rotation_line"]
                 refused = (f"the added pole pair is a rotation-order line (order {line['order']:g} of shaft "

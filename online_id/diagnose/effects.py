@@ -31,7 +31,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.ndimage import uniform_filter1d
-from scipy.optimize import minimize_scalar
+from scipy.optimize import linear_sum_assignment, minimize_scalar
 
 from online_id.diagnose.data import DiagnoseData, Split
 from online_id.diagnose.model import Structure, fit_structure, lag_matrix
@@ -250,21 +250,41 @@ def mode_structure(s: Structure) -> Structure:
     return replace(s, na=s.na + 2, nb=s.nb + 2)
 
 
-def new_mode(A_old: np.ndarray, A_new: np.ndarray, fs_hz: float) -> tuple[float, float]:
-    """Frequency [Hz] and damping ratio of the complex pole pair of ``A_new`` farthest from every pole of
-    ``A_old`` (NaN, NaN when ``A_new`` has none)."""
-    def s_poles(A: np.ndarray) -> np.ndarray:
-        z = np.roots(A) if A.size > 1 else np.zeros(0, dtype=complex)
-        z = z[np.abs(z) > 1e-9]
-        return np.log(z.astype(complex)) * fs_hz
+def resolved(z: complex) -> bool:
+    """Whether discrete pole ``z`` is one of a complex pair the record resolves as a mode: off the real
+    axis, and its natural frequency :math:`|\\ln z| f_s / 2\\pi` below the Nyquist frequency
+    (:math:`|\\ln z| < \\pi`).
 
-    old, new = s_poles(A_old), s_poles(A_new)
-    cand = new[new.imag > 1e-6]
+    A negative real pole (:math:`\\ln z = \\ln|z| + j\\pi`) or a heavily damped pair near
+    :math:`z = -1` maps to a "frequency" at or above the Nyquist frequency, even above the sample rate
+    for :math:`|z|` near 0: an alternation of the equation error, not an oscillation the data hold.
+    """
+    return abs(z.imag) > 1e-9 and z != 0 and abs(np.log(complex(z))) < np.pi
+
+
+def new_mode(A_old: np.ndarray, A_new: np.ndarray, fs_hz: float) -> tuple[float, float]:
+    """Frequency [Hz] and damping ratio of the pole pair that ``A_new`` adds to ``A_old``.
+
+    The poles of ``A_new`` are matched one to one to the nearest poles of ``A_old`` (least total distance
+    in the z-plane); of the unmatched ones, the resolved complex pair (:func:`resolved`) farthest from every
+    old pole is the added mode.  NaN, NaN when the added poles hold none: what the extra poles took is no
+    mode below the Nyquist frequency (a negative real pole, an alternation near ``z = -1``).
+    """
+    def roots(A: np.ndarray) -> np.ndarray:
+        return (np.roots(A) if A.size > 1 else np.zeros(0)).astype(complex)
+
+    old, new = roots(A_old), roots(A_new)
+    added = new
+    if old.size and new.size:
+        rows, _ = linear_sum_assignment(np.abs(new[:, None] - old[None, :]))
+        added = np.delete(new, rows)
+    cand = np.array([z for z in added if z.imag > 0 and resolved(z)], dtype=complex)
     if cand.size == 0:
         return float("nan"), float("nan")
-    if old.size == 0:
-        pick = cand[np.argmin(np.abs(cand.real) / np.abs(cand))]
-    else:
-        dist = np.min(np.abs(cand[:, None] - old[None, :]), axis=1)
-        pick = cand[int(np.argmax(dist))]
+    s_new = np.log(cand) * fs_hz
+    pick = s_new[0]
+    if old.size:
+        s_old = np.log(old[np.abs(old) > 1e-9]) * fs_hz
+        if s_old.size:
+            pick = s_new[int(np.argmax(np.min(np.abs(s_new[:, None] - s_old[None, :]), axis=1)))]
     return float(np.abs(pick) / (2.0 * np.pi)), float(-pick.real / np.abs(pick))
