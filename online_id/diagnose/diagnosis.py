@@ -201,6 +201,20 @@ def _t_stat(e_cur: np.ndarray, e_new: np.ndarray) -> float:
     return float(means.mean() / se) if se > 0 else float("inf") * np.sign(means.mean())
 
 
+def materiality(e: np.ndarray) -> float:
+    """The smallest share of the held-out mean squared error a step must remove to be material: the
+    relative standard error of that mean itself, from :data:`N_BATCH` batch means of ``e**2`` (batches
+    make it robust to correlation).
+
+    A step that removes less changes the reported error by less than the figure's own uncertainty: the
+    held-out significance of the *difference* (:func:`_t_stat`) can still be large, because the errors
+    before and after move together sample by sample.
+    """
+    means = np.array([b.mean() for b in np.array_split(np.asarray(e, dtype=float) ** 2, N_BATCH)])
+    m = float(means.mean())
+    return float(means.std(ddof=1) / np.sqrt(N_BATCH) / m) if m > 0 else 0.0
+
+
 def _dedupe(cands: list[tuple[str, dict]]) -> list[tuple[str, dict]]:
     seen, out = set(), []
     for kind, hint in cands:
@@ -238,15 +252,21 @@ def _build(kind: str, hint: dict, data: DiagnoseData, cur: AugmentedFit, split: 
         if new.delay == s.delay:
             return None
     elif kind == "backlash":
-        if data.torsion is None or any(t.kind == kind for t in s.terms):
+        joint = hint.get("joint", "")
+        if (data.torsion is None and not joint) or any(t.kind == kind for t in s.terms):
             return None
-        ref = fit_structure(data, s.with_term(fx.LinearTorsion()), split)
-        new = fx.search_backlash(data, ref.structure, split, ref.C)
+        ref = fit_structure(data, s.with_term(fx.LinearTorsion(joint=joint)), split)
+        new = fx.search_backlash(data, ref.structure, split, ref.C, joint)
         model = fit_structure(data, new, split)
         return model, _params(kind, model, cur, data), ref.errors(data)
     elif kind == "coulomb_friction":
         if any(t.kind == kind for t in s.terms):
             return None
+        joint = hint.get("joint", "")
+        if joint:  # judged as a joint's backlash is: on what it adds to the joint's linear twist
+            ref = fit_structure(data, s.with_term(fx.LinearTorsion(joint=joint)), split)
+            model = fit_structure(data, fx.coulomb_structure(data, ref.structure, joint), split)
+            return model, _params(kind, model, cur, data), ref.errors(data)
         new = fx.coulomb_structure(data, s)
     elif kind == "absolute_value_sensor":
         model = fit_wiener_abs(data, max(s.na, 1), s.nb, max(s.nk, 1), split.est_runs[0][1])
@@ -575,8 +595,10 @@ def diagnose(data: DiagnoseData, *, na: int | None, nb: int | None, nc: int, nk:
                     explained, t, basis = x_sim, t_sim, "simulation"
             # a line on the rig's order grid passed a test calibrated on clean rigs (its power over the
             # local floor); a narrow line holds a small share of a broadband residual, so it needs only
-            # the held-out significance, not the share
-            need = 0.0 if "line_ratio" in hint else min_explained
+            # the held-out significance, not the share; so does a joint's dead zone or friction (crossed
+            # or slipping at the joint's reversals only), screened by its own test.  Every candidate must
+            # remove more than the held-out error's own uncertainty (materiality)
+            need = max(materiality(e_base[val]), 0.0 if "line_ratio" in hint or hint.get("joint") else min_explained)
             ok = explained >= need and (t >= T_CRIT or hint.get("held_out_ratio", 0.0) >= RIG_SPLIT_RATIO)
             rms_new = float(np.sqrt(np.mean(e_new[val] ** 2)))
             fit_new = fit_percent(data.y[val], ysim_new[val])

@@ -31,6 +31,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.ndimage import uniform_filter1d
+from scipy.signal import butter, lfilter
 from scipy.optimize import linear_sum_assignment, minimize_scalar
 
 from online_id.diagnose.data import DiagnoseData, Split
@@ -134,16 +135,17 @@ class BacklashTerm:
     gap: float
     center: float
     kind: str = "backlash"
+    joint: str = ""
 
     def columns(self, data: DiagnoseData, lags: np.ndarray) -> np.ndarray:
-        h = np.clip(data.torsion - self.center, -0.5 * self.gap, 0.5 * self.gap)
+        h = np.clip(twist(data, self.joint) - self.center, -0.5 * self.gap, 0.5 * self.gap)
         return lag_matrix(h, lags)
 
     def output_static(self) -> None:
         return None
 
     def params(self) -> dict:
-        return {"gap_rad": float(self.gap)}
+        return {"gap_rad": float(self.gap), **({"joint": self.joint} if self.joint else {})}
 
 
 @dataclass(frozen=True)
@@ -156,9 +158,10 @@ class LinearTorsion:
     """
 
     kind: str = "linear_torsion"
+    joint: str = ""
 
     def columns(self, data: DiagnoseData, lags: np.ndarray) -> np.ndarray:
-        return lag_matrix(data.torsion, lags)
+        return lag_matrix(twist(data, self.joint), lags)
 
     def output_static(self) -> None:
         return None
@@ -185,15 +188,63 @@ class CoulombTerm:
         return {}
 
 
+def twist(data: DiagnoseData, joint: str = "") -> np.ndarray:
+    """The twist across ``joint`` (``data.joints``), or the record's torsion proxy for ``""``."""
+    return data.joints[joint] if joint else data.torsion
+
+
+def slip_sign(phi: np.ndarray, fs_hz: float) -> np.ndarray:
+    """The smoothed sign of a joint's relative speed (the rate of its twist ``phi``), causal.
+
+    The rate is low-passed (second-order Butterworth at fs/8, causal: a regressor at lag 1 must not hold
+    the sample it predicts) and passed through :math:`\\tanh(v / v_0)`, where :math:`v_0` is the noise
+    left in the low-passed rate: the rate's RMS above fs/4 (differentiated encoder quantisation and speed
+    noise, white there) scaled to the low-pass's band.  Where the joint really slips the speed is many
+    :math:`v_0` and the feature is its sign; noise alone does not flip it.
+    """
+    v = np.diff(np.asarray(phi, dtype=float), prepend=phi[0]) * fs_hz
+    v_lp = lfilter(*butter(2, 0.25), v)
+    hi = v - lfilter(*butter(2, 0.5), v)
+    v0 = float(np.sqrt(np.mean(hi**2) * 0.125 / 0.25))
+    return np.tanh(v_lp / v0) if v0 > 0 else np.sign(v_lp)
+
+
+@dataclass(frozen=True)
+class JointCoulomb:
+    """Coulomb friction in a joint: :math:`F_c` times the smoothed sign of the joint's relative speed
+    (:func:`slip_sign` of its twist), at the lags of ``B``.
+
+    On a rig turning one way the output speed never reverses, so friction that follows the sign of the
+    speed is a constant there; friction in a joint (a coupling, a gear mesh) follows the relative motion
+    of its two sides, which reverses with every oscillation of the joint.
+    """
+
+    joint: str
+    lags: tuple[int, ...]
+    kind: str = "coulomb_friction"
+
+    def columns(self, data: DiagnoseData, lags: np.ndarray) -> np.ndarray:
+        return lag_matrix(slip_sign(twist(data, self.joint), data.fs_hz), np.asarray(self.lags))
+
+    def output_static(self) -> None:
+        return None
+
+    def params(self) -> dict:
+        return {"joint": self.joint}
+
+
 # -- parameter searches --------------------------------------------------------
 
 def _loss(data: DiagnoseData, s: Structure, split: Split, C: np.ndarray) -> float:
     return fit_structure(data, s, split, C_fixed=C).V_est
 
 
-def coulomb_structure(data: DiagnoseData, s: Structure) -> Structure:
-    """Structure with a Coulomb friction term (lags of ``B``, at least 1)."""
+def coulomb_structure(data: DiagnoseData, s: Structure, joint: str = "") -> Structure:
+    """Structure with a Coulomb friction term (lags of ``B``, at least 1): in ``joint`` (the sign of its
+    relative speed) if named, else on the sign of the velocity."""
     lags = tuple(int(l) for l in np.maximum(s.input_lags, 1))
+    if joint:
+        return s.with_term(JointCoulomb(joint, lags))
     on_output = data.velocity is None and data.output_is_velocity
     return s.with_term(CoulombTerm(on_output, lags))
 
@@ -230,15 +281,16 @@ def search_frequency(data: DiagnoseData, s: Structure, split: Split, C: np.ndarr
     return s.with_term(FixedFrequency(f))
 
 
-def search_backlash(data: DiagnoseData, s: Structure, split: Split, C: np.ndarray) -> Structure:
-    """Dead-zone width and centre on the torsion proxy by grid search (``s`` holds the linear proxy)."""
-    phi = data.torsion[split.est_mask]
+def search_backlash(data: DiagnoseData, s: Structure, split: Split, C: np.ndarray, joint: str = "") -> Structure:
+    """Dead-zone width and centre on the twist of ``joint`` (``""``: the torsion proxy) by grid search
+    (``s`` holds the linear twist)."""
+    phi = twist(data, joint)[split.est_mask]
     lo, hi = np.percentile(phi, [2.0, 98.0])
     span = max(hi - lo, 1e-12)
     best, best_v = s, np.inf
     for center in lo + span * np.linspace(0.2, 0.8, 7):
         for gap in span * np.geomspace(0.03, 0.6, 12):
-            trial = s.with_term(BacklashTerm(float(gap), float(center)))
+            trial = s.with_term(BacklashTerm(float(gap), float(center), joint=joint))
             v = _loss(data, trial, split, C)
             if v < best_v:
                 best, best_v = trial, v
