@@ -41,12 +41,11 @@ from online_id.diagnose import effects as fx
 from online_id.diagnose.bench_effects import family_reading
 from online_id.diagnose.data import DiagnoseData, Split
 from online_id.diagnose.model import AugmentedFit, Structure, fit_extension, fit_structure, regressors, windows
-from online_id.diagnose.residual_tests import RIG_SPLIT_RATIO, ResidualTest, run_tests
+from online_id.diagnose.residual_tests import N_BATCH, RIG_SPLIT_RATIO, ResidualTest, materiality, run_tests
 from online_id.diagnose.wiener import WienerAbsFit, fit_wiener_abs
 from online_id.errors import EstimationError
 
 T_CRIT = 2.86
-N_BATCH = 20
 RIG_BLOCKS = 6
 NA_GRID = (4, 8, 12, 16, 20)
 NA_TOL = 0.05
@@ -201,20 +200,6 @@ def _t_stat(e_cur: np.ndarray, e_new: np.ndarray) -> float:
     return float(means.mean() / se) if se > 0 else float("inf") * np.sign(means.mean())
 
 
-def materiality(e: np.ndarray) -> float:
-    """The smallest share of the held-out mean squared error a step must remove to be material: the
-    relative standard error of that mean itself, from :data:`N_BATCH` batch means of ``e**2`` (batches
-    make it robust to correlation).
-
-    A step that removes less changes the reported error by less than the figure's own uncertainty: the
-    held-out significance of the *difference* (:func:`_t_stat`) can still be large, because the errors
-    before and after move together sample by sample.
-    """
-    means = np.array([b.mean() for b in np.array_split(np.asarray(e, dtype=float) ** 2, N_BATCH)])
-    m = float(means.mean())
-    return float(means.std(ddof=1) / np.sqrt(N_BATCH) / m) if m > 0 else 0.0
-
-
 def _dedupe(cands: list[tuple[str, dict]]) -> list[tuple[str, dict]]:
     seen, out = set(), []
     for kind, hint in cands:
@@ -263,8 +248,9 @@ def _build(kind: str, hint: dict, data: DiagnoseData, cur: AugmentedFit, split: 
         if any(t.kind == kind for t in s.terms):
             return None
         joint = hint.get("joint", "")
-        if joint:  # judged as a joint's backlash is: on what it adds to the joint's linear twist
-            ref = fit_structure(data, s.with_term(fx.LinearTorsion(joint=joint)), split)
+        if joint:  # judged on what it adds to the joint's linear twist and relative speed
+            ref = fit_structure(data, s.with_term(fx.LinearTorsion(joint=joint))
+                                .with_term(fx.LinearSlip(joint, fx.friction_lags(s))), split)
             model = fit_structure(data, fx.coulomb_structure(data, ref.structure, joint), split)
             return model, _params(kind, model, cur, data), ref.errors(data)
         new = fx.coulomb_structure(data, s)

@@ -202,11 +202,40 @@ def slip_sign(phi: np.ndarray, fs_hz: float) -> np.ndarray:
     noise, white there) scaled to the low-pass's band.  Where the joint really slips the speed is many
     :math:`v_0` and the feature is its sign; noise alone does not flip it.
     """
+    v = slip_rate(phi, fs_hz)
+    return np.tanh(v) if np.all(np.isfinite(v)) else np.sign(v)
+
+
+def slip_rate(phi: np.ndarray, fs_hz: float) -> np.ndarray:
+    """A joint's relative speed low-passed (causal) and in units of its noise :math:`v_0` (see
+    :func:`slip_sign`); infinite where the rate has no noise to measure."""
     v = np.diff(np.asarray(phi, dtype=float), prepend=phi[0]) * fs_hz
     v_lp = lfilter(*butter(2, 0.25), v)
     hi = v - lfilter(*butter(2, 0.5), v)
     v0 = float(np.sqrt(np.mean(hi**2) * 0.125 / 0.25))
-    return np.tanh(v_lp / v0) if v0 > 0 else np.sign(v_lp)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return v_lp / v0 if v0 > 0 else np.sign(v_lp) * np.inf
+
+
+@dataclass(frozen=True)
+class LinearSlip:
+    """A joint's low-passed relative speed (:func:`slip_rate`) itself at the lags of ``B``: with the linear
+    twist, the reference a joint's Coulomb friction is judged against, so that the friction is credited only
+    with the sign's nonlinearity, not with the linear dynamics the smoothed sign also carries."""
+
+    joint: str
+    lags: tuple[int, ...]
+    kind: str = "linear_slip"
+
+    def columns(self, data: DiagnoseData, lags: np.ndarray) -> np.ndarray:
+        v = slip_rate(twist(data, self.joint), data.fs_hz)
+        return lag_matrix(np.where(np.isfinite(v), v, 0.0), np.asarray(self.lags))
+
+    def output_static(self) -> None:
+        return None
+
+    def params(self) -> dict:
+        return {}
 
 
 @dataclass(frozen=True)
@@ -239,10 +268,15 @@ def _loss(data: DiagnoseData, s: Structure, split: Split, C: np.ndarray) -> floa
     return fit_structure(data, s, split, C_fixed=C).V_est
 
 
+def friction_lags(s: Structure) -> tuple[int, ...]:
+    """The lags of ``B``, at least 1: at lag 0 a friction (or slip) regressor holds the predicted speed."""
+    return tuple(int(l) for l in np.maximum(s.input_lags, 1))
+
+
 def coulomb_structure(data: DiagnoseData, s: Structure, joint: str = "") -> Structure:
     """Structure with a Coulomb friction term (lags of ``B``, at least 1): in ``joint`` (the sign of its
     relative speed) if named, else on the sign of the velocity."""
-    lags = tuple(int(l) for l in np.maximum(s.input_lags, 1))
+    lags = friction_lags(s)
     if joint:
         return s.with_term(JointCoulomb(joint, lags))
     on_output = data.velocity is None and data.output_is_velocity

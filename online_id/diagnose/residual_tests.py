@@ -308,10 +308,32 @@ def torsion_dependence(e: np.ndarray, torsion: np.ndarray, lags: np.ndarray, joi
                         () if passed else (("backlash", {"joint": joint} if joint else {}),))
 
 
+N_BATCH = 20
+"""Batches of the held-out samples for a mean's standard error (robust to correlation)."""
+
+
+def materiality(e: np.ndarray) -> float:
+    """The smallest share of the held-out mean squared error a step must remove to be material: the
+    relative standard error of that mean itself, from :data:`N_BATCH` batch means of ``e**2``.
+
+    A step that removes less changes the reported error by less than the figure's own uncertainty; the
+    held-out significance of the *difference* of the errors before and after can still be large, because
+    they move together sample by sample.
+    """
+    means = np.array([b.mean() for b in np.array_split(np.asarray(e, dtype=float) ** 2, N_BATCH)])
+    m = float(means.mean())
+    return float(means.std(ddof=1) / np.sqrt(N_BATCH) / m) if m > 0 else 0.0
+
+
 def joint_slip_sign(e: np.ndarray, sign: np.ndarray, lags: np.ndarray, joint: str) -> ResidualTest:
-    """Residual against the smoothed sign of a joint's relative speed (Coulomb friction in the joint)."""
+    """Residual against the smoothed sign of a joint's relative speed (Coulomb friction in the joint).
+
+    A candidate where the feature explains at least the residual's materiality (:func:`materiality`):
+    below it, no fit of the feature could be material.  Friction in a joint is small against the
+    excitation (it acts only where the joint slips), and the candidate's own held-out test judges it.
+    """
     score = _r2(e, lag_matrix(sign, np.maximum(lags, 1)))
-    passed = score < 0.02
+    passed = score < materiality(e)
     return ResidualTest(f"joint slip sign ({joint})", passed, score,
                         f"sign of the relative speed explains {100 * score:.1f} %",
                         () if passed else (("coulomb_friction", {"joint": joint}),))
