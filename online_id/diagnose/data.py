@@ -7,6 +7,9 @@ Optional auxiliary signals let the residual tests look for more effects:
   shaft angle used for order spectra and rotation-order regressors;
 - ``torsion``: relative motion across a compliant coupling (for the bench,
   the integral of dyno minus engine speed), for backlash;
+- ``joints``: the twist across each joint of a rig whose both sides are
+  measured (name ``a-b`` -> twist [rad of ``b``]), for backlash and Coulomb
+  friction in that joint;
 - ``velocity``: the speed whose sign Coulomb friction follows (by default the
   output itself, which must then be a speed).
 """
@@ -40,6 +43,9 @@ class DiagnoseData:
         Shaft name -> speed [rad/s], for order analysis (may be empty).
     torsion
         Relative motion proxy (same length), or ``None``.
+    joints
+        Joint name -> twist across it (same length): backlash and Coulomb friction
+        in that joint are candidates (may be empty).
     velocity
         Speed whose sign Coulomb friction follows; ``None`` means the output.
     output_is_velocity
@@ -66,6 +72,7 @@ class DiagnoseData:
     velocity: np.ndarray | None = None
     output_is_velocity: bool = True
     source: str = "<memory>"
+    joints: Mapping[str, np.ndarray] = field(default_factory=dict)
     shaft_rates: Mapping[str, float] = field(default_factory=dict)
     notes: Mapping[str, object] = field(default_factory=dict)
 
@@ -98,6 +105,8 @@ class DiagnoseData:
             object.__setattr__(self, "torsion", self._aux(self.torsion, "torsion"))
         if self.velocity is not None:
             object.__setattr__(self, "velocity", self._aux(self.velocity, "velocity"))
+        object.__setattr__(self, "joints", {n: self._aux(x, f"twist of joint {n}")
+                                            for n, x in dict(self.joints).items()})
 
     def _aux(self, x: np.ndarray, name: str) -> np.ndarray:
         x = np.asarray(x, dtype=float).ravel()

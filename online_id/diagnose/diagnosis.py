@@ -41,12 +41,11 @@ from online_id.diagnose import effects as fx
 from online_id.diagnose.bench_effects import family_reading
 from online_id.diagnose.data import DiagnoseData, Split
 from online_id.diagnose.model import AugmentedFit, Structure, fit_extension, fit_structure, regressors, windows
-from online_id.diagnose.residual_tests import RIG_SPLIT_RATIO, ResidualTest, run_tests
+from online_id.diagnose.residual_tests import N_BATCH, RIG_SPLIT_RATIO, ResidualTest, materiality, run_tests
 from online_id.diagnose.wiener import WienerAbsFit, fit_wiener_abs
 from online_id.errors import EstimationError
 
 T_CRIT = 2.86
-N_BATCH = 20
 RIG_BLOCKS = 6
 NA_GRID = (4, 8, 12, 16, 20)
 NA_TOL = 0.05
@@ -238,15 +237,22 @@ def _build(kind: str, hint: dict, data: DiagnoseData, cur: AugmentedFit, split: 
         if new.delay == s.delay:
             return None
     elif kind == "backlash":
-        if data.torsion is None or any(t.kind == kind for t in s.terms):
+        joint = hint.get("joint", "")
+        if (data.torsion is None and not joint) or any(t.kind == kind for t in s.terms):
             return None
-        ref = fit_structure(data, s.with_term(fx.LinearTorsion()), split)
-        new = fx.search_backlash(data, ref.structure, split, ref.C)
+        ref = fit_structure(data, s.with_term(fx.LinearTorsion(joint=joint)), split)
+        new = fx.search_backlash(data, ref.structure, split, ref.C, joint)
         model = fit_structure(data, new, split)
         return model, _params(kind, model, cur, data), ref.errors(data)
     elif kind == "coulomb_friction":
         if any(t.kind == kind for t in s.terms):
             return None
+        joint = hint.get("joint", "")
+        if joint:  # judged on what it adds to the joint's linear twist and relative speed
+            ref = fit_structure(data, s.with_term(fx.LinearTorsion(joint=joint))
+                                .with_term(fx.LinearSlip(joint, fx.friction_lags(s))), split)
+            model = fit_structure(data, fx.coulomb_structure(data, ref.structure, joint), split)
+            return model, _params(kind, model, cur, data), ref.errors(data)
         new = fx.coulomb_structure(data, s)
     elif kind == "absolute_value_sensor":
         model = fit_wiener_abs(data, max(s.na, 1), s.nb, max(s.nk, 1), split.est_runs[0][1])
@@ -263,6 +269,8 @@ def _params(kind: str, model: AugmentedFit, cur: AugmentedFit, data: DiagnoseDat
     hint = hint or {}
     if kind == "additional_mode":
         f, zeta = fx.new_mode(cur.A, model.A, data.fs_hz)
+        if not np.isfinite(f):
+            return {"freq_hz": None, "damping": None, "unresolved": True}
         out = {"freq_hz": f, "damping": zeta}
         line = rotation_line(f, zeta, shaft_rates_hz(data))
         if line is not None:
@@ -340,17 +348,25 @@ def shaft_rates_hz(data: DiagnoseData) -> dict[str, float]:
 
 
 def modes_of(A: np.ndarray, fs_hz: float, rates_hz: dict[str, float] | None = None) -> list[dict]:
-    """Poles of ``A`` (one per conjugate pair) with frequency, damping and stability; a near-undamped pair
+    """Poles of ``A`` (one per conjugate pair) with frequency, damping and stability (``freq_hz`` only below
+    the Nyquist frequency; a negative real pole or a pair at or beyond it is ``unresolved``, with the
+    ``damped_hz`` of its angle, see :func:`~online_id.diagnose.effects.resolved`); a near-undamped pair
     at a multiple of a shaft's rate (``rates_hz``) carries ``line``: the shaft and order of that rotation
     line (:func:`~online_id.analysis.poles.rotation_line`)."""
     out = []
     for p in poles_of(A, 1.0 / fs_hz):
         z = complex(p.z)
+        kind = p.kind
+        if kind == "complex" and not fx.resolved(z):
+            kind = "unresolved"  # a negative real pole or a pair whose natural frequency is >= Nyquist
+        below = bool(np.isfinite(p.f_hz) and p.f_hz < 0.5 * fs_hz)
         m = {"z_real": z.real, "z_imag": z.imag, "abs_z": abs(z),
-             "freq_hz": p.f_hz if np.isfinite(p.f_hz) else None,
+             "freq_hz": p.f_hz if below else None,
              "damping": p.zeta if np.isfinite(p.zeta) else None,
-             "kind": p.kind, "stable": bool(abs(z) < 1.0)}
-        hit = rotation_line(p.f_hz, p.zeta, rates_hz or {}) if p.kind == "complex" else None
+             "kind": kind, "stable": bool(abs(z) < 1.0)}
+        if kind == "unresolved":
+            m["damped_hz"] = abs(float(np.angle(z))) * fs_hz / (2.0 * np.pi)
+        hit = rotation_line(p.f_hz, p.zeta, rates_hz or {}) if kind == "complex" else None
         if hit is not None:
             m["line"] = {"shaft": hit[0], "order": hit[1]}
         out.append(m)
@@ -565,12 +581,17 @@ def diagnose(data: DiagnoseData, *, na: int | None, nb: int | None, nc: int, nk:
                     explained, t, basis = x_sim, t_sim, "simulation"
             # a line on the rig's order grid passed a test calibrated on clean rigs (its power over the
             # local floor); a narrow line holds a small share of a broadband residual, so it needs only
-            # the held-out significance, not the share
-            need = 0.0 if "line_ratio" in hint else min_explained
+            # the held-out significance, not the share; so does a joint's dead zone or friction (crossed
+            # or slipping at the joint's reversals only), screened by its own test.  Every candidate must
+            # remove more than the held-out error's own uncertainty (materiality)
+            need = max(materiality(e_base[val]), 0.0 if "line_ratio" in hint or hint.get("joint") else min_explained)
             ok = explained >= need and (t >= T_CRIT or hint.get("held_out_ratio", 0.0) >= RIG_SPLIT_RATIO)
             rms_new = float(np.sqrt(np.mean(e_new[val] ** 2)))
             fit_new = fit_percent(data.y[val], ysim_new[val])
             refused = _guard(fig, rms_new, fit_new) if ok else ""
+            if ok and params.get("unresolved"):
+                refused = ("the added poles are no pole pair below the Nyquist frequency (real or alternating "
+                           "poles of the equation error): not a mode")
             if ok and "rotation_line" in params:
                 line = params["rotation_line"]
                 refused = (f"the added pole pair is a rotation-order line (order {line['order']:g} of shaft "

@@ -31,7 +31,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.ndimage import uniform_filter1d
-from scipy.optimize import minimize_scalar
+from scipy.signal import butter, lfilter
+from scipy.optimize import linear_sum_assignment, minimize_scalar
 
 from online_id.diagnose.data import DiagnoseData, Split
 from online_id.diagnose.model import Structure, fit_structure, lag_matrix
@@ -134,16 +135,17 @@ class BacklashTerm:
     gap: float
     center: float
     kind: str = "backlash"
+    joint: str = ""
 
     def columns(self, data: DiagnoseData, lags: np.ndarray) -> np.ndarray:
-        h = np.clip(data.torsion - self.center, -0.5 * self.gap, 0.5 * self.gap)
+        h = np.clip(twist(data, self.joint) - self.center, -0.5 * self.gap, 0.5 * self.gap)
         return lag_matrix(h, lags)
 
     def output_static(self) -> None:
         return None
 
     def params(self) -> dict:
-        return {"gap_rad": float(self.gap)}
+        return {"gap_rad": float(self.gap), **({"joint": self.joint} if self.joint else {})}
 
 
 @dataclass(frozen=True)
@@ -156,9 +158,10 @@ class LinearTorsion:
     """
 
     kind: str = "linear_torsion"
+    joint: str = ""
 
     def columns(self, data: DiagnoseData, lags: np.ndarray) -> np.ndarray:
-        return lag_matrix(data.torsion, lags)
+        return lag_matrix(twist(data, self.joint), lags)
 
     def output_static(self) -> None:
         return None
@@ -185,15 +188,97 @@ class CoulombTerm:
         return {}
 
 
+def twist(data: DiagnoseData, joint: str = "") -> np.ndarray:
+    """The twist across ``joint`` (``data.joints``), or the record's torsion proxy for ``""``."""
+    return data.joints[joint] if joint else data.torsion
+
+
+def slip_sign(phi: np.ndarray, fs_hz: float) -> np.ndarray:
+    """The smoothed sign of a joint's relative speed (the rate of its twist ``phi``), causal.
+
+    The rate is low-passed (second-order Butterworth at fs/8, causal: a regressor at lag 1 must not hold
+    the sample it predicts) and passed through :math:`\\tanh(v / v_0)`, where :math:`v_0` is the noise
+    left in the low-passed rate: the rate's RMS above fs/4 (differentiated encoder quantisation and speed
+    noise, white there) scaled to the low-pass's band.  Where the joint really slips the speed is many
+    :math:`v_0` and the feature is its sign; noise alone does not flip it.
+    """
+    v = slip_rate(phi, fs_hz)
+    return np.tanh(v) if np.all(np.isfinite(v)) else np.sign(v)
+
+
+def slip_rate(phi: np.ndarray, fs_hz: float) -> np.ndarray:
+    """A joint's relative speed low-passed (causal) and in units of its noise :math:`v_0` (see
+    :func:`slip_sign`); infinite where the rate has no noise to measure."""
+    v = np.diff(np.asarray(phi, dtype=float), prepend=phi[0]) * fs_hz
+    v_lp = lfilter(*butter(2, 0.25), v)
+    hi = v - lfilter(*butter(2, 0.5), v)
+    v0 = float(np.sqrt(np.mean(hi**2) * 0.125 / 0.25))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return v_lp / v0 if v0 > 0 else np.sign(v_lp) * np.inf
+
+
+@dataclass(frozen=True)
+class LinearSlip:
+    """A joint's low-passed relative speed (:func:`slip_rate`) itself at the lags of ``B``: with the linear
+    twist, the reference a joint's Coulomb friction is judged against, so that the friction is credited only
+    with the sign's nonlinearity, not with the linear dynamics the smoothed sign also carries."""
+
+    joint: str
+    lags: tuple[int, ...]
+    kind: str = "linear_slip"
+
+    def columns(self, data: DiagnoseData, lags: np.ndarray) -> np.ndarray:
+        v = slip_rate(twist(data, self.joint), data.fs_hz)
+        return lag_matrix(np.where(np.isfinite(v), v, 0.0), np.asarray(self.lags))
+
+    def output_static(self) -> None:
+        return None
+
+    def params(self) -> dict:
+        return {}
+
+
+@dataclass(frozen=True)
+class JointCoulomb:
+    """Coulomb friction in a joint: :math:`F_c` times the smoothed sign of the joint's relative speed
+    (:func:`slip_sign` of its twist), at the lags of ``B``.
+
+    On a rig turning one way the output speed never reverses, so friction that follows the sign of the
+    speed is a constant there; friction in a joint (a coupling, a gear mesh) follows the relative motion
+    of its two sides, which reverses with every oscillation of the joint.
+    """
+
+    joint: str
+    lags: tuple[int, ...]
+    kind: str = "coulomb_friction"
+
+    def columns(self, data: DiagnoseData, lags: np.ndarray) -> np.ndarray:
+        return lag_matrix(slip_sign(twist(data, self.joint), data.fs_hz), np.asarray(self.lags))
+
+    def output_static(self) -> None:
+        return None
+
+    def params(self) -> dict:
+        return {"joint": self.joint}
+
+
 # -- parameter searches --------------------------------------------------------
 
 def _loss(data: DiagnoseData, s: Structure, split: Split, C: np.ndarray) -> float:
     return fit_structure(data, s, split, C_fixed=C).V_est
 
 
-def coulomb_structure(data: DiagnoseData, s: Structure) -> Structure:
-    """Structure with a Coulomb friction term (lags of ``B``, at least 1)."""
-    lags = tuple(int(l) for l in np.maximum(s.input_lags, 1))
+def friction_lags(s: Structure) -> tuple[int, ...]:
+    """The lags of ``B``, at least 1: at lag 0 a friction (or slip) regressor holds the predicted speed."""
+    return tuple(int(l) for l in np.maximum(s.input_lags, 1))
+
+
+def coulomb_structure(data: DiagnoseData, s: Structure, joint: str = "") -> Structure:
+    """Structure with a Coulomb friction term (lags of ``B``, at least 1): in ``joint`` (the sign of its
+    relative speed) if named, else on the sign of the velocity."""
+    lags = friction_lags(s)
+    if joint:
+        return s.with_term(JointCoulomb(joint, lags))
     on_output = data.velocity is None and data.output_is_velocity
     return s.with_term(CoulombTerm(on_output, lags))
 
@@ -230,15 +315,16 @@ def search_frequency(data: DiagnoseData, s: Structure, split: Split, C: np.ndarr
     return s.with_term(FixedFrequency(f))
 
 
-def search_backlash(data: DiagnoseData, s: Structure, split: Split, C: np.ndarray) -> Structure:
-    """Dead-zone width and centre on the torsion proxy by grid search (``s`` holds the linear proxy)."""
-    phi = data.torsion[split.est_mask]
+def search_backlash(data: DiagnoseData, s: Structure, split: Split, C: np.ndarray, joint: str = "") -> Structure:
+    """Dead-zone width and centre on the twist of ``joint`` (``""``: the torsion proxy) by grid search
+    (``s`` holds the linear twist)."""
+    phi = twist(data, joint)[split.est_mask]
     lo, hi = np.percentile(phi, [2.0, 98.0])
     span = max(hi - lo, 1e-12)
     best, best_v = s, np.inf
     for center in lo + span * np.linspace(0.2, 0.8, 7):
         for gap in span * np.geomspace(0.03, 0.6, 12):
-            trial = s.with_term(BacklashTerm(float(gap), float(center)))
+            trial = s.with_term(BacklashTerm(float(gap), float(center), joint=joint))
             v = _loss(data, trial, split, C)
             if v < best_v:
                 best, best_v = trial, v
@@ -250,21 +336,41 @@ def mode_structure(s: Structure) -> Structure:
     return replace(s, na=s.na + 2, nb=s.nb + 2)
 
 
-def new_mode(A_old: np.ndarray, A_new: np.ndarray, fs_hz: float) -> tuple[float, float]:
-    """Frequency [Hz] and damping ratio of the complex pole pair of ``A_new`` farthest from every pole of
-    ``A_old`` (NaN, NaN when ``A_new`` has none)."""
-    def s_poles(A: np.ndarray) -> np.ndarray:
-        z = np.roots(A) if A.size > 1 else np.zeros(0, dtype=complex)
-        z = z[np.abs(z) > 1e-9]
-        return np.log(z.astype(complex)) * fs_hz
+def resolved(z: complex) -> bool:
+    """Whether discrete pole ``z`` is one of a complex pair the record resolves as a mode: off the real
+    axis, and its natural frequency :math:`|\\ln z| f_s / 2\\pi` below the Nyquist frequency
+    (:math:`|\\ln z| < \\pi`).
 
-    old, new = s_poles(A_old), s_poles(A_new)
-    cand = new[new.imag > 1e-6]
+    A negative real pole (:math:`\\ln z = \\ln|z| + j\\pi`) or a heavily damped pair near
+    :math:`z = -1` maps to a "frequency" at or above the Nyquist frequency, even above the sample rate
+    for :math:`|z|` near 0: an alternation of the equation error, not an oscillation the data hold.
+    """
+    return abs(z.imag) > 1e-9 and z != 0 and abs(np.log(complex(z))) < np.pi
+
+
+def new_mode(A_old: np.ndarray, A_new: np.ndarray, fs_hz: float) -> tuple[float, float]:
+    """Frequency [Hz] and damping ratio of the pole pair that ``A_new`` adds to ``A_old``.
+
+    The poles of ``A_new`` are matched one to one to the nearest poles of ``A_old`` (least total distance
+    in the z-plane); of the unmatched ones, the resolved complex pair (:func:`resolved`) farthest from every
+    old pole is the added mode.  NaN, NaN when the added poles hold none: what the extra poles took is no
+    mode below the Nyquist frequency (a negative real pole, an alternation near ``z = -1``).
+    """
+    def roots(A: np.ndarray) -> np.ndarray:
+        return (np.roots(A) if A.size > 1 else np.zeros(0)).astype(complex)
+
+    old, new = roots(A_old), roots(A_new)
+    added = new
+    if old.size and new.size:
+        rows, _ = linear_sum_assignment(np.abs(new[:, None] - old[None, :]))
+        added = np.delete(new, rows)
+    cand = np.array([z for z in added if z.imag > 0 and resolved(z)], dtype=complex)
     if cand.size == 0:
         return float("nan"), float("nan")
-    if old.size == 0:
-        pick = cand[np.argmin(np.abs(cand.real) / np.abs(cand))]
-    else:
-        dist = np.min(np.abs(cand[:, None] - old[None, :]), axis=1)
-        pick = cand[int(np.argmax(dist))]
+    s_new = np.log(cand) * fs_hz
+    pick = s_new[0]
+    if old.size:
+        s_old = np.log(old[np.abs(old) > 1e-9]) * fs_hz
+        if s_old.size:
+            pick = s_new[int(np.argmax(np.min(np.abs(s_new[:, None] - s_old[None, :]), axis=1)))]
     return float(np.abs(pick) / (2.0 * np.pi)), float(-pick.real / np.abs(pick))

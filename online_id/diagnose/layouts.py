@@ -202,14 +202,17 @@ def assemble(records: list[Resampled], layout: Layout, sources: list[str],
     notes["layout"] = _layout_note(layout, sources, base, fs, t0, merged)
     data = build_data(rec, None, spec, source, notes)
     torsion, how = _torsion(merged, layout, data, source, warnings)
-    if torsion is not None:
+    joints = _joints(merged, layout, data) if layout.shaft_torque is None else {}
+    if torsion is not None or joints:
         path = data_path(fs, layout.sample_rate_hz)
-        t = decimate_alike({"torsion": torsion}, path)["torsion"]
-        if t.size != len(data):
-            raise InputDataError(f"{source}: the torsion has {t.size} samples after the data path, "
-                                 f"the record {len(data)}")
-        data = replace(data, torsion=t)
+        t = decimate_alike({**joints, **({} if torsion is None else {"torsion": torsion})}, path)
+        n = next(iter(t.values())).size
+        if n != len(data):
+            raise InputDataError(f"{source}: the torsion has {n} samples after the data path, the record {len(data)}")
+        data = replace(data, torsion=t.pop("torsion", None), joints=t)
     data.notes["layout"]["torsion"] = how
+    if data.joints:
+        data.notes["layout"]["joints"] = sorted(data.joints)
     data.notes["warnings"] = warnings
     return data
 
@@ -230,9 +233,8 @@ def _torsion(merged: dict, layout: Layout, data: DiagnoseData, source: str,
         if s not in angled:
             raise ConfigError(f"--torsion {a}:{b}: {s!r} is not a shaft measured by an angle column "
                               f"(angle shafts: {', '.join(angled) or 'none'})")
-    rates = data.shaft_rates
-    rho = rates[b] / rates[a]
-    phi = rho * merged[f"theta:{a}"] - merged[f"theta:{b}"]
+    rho = data.shaft_rates[b] / data.shaft_rates[a]
+    phi = _twist(merged, data, a, b)
     span = float(np.ptp(phi))
     if not span <= MAX_TWIST_RAD:
         warnings.append(f"{source}: no torsion from {a} and {b}: their twist spans {span:.3g} rad, so they do "
@@ -240,6 +242,25 @@ def _torsion(merged: dict, layout: Layout, data: DiagnoseData, source: str,
                         f"{b}={a}/R) or another pair (--torsion A:B)")
         return None, f"none ({a} and {b} do not turn at a fixed ratio)"
     return phi, f"twist ({rho:.6g} {a} - {b}) [rad of {b}]"
+
+
+def _twist(merged: dict, data: DiagnoseData, a: str, b: str) -> np.ndarray:
+    """``(r_b / r_a) theta_a - theta_b`` [rad of ``b``] of two angle-measured shafts at full rate."""
+    return data.shaft_rates[b] / data.shaft_rates[a] * merged[f"theta:{a}"] - merged[f"theta:{b}"]
+
+
+def _joints(merged: dict, layout: Layout, data: DiagnoseData) -> dict[str, np.ndarray]:
+    """The twist across each joint between two angle-measured shafts next to each other in the order the
+    angle columns are given (``--torsion A:B``: that pair only), at full rate; a pair whose twist spans more
+    than :data:`MAX_TWIST_RAD` is left out (they do not turn at the rates' ratio)."""
+    angled = [s.shaft for s in layout.shafts if s.kind == "angle"]
+    pairs = [layout.torsion] if layout.torsion is not None else list(zip(angled[:-1], angled[1:]))
+    out = {}
+    for a, b in pairs:
+        phi = _twist(merged, data, a, b)
+        if float(np.ptp(phi)) <= MAX_TWIST_RAD:
+            out[f"{a}-{b}"] = phi
+    return out
 
 
 def _layout_note(layout: Layout, sources: list[str], base: int, fs: float, t0: float, merged: dict) -> dict:

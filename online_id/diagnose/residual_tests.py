@@ -28,7 +28,7 @@ from scipy.ndimage import median_filter
 from scipy.signal import welch
 
 from online_id.diagnose.data import DiagnoseData
-from online_id.diagnose.effects import ORDER_STEP, shaft_angle
+from online_id.diagnose.effects import ORDER_STEP, shaft_angle, slip_sign
 from online_id.diagnose.model import lag_matrix
 from online_id.diagnose.shafts import assign_order
 
@@ -295,17 +295,48 @@ def speed_dependence(e: np.ndarray, speed_rad_s: np.ndarray, shaft: str) -> Resi
                         f"explain {100 * s_var:.1f} % of e^2")
 
 
-def torsion_dependence(e: np.ndarray, torsion: np.ndarray, lags: np.ndarray) -> ResidualTest:
-    """Residual against sign and size of the torsion (backlash, dead zone)."""
+def torsion_dependence(e: np.ndarray, torsion: np.ndarray, lags: np.ndarray, joint: str = "") -> ResidualTest:
+    """Residual against sign and size of the torsion (backlash, dead zone); of ``joint``'s twist if named."""
     c = np.median(torsion)
     span = np.ptp(torsion) + 1e-300
     feats = [lag_matrix(np.clip(torsion - c, -w * span, w * span), lags) for w in (0.05, 0.15)]
     feats.append(lag_matrix(np.sign(torsion - c), lags))
     score = _r2(e, np.hstack(feats))
     passed = score < 0.03
-    return ResidualTest("torsion dependence", passed, score,
+    return ResidualTest("torsion dependence" + (f" ({joint})" if joint else ""), passed, score,
                         f"dead-zone features explain {100 * score:.1f} %",
-                        () if passed else (("backlash", {}),))
+                        () if passed else (("backlash", {"joint": joint} if joint else {}),))
+
+
+N_BATCH = 20
+"""Batches of the held-out samples for a mean's standard error (robust to correlation)."""
+
+
+def materiality(e: np.ndarray) -> float:
+    """The smallest share of the held-out mean squared error a step must remove to be material: the
+    relative standard error of that mean itself, from :data:`N_BATCH` batch means of ``e**2``.
+
+    A step that removes less changes the reported error by less than the figure's own uncertainty; the
+    held-out significance of the *difference* of the errors before and after can still be large, because
+    they move together sample by sample.
+    """
+    means = np.array([b.mean() for b in np.array_split(np.asarray(e, dtype=float) ** 2, N_BATCH)])
+    m = float(means.mean())
+    return float(means.std(ddof=1) / np.sqrt(N_BATCH) / m) if m > 0 else 0.0
+
+
+def joint_slip_sign(e: np.ndarray, sign: np.ndarray, lags: np.ndarray, joint: str) -> ResidualTest:
+    """Residual against the smoothed sign of a joint's relative speed (Coulomb friction in the joint).
+
+    A candidate where the feature explains at least the residual's materiality (:func:`materiality`):
+    below it, no fit of the feature could be material.  Friction in a joint is small against the
+    excitation (it acts only where the joint slips), and the candidate's own held-out test judges it.
+    """
+    score = _r2(e, lag_matrix(sign, np.maximum(lags, 1)))
+    passed = score < materiality(e)
+    return ResidualTest(f"joint slip sign ({joint})", passed, score,
+                        f"sign of the relative speed explains {100 * score:.1f} %",
+                        () if passed else (("coulomb_friction", {"joint": joint}),))
 
 
 def velocity_sign(e: np.ndarray, v: np.ndarray, lags: np.ndarray) -> ResidualTest | None:
@@ -361,7 +392,11 @@ def run_tests(data: DiagnoseData, e: np.ndarray, start: int | np.ndarray, lags: 
                 out.append(t)
     for name, w in list(data.shaft_speeds_rad_s.items())[:1]:
         out.append(speed_dependence(ev, w[start], name))
-    if data.torsion is not None:
+    if data.joints:
+        for joint, phi in data.joints.items():
+            out.append(torsion_dependence(ev, phi[start], lags, joint))
+            out.append(joint_slip_sign(ev, slip_sign(phi, fs)[start], lags, joint))
+    elif data.torsion is not None:
         out.append(torsion_dependence(ev, data.torsion[start], lags))
     t = velocity_sign(ev, data.speed_for_sign[start], lags)
     if t is not None:

@@ -196,6 +196,7 @@ def recording_lines(d: Diagnosis) -> list[str]:
     if d.modes:
         out.append("baseline poles: " + ", ".join(
             (f"{m['freq_hz']:.3g} Hz zeta {m['damping']:.3f}" if m["kind"] == "complex" and m["freq_hz"]
+             else f"z={m['z_real']:+.3f}{m['z_imag']:+.3f}j (beyond the Nyquist frequency)" if m["kind"] == "unresolved"
              else f"real z={m['z_real']:+.3f}") + ("" if m["stable"] else " UNSTABLE") for m in d.modes))
     for c in d.candidates:
         if c.refused:
