@@ -50,8 +50,9 @@ def pytest_collection_modifyitems(config, items):
     first (``HEAVY_FIRST``), the rest in their usual order: each worker takes the next module when it is done
     with its own, so the long end-to-end modules start early and the short ones fill the end, instead of a long
     module starting last beside an idle worker."""
-    if not (getattr(config.option, "numprocesses", None) or os.environ.get("PYTEST_XDIST_WORKER")):
-        return
+    argv = getattr(config, "workerinput", {}).get("mainargv", [])  # (a worker sees the run's --dist only there)
+    if not any(a.endswith(("loadscope", "loadgroup")) for a in argv):
+        return  # (the default --dist load hands out long slices of the list: the heavy modules would share one)
     rank = {name: i for i, name in enumerate(HEAVY_FIRST)}
     first: dict[str, int] = {}
     for i, item in enumerate(items):
