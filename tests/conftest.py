@@ -36,12 +36,13 @@ def cli_error(capsys):
     return run
 
 
-# Modules whose tests take longest in all (CPU per module of the native tier, measured with --durations), longest
+# Modules whose tests take longest in all (CPU seconds per module of the native tier, docs/testing.md), longest
 # first. Only the order of the run depends on this list: a module missing from it runs in its usual place.
-HEAVY_FIRST = ("test_detection_learning", "test_archive_evaluate", "test_reference", "test_engaged_flank",
-               "test_detection_e2e", "test_detection_damping_learning", "test_sysid_uncertainty", "test_window",
-               "test_identification", "test_linearity", "test_archive", "test_cli", "test_diagnose_bench",
-               "test_hardening_time", "test_hardening_soak", "test_engaged_resonance")
+HEAVY_FIRST = ("test_detection_learning", "test_reference", "test_archive_evaluate", "test_engaged_flank",
+               "test_diagnose_bench", "test_linearity", "test_detection_e2e", "test_detection_damping_learning",
+               "test_identification", "test_sysid_uncertainty", "test_window", "test_archive", "test_cli",
+               "test_hardening_time", "test_hardening_soak", "test_engaged_resonance", "test_diagnose",
+               "test_hardening_signals")
 
 
 def pytest_collection_modifyitems(config, items):
