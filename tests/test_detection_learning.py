@@ -233,12 +233,12 @@ def test_a_cells_own_first_estimates_serve_detection_as_they_are_and_a_pool_doub
     for f in f0 * (1 + 0.001 * rng.standard_normal(n)):
         pipe.baseline.learn(speed_rpm=1500.0, f0_hz=f, zeta=0.05, load_nm=-8.0)
     own = pipe.baseline.cell(1500.0, -8.0, frozen=True)
-    served = pipe._baseline_for(1500.0, -8.0)
+    served = pipe.policy._baseline_for(1500.0, -8.0)
     assert served.kind == "learning" and served.std_f == pytest.approx(own.std_f)
-    assert pipe._baseline_for(1500.0, -8.0, learning=True).std_f == pytest.approx(own.std_f)
-    pooled = pipe._baseline_for(2500.0, -8.0)
+    assert pipe.policy._baseline_for(1500.0, -8.0, learning=True).std_f == pytest.approx(own.std_f)
+    pooled = pipe.policy._baseline_for(2500.0, -8.0)
     assert pooled.kind == "pooled"
-    assert pooled.std_f == pytest.approx(2.0 * pipe._baseline_for(2500.0, -8.0, learning=True).std_f)
+    assert pooled.std_f == pytest.approx(2.0 * pipe.policy._baseline_for(2500.0, -8.0, learning=True).std_f)
 
 
 @pytest.mark.slow

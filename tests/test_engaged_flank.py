@@ -222,7 +222,7 @@ def test_an_engaged_alarm_is_acknowledged_with_the_others():
 
 def test_the_backlash_test_runs_on_a_config_that_declares_no_compression_pulses():
     pipe, _ = _run(PLANTS[0], None, declared=False)
-    assert pipe.backlash_tests > 0 and pipe.baseline.nonlinear and pipe.engaged.usable
+    assert pipe.policy.backlash_tests > 0 and pipe.baseline.nonlinear and pipe.engaged.usable
     assert not [e for e in pipe.events if e.kind == "backlash_test"], "every test was done"
 
 

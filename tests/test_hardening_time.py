@@ -197,14 +197,15 @@ def test_replay_of_a_log_with_a_clock_set_back(tmp_path, bench):
 
 
 def test_a_clock_step_re_anchors_every_stream_time_schedule_of_the_pipeline():
-    # each "_next_*" of the pipeline is a stream time something is next due at; after the clock steps back 2 h,
-    # one left in the old time base would hold its work back for 2 h (the engaged flank's readings, the visit's
-    # first estimates and the learning events did, within a visit)
+    # each "_next_*" of the pipeline and its detection policy is a stream time something is next due at; after the
+    # clock steps back 2 h, one left in the old time base would hold its work back for 2 h (the engaged flank's
+    # readings, the visit's first estimates and the learning events did, within a visit)
     p = Pipeline(Settings())
-    schedules = [k for k in vars(p) if k.startswith("_next_")]
-    assert {"_next_publish", "_next_learn", "_next_engaged", "_next_visit_sample"} <= set(schedules)
-    for k in schedules:
-        setattr(p, k, 1e9)
+    schedules = [(part, k) for part in (p, p.policy) for k in vars(part) if k.startswith("_next_")]
+    assert ({"_next_publish", "_next_learn", "_next_engaged", "_next_visit_sample"}
+            <= {k for _, k in schedules})
+    for part, k in schedules:
+        setattr(part, k, 1e9)
     p._time_jumped("the clock stepped back", 0.0, [])
-    left = {k: getattr(p, k) for k in schedules if getattr(p, k) is not None and getattr(p, k) > 0.0}
+    left = {k: getattr(part, k) for part, k in schedules if getattr(part, k) is not None and getattr(part, k) > 0.0}
     assert not left, left

@@ -182,7 +182,7 @@ def test_a_linear_shaft_is_still_judged_against_the_pool(seed):
     # no backlash shown; a fault on the way to B is alarmed at B, against A's baseline (pooled or adjacent)
     (seed, plant, speeds), = _plants(False, 1, seed)
     sc, pipe = _tour(seed, plant, speeds, fault_at=56.0)
-    assert not pipe.baseline.nonlinear and pipe.backlash_tests >= 2, [e.message for e in pipe.events][-8:]
+    assert not pipe.baseline.nonlinear and pipe.policy.backlash_tests >= 2, [e.message for e in pipe.events][-8:]
     drift = [x for x in pipe.alerts if x.kind == AlertKind.FREQ_DRIFT]
     assert drift and 58.0 < drift[0].t_s - pipe.t_first < 98.0, [x.message for x in drift]
     a = 250.0 * round(speeds[0] / 250.0)  # A's band: served to B as an adjacent band's, or in the pool
@@ -237,7 +237,7 @@ def test_on_a_shaft_with_backlash_the_learned_cells_of_other_loads_bound_a_new_p
     lo, hi = max(loads, key=abs), min(loads, key=abs)  # the largest and smallest magnitudes
     span = abs(lo) - abs(hi)
     for load in (0.5 * (loads[0] + loads[1]), lo - 2.0, hi + 0.5 * span):
-        served = pipe._baseline_for(3500.0, load)  # a band none of them is in
+        served = pipe.policy._baseline_for(3500.0, load)  # a band none of them is in
         assert served is not None and served.kind == "bracketed", (load, loads)
         assert served.excess_f(f(load)) == 0.0  # the healthy resonance is inside the bounds
         # the damping keeps no order with the load: compared only where three cells measure its spread
@@ -248,14 +248,14 @@ def test_on_a_shaft_with_backlash_the_learned_cells_of_other_loads_bound_a_new_p
             assert served.excess_f(1.05 * f(load)) > 0.0  # bounded from above
     far = hi + span + 1.0  # below the learned loads by more than they span: bounded from above only
     if far < 0.0:
-        served = pipe._baseline_for(3500.0, far)
+        served = pipe.policy._baseline_for(3500.0, far)
         assert served is not None and served.below_f == float("inf") and served.excess_f(0.5 * f(far)) == 0.0
-    assert pipe._baseline_for(1000.0, loads[0]).kind == "learned"  # its own cell serves a learned point
+    assert pipe.policy._baseline_for(1000.0, loads[0]).kind == "learned"  # its own cell serves a learned point
     pipe.baseline.backlash = None
-    assert pipe._baseline_for(3500.0, lo - 2.0).kind == "pooled"  # a linear shaft: the pool
+    assert pipe.policy._baseline_for(3500.0, lo - 2.0).kind == "pooled"  # a linear shaft: the pool
     empty = Pipeline(Settings())
     empty.baseline.backlash = {"gain": 0.2}
-    assert empty._baseline_for(2000.0, -10.0) is None
+    assert empty.policy._baseline_for(2000.0, -10.0) is None
 
 
 @pytest.mark.parametrize("seed", range(4))

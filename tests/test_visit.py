@@ -160,23 +160,23 @@ def test_what_the_visit_serves_next_to_the_bounds_the_learned_cells_set(seed):
     pipe = Pipeline(Settings())
     pipe.baseline.backlash = {"gain": 0.1}
     f0, z0 = float(rng.uniform(18.0, 30.0)), float(rng.uniform(0.03, 0.08))
-    pipe._visit_ref = ref = VisitReference(pipe._visit, -10.0, (1875.0, 2125.0))
+    pipe.policy._visit_ref = ref = VisitReference(pipe.policy._visit, -10.0, (1875.0, 2125.0))
     for k in range(3):
         ref.add(float(k), f0 * (1 + 0.001 * k), z0 * (1 + 0.01 * k), -10.0, 0.005, min_change_zeta=0.2)
     visit = ref.stats()
     two = _bracket(rng, 0.99 * f0, 1.01 * f0, math.inf)
-    got = pipe._with_visit(two, -10.0)
+    got = pipe.policy._with_visit(two, -10.0)
     assert got.kind == "bracketed" and got.bounds_f == two.bounds_f and got.zeta_visit
     assert (got.mean_zeta, got.std_zeta) == (visit.mean_zeta, visit.std_zeta)
     measured = _bracket(rng, 0.99 * f0, 1.01 * f0, 0.004)
-    assert pipe._with_visit(measured, -10.0) == measured
+    assert pipe.policy._with_visit(measured, -10.0) == measured
     one = _bracket(rng, 0.99 * f0, math.inf, math.inf)
-    assert pipe._with_visit(one, -10.0) == visit and pipe._with_visit(None, -10.0) == visit
-    got = pipe._with_visit(dataclasses.replace(one, std_zeta=0.004), -10.0)
+    assert pipe.policy._with_visit(one, -10.0) == visit and pipe.policy._with_visit(None, -10.0) == visit
+    got = pipe.policy._with_visit(dataclasses.replace(one, std_zeta=0.004), -10.0)
     assert got.kind == "visit" and got.mean_f == visit.mean_f and got.std_zeta == 0.004 and not got.zeta_visit
     # what an alert names: the damping of the learned cells there, the visit's own where it is the visit's
     assert "damping against the learned cells" in _against(got) and "zeta" not in _against(got)
     assert f"zeta {visit.mean_zeta:.4f}" in _against(visit) and "learned cells" not in _against(visit)
-    assert pipe._with_visit(two, -14.0) == two  # another load: another operating point, not this visit
+    assert pipe.policy._with_visit(two, -14.0) == two  # another load: another operating point, not this visit
     pipe.baseline.backlash = None
-    assert pipe._with_visit(two, -10.0) == two  # a linear shaft: the pool and the learned cells serve
+    assert pipe.policy._with_visit(two, -10.0) == two  # a linear shaft: the pool and the learned cells serve

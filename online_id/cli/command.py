@@ -179,9 +179,7 @@ def relearn_from(log: str, directory: Path | None, settings) -> int:
     runtime = Runtime(settings)
     restored = restore(runtime, path)
     pipe = runtime.pipeline
-    pipe.baseline.reset()
-    pipe._references.clear()
-    pipe.detector.reset()
+    pipe.policy.forget_baselines()
     pipe.alerts.clear()
     pipe.run_label = f"reference run {Path(log).name}"
     pipe.reference_run = True

@@ -49,6 +49,18 @@ Z95 = 1.96
 FAILED = "error"  # what a case whose diagnosis raised is named: a failure, never "clean"
 
 
+def _job(args: tuple) -> tuple[str, int, str, tuple[str, ...]]:
+    """A case's job ``(kind, seed[, family[, paths]])`` with its defaults: (kind, seed, family, paths)."""
+    kind, seed = args[:2]
+    return kind, seed, args[2] if len(args) > 2 else "bench", tuple(args[3]) if len(args) > 3 else PATHS
+
+
+def _head(case, kind: str, seed: int, family: str, truth: dict) -> dict[str, Any]:
+    """The head of a case's record: the case, its kind, seed, family, magnitude and ``truth``."""
+    return {"case": case.case_id, "kind": kind, "seed": seed, "family": family, "magnitude": case.magnitude,
+            "truth": plain(truth)}
+
+
 def run_case(args: tuple) -> dict[str, Any]:
     """Simulate one case ``(kind, seed[, family[, paths]])``, write it as a bench CSV, diagnose it on the
     paths (default both)."""
@@ -57,17 +69,14 @@ def run_case(args: tuple) -> dict[str, Any]:
     from online_id.config import load_config
     from online_id.diagnose.bench_diagnosis import T_CRIT, diagnose_bench
 
-    kind, seed = args[:2]
-    family = args[2] if len(args) > 2 else "bench"
-    paths = tuple(args[3]) if len(args) > 3 else PATHS
+    kind, seed, family, paths = _job(args)
     case = make_case(kind, seed, family=family)
     t0 = time.perf_counter()
     rec = simulate_bench(case.scenario)
     truth = dict(case.truth)
     if kind == "backlash":
         truth.update(twist_passages(case.scenario))
-    out: dict[str, Any] = {"case": case.case_id, "kind": kind, "seed": seed, "family": family,
-                           "magnitude": case.magnitude, "truth": plain(truth)}
+    out = _head(case, kind, seed, family, truth)
     settings = load_config(None)
     with tempfile.TemporaryDirectory(prefix="online-id-eval-") as tmp:
         csv = Path(tmp) / f"{case.case_id}.csv"
@@ -139,13 +148,10 @@ def run_cases(jobs: list[tuple[str, int]], workers: int,
 
 def failed_case(job: tuple, error: str) -> dict[str, Any]:
     """The record of case ``job`` that gave no result: a failure on every path it was to run."""
-    kind, seed = job[:2]
-    family = job[2] if len(job) > 2 else "bench"
-    paths = tuple(job[3]) if len(job) > 3 else PATHS
+    kind, seed, family, paths = _job(job)
     try:
         case = make_case(kind, seed, family=family)
-        out: dict[str, Any] = {"case": case.case_id, "kind": kind, "seed": seed, "family": family,
-                               "magnitude": case.magnitude, "truth": plain(dict(case.truth))}
+        out = _head(case, kind, seed, family, dict(case.truth))
     except Exception as err:  # noqa: BLE001 - the case cannot even be made: still a failed case
         out = {"case": f"{kind}-{seed}", "kind": kind, "seed": seed, "family": family, "magnitude": None,
                "truth": {}, "error": f"{type(err).__name__}: {err}"}

@@ -127,8 +127,7 @@ def feed_frames(data, settings: Settings, realism: ev.BenchRealism, seed: int = 
     pipe.run_label = run_label
     for start in range(0, len(data), CHUNK_SAMPLES):
         for t_s, ident, payload in bench_frames(data, realism, seed, start, start + CHUNK_SAMPLES):
-            out = rt.publications(t_s, ident, payload)
-            out += rt.finish()  # the rest of a split publication, as the live loop and replay take it
+            out = rt.all_publications(t_s, ident, payload)  # a split publication whole, as replay takes it
             if out and on_output is not None:
                 on_output(pipe, t_s, out)
     worker.wait(0.0)

@@ -112,9 +112,9 @@ class Service:
     def _restore(self) -> None:
         if self.state_file is None:
             return
-        pipeline = restore_pipeline(self.state_file, self.settings, self.say)  # all or nothing
+        # all or nothing; the restored pipeline's slow work goes where ours did
+        pipeline = restore_pipeline(self.state_file, self.settings, self.say, worker=self.runtime.pipeline.worker)
         if pipeline is not None:
-            pipeline.worker = self.runtime.pipeline.worker  # the restored pipeline's slow work goes where ours did
             self.runtime.pipeline = pipeline
 
     def save(self, final: bool = False) -> bool:

@@ -16,6 +16,13 @@ Health states (published in the status frame):
 * ``INPUT_TIMEOUT``: an input role is silent for longer than the timeout (the
   estimator holds and resumes cleanly when frames come back);
 * ``FAULT``: the estimator had to reset repeatedly (numerical failure).
+
+Its parts: the :class:`~online_id.service.assembly.SampleAssembler` (frames' values to samples on a grid),
+the estimator (:class:`~online_id.estimation.online.OnlineDriveline`), the excitation signal, and the
+detection policy (:class:`~online_id.service.policy.DetectionPolicy`, :attr:`Pipeline.policy`), which judges
+each publication's estimate and returns the alerts due.  Slow work runs in the worker
+(:mod:`online_id.service.offload`); the state a restart keeps is :mod:`online_id.service.persistence`'s
+document of the estimator and the policy.
 """
 
 from __future__ import annotations
@@ -27,24 +34,20 @@ import numpy as np
 
 from online_id.service.assembly import AssembledSample, SampleAssembler
 from online_id.config import Settings
-from online_id.diagnose.linearity import BacklashTest
 from online_id.monitoring.baseline import Baseline
-from online_id.monitoring.cells import BandStats
-from online_id.monitoring.detection import (ChangeDetector, correlation_for_window)
+from online_id.monitoring.detection import ChangeDetector
 from online_id.monitoring.engaged import EngagedFlank
 from online_id.estimation.model import ArmaxOrders
 from online_id.estimation.online import OnlineDriveline, OnlineEstimate, physical_parameters
-from online_id.estimation.reference import ReferenceWindow
 from online_id.estimation.window import RefitJob, solve
 from online_id.analysis.physical import DrivelineParameters
 from online_id.monitoring.tracks import PoleTracker
-from online_id.monitoring.visit import VisitReference
 from online_id.errors import EstimationError
 from online_id.analysis.excitation import Excitation
 from online_id.service.events import MAX_EVENTS, PHYSICAL, WINDOW, Event
 from online_id.service.offload import InlineWorker
-from online_id.service.persistence import PipelineState
-from online_id.service.policy import BACKLASH_TEST_MAX_S, PENDING, VERIFY_FRESH_S, DetectionPolicy
+from online_id.service.persistence import restore_state, state_document
+from online_id.service.policy import DetectionPolicy
 from online_id.records import (
     AlertKind,
     AlertOut,
@@ -67,7 +70,7 @@ job's copy of the window (up to a millisecond or two on a busy PC) when their sa
 :meth:`Pipeline.publication_near`)."""
 
 
-class Pipeline(DetectionPolicy, PipelineState):
+class Pipeline:
     """The streaming pipeline (see module notes)."""
 
     def __init__(self, settings: Settings, worker=None) -> None:
@@ -75,50 +78,11 @@ class Pipeline(DetectionPolicy, PipelineState):
         s = settings
         # slow work (window refits, multi-start checks, physical fits): at once in replay, in a worker process
         # in the live service (see online_id.service.offload)
-        self.worker = worker if worker is not None else InlineWorker()
-        self._verify_results: dict = {}  # purpose -> (t_s submitted, adopted) of finished multi-start checks
-        self._verify_running: set = set()
+        self._worker = worker if worker is not None else InlineWorker()
         self.assembler = SampleAssembler(s.input.sample_rate_hz, s.input.timeout_s, s.input.slow_roles,
                                          max_jump_s=s.input.max_time_jump_s)
         self.estimator = self._new_estimator()
         self.excitation = Excitation(s)
-        d = s.detection
-        self.tracker = PoleTracker(dt=self.estimator.dt, pulses_per_rev=s.model.pulses_per_rev)
-        self.baseline = Baseline(band_rpm=d.band_rpm, min_count=d.min_count, load_band_nm=d.load_band_nm,
-                                 pool_tolerance_f=d.pool_tolerance_pct / 100.0)
-        self.run_label = ""  # the run learned cells are marked with (replay: the log's name)
-        self.reference_run = False  # cells learned now are a reference (relearn --from LOG)
-        self.detector = ChangeDetector(k=d.k, h_warning=d.h_warning, h_fault=d.h_fault,
-                                       correlation_s=correlation_for_window(settings.model.window_s),
-                                       min_change_f=d.min_freq_change_pct / 100.0,
-                                       min_change_zeta=d.min_damping_change_pct / 100.0)
-        # the engaged flank's readings on a shaft that showed backlash (see _test_backlash)
-        self.engaged = EngagedFlank(dead_band_zeta=d.min_damping_change_pct / 100.0)
-        self._next_engaged = -math.inf  # stream time of the next engaged-flank reading in this visit
-        self._engaged_out: list[Publication] = []  # its alerts, published with the next detection
-        self._healthy_since: float | None = None  # start of the current healthy stretch (settle_s)
-        self._recent: deque[tuple[float, float, float]] = deque()  # (t_s, f0, zeta) of the healthy stretch
-        self._healthy_rpm: float | None = None  # engine speed of the last healthy estimate
-        # the input samples of the last BACKLASH_TEST_MAX_S (t, dyno speed, engine speed, torque): the backlash test
-        self._raw: deque[tuple[float, float, float, float]] = deque(
-            maxlen=max(1, int(BACKLASH_TEST_MAX_S * s.input.sample_rate_hz)))
-        self._visit = 0  # counts the arrivals of healthy estimates at another operating point
-        self._visit_tested = -1  # the visit whose samples the backlash test took
-        self._visit_not_compared = -1  # the visit where another point's baseline was last not compared with
-        self._visit_ref: VisitReference | None = None  # a visit's first estimates, where no learned cell bounds it
-        self._next_visit_sample = 0.0
-        self.backlash_tests = 0
-        self.last_backlash_test: BacklashTest | None = None
-        self._references: dict[int, np.ndarray] = {}  # per baseline band: a window solution it was learned from
-        # per baseline band, one per cell (load): the window of the cell's first estimates, see _keep_window
-        self._windows: dict[int, list[ReferenceWindow]] = {}
-        self._rechecks: dict[str, dict] = {}  # per alarm kind: a recheck of a reference window under way
-        self._accepted: dict | None = None  # the frequency a recheck found the cell's own data give (_still_accepted)
-        self._next_learn: float | None = None
-        self._next_alarm_repeat = 0.0
-        self._stats: BandStats | None = None  # the baseline the latest estimate was compared with
-        self._rejected = 0  # learning estimates not learned (they disagreed with the baselines)
-        self._next_reject_event = 0.0
         self.state = ServiceState.STARTING
         self.t_s = float("nan")
         self.t_first: float | None = None
@@ -137,6 +101,10 @@ class Pipeline(DetectionPolicy, PipelineState):
         self.events: deque[Event] = deque(maxlen=MAX_EVENTS)
         self.alerts: list[AlertOut] = []
         self.alerts_total = 0  # alerts raised since start (the list keeps the last MAX_EVENTS)
+        # tracking, learning and detection on the published estimates (see online_id.service.policy)
+        self.policy = DetectionPolicy(settings, dt=self.estimator.dt, worker=self._worker,
+                                      submit_window=self._submit_window, clock=lambda: self.t_s,
+                                      events=self.events, record=self._record)
         self.commands = 0
         self.dropped_frames = 0  # frames the kernel dropped (full receive buffer), reported by the service
 
@@ -184,6 +152,50 @@ class Pipeline(DetectionPolicy, PipelineState):
         job = RefitJob(rng.standard_normal(n), rng.standard_normal(n), orders, "cold", (), 0.0, 0.0, -1)
         self.worker.submit(WINDOW, solve, (job,), lambda _fit, _err: None)
         self.worker.wait(limit_s)
+
+    @property
+    def worker(self):
+        """Where the slow work runs (the detection policy's too: fixed at construction)."""
+        return self._worker
+
+    # -- the detection policy's parts (read-only; see online_id.service.policy) ---------------------
+    @property
+    def baseline(self) -> Baseline:
+        """The learned baselines."""
+        return self.policy.baseline
+
+    @property
+    def detector(self) -> ChangeDetector:
+        """The change detector (its latched alarms, the alarms withheld)."""
+        return self.policy.detector
+
+    @property
+    def engaged(self) -> EngagedFlank:
+        """The engaged flank's readings on a shaft that showed backlash."""
+        return self.policy.engaged
+
+    @property
+    def tracker(self) -> PoleTracker:
+        """The pole tracks."""
+        return self.policy.tracker
+
+    @property
+    def run_label(self) -> str:
+        """The run the cells learned now are marked with (replay: the log's name)."""
+        return self.policy.run_label
+
+    @run_label.setter
+    def run_label(self, label: str) -> None:
+        self.policy.run_label = label
+
+    @property
+    def reference_run(self) -> bool:
+        """The cells learned now are a reference (``relearn --from LOG``)."""
+        return self.policy.reference_run
+
+    @reference_run.setter
+    def reference_run(self, reference: bool) -> None:
+        self.policy.reference_run = reference
 
     @property
     def last_estimate(self) -> OnlineEstimate | None:
@@ -284,7 +296,9 @@ class Pipeline(DetectionPolicy, PipelineState):
     def _run_pending_detection(self, out: list[Publication]) -> None:
         est, t_s, speed = self._detect_pending
         self._detect_pending = None
-        self._track_and_detect(est, t_s, speed, out)
+        out.extend(self.policy.assess(est, t_s, speed, self.estimator))
+        if self.policy.estimate is not est:  # a new cell learned from a multi-start refit: the estimate now
+            self._estimate = self.policy.estimate
 
     def on_command(self, command: int, t_s: float) -> list[Publication]:
         """A command frame: acknowledge alerts, re-learn, reset the estimator."""
@@ -297,32 +311,21 @@ class Pipeline(DetectionPolicy, PipelineState):
             self._detect_pending = None
             self.events.append(Event(t_s, "command", "estimator reset on command"))
         elif command == COMMAND_ACK:
-            self.detector.acknowledge()
-            self.engaged.acknowledge()
+            self.policy.acknowledge()
             self.events.append(Event(t_s, "command", "alerts acknowledged"))
             out.append(AlertOut(t_s, AlertKind.NONE, 0, 0.0, self.estimator.speed_rpm, "alerts acknowledged"))
         elif command == COMMAND_RELEARN:
-            self.baseline.reset()
-            self._references.clear()
-            self._windows.clear()
-            self._rechecks.clear()
-            self._accepted = None
-            self._visit_ref = None
-            self.detector.reset()
-            self.engaged.reset()
+            self.policy.relearn()
             self.events.append(Event(t_s, "command", "baselines forgotten: learning anew"))
             out.append(AlertOut(t_s, AlertKind.NONE, 0, 0.0, self.estimator.speed_rpm, "baselines re-learned"))
         return out
 
     def process(self, a: AssembledSample) -> None:
         """Feed one assembled sample to the estimator (also used by offline runs)."""
-        if a.discontinuity and self.counters.samples > 1:
+        restart = a.discontinuity and self.counters.samples > 1
+        if restart:
             self.estimator.restart_history()
-            self._raw.clear()
-        if self.settings.detection.backlash_test_s > 0 and (self.baseline.backlash is None
-                                                             or self.settings.detection.engaged_flank):
-            # the backlash test's samples, kept only while a test may run
-            self._raw.append((a.t_s, a.dyno_speed, a.engine_speed, a.dyno_torque))
+        self.policy.keep_sample(a.t_s, a.dyno_speed, a.engine_speed, a.dyno_torque, restart)
         self.estimator.update(a.dyno_speed, a.engine_speed, a.dyno_torque)
 
     def _consume(self, samples: list[AssembledSample], now_s: float, split: bool = False) -> list[Publication]:
@@ -400,13 +403,17 @@ class Pipeline(DetectionPolicy, PipelineState):
             return 0.0
         return max(0.0, self.t_s - self._window_since)
 
+    def _submit_window(self, fn, args: tuple, done) -> None:
+        """A window job (a refit or a multi-start check) to the worker: its lag counts from now."""
+        self._window_since = self.t_s
+        self.worker.submit(WINDOW, fn, args, done)
+
     def _submit_refit(self) -> None:
         """The due window refit (10-20 ms, a cold one about 0.5 s) to the worker."""
         estimator = self.estimator
         job = estimator.refit_job()
         if job is not None:
-            self._window_since = self.t_s
-            self.worker.submit(WINDOW, solve, (job,), lambda fit, err: estimator.complete(job, fit, err))
+            self._submit_window(solve, (job,), lambda fit, err: estimator.complete(job, fit, err))
 
     def _submit_physical(self) -> None:
         """Physical parameters of the latest estimate (a least-squares fit, ~10 ms) to the worker."""
@@ -423,33 +430,6 @@ class Pipeline(DetectionPolicy, PipelineState):
 
     def _physical_done(self, phys: DrivelineParameters | None, error: str | None) -> None:
         self._physical = phys if error is None else None
-
-    def _verify(self, purpose, t_s: float, starts: tuple = (), prefer_last_within: float = 0.0) -> bool | None:
-        """A multi-start refit of the window for ``purpose``: True/False (a fit adopted or not), or PENDING.
-
-        With the inline worker the check runs at once; with the process
-        worker the first call starts it and returns PENDING, and a later call
-        (within ``VERIFY_FRESH_S``) gets its outcome.
-        """
-        done = self._verify_results.pop(purpose, None)
-        if done is not None and 0.0 <= t_s - done[0] <= VERIFY_FRESH_S:
-            return done[1]
-        if purpose in self._verify_running or self.worker.busy(WINDOW):
-            return PENDING
-        estimator = self.estimator
-        job = estimator.verify_job(starts, prefer_last_within)
-        if job is None:
-            return False
-
-        def finished(fit, error: str | None) -> None:
-            self._verify_running.discard(purpose)
-            self._verify_results[purpose] = (t_s, estimator.complete(job, fit, error))
-
-        self._verify_running.add(purpose)
-        self._window_since = self.t_s
-        self.worker.submit(WINDOW, solve, (job,), finished)
-        done = self._verify_results.pop(purpose, None)
-        return PENDING if done is None else done[1]
 
     # -- outputs ---------------------------------------------------------------------------------
     def _alert(self, out: list[Publication], t_s: float, kind: AlertKind, severity: int, value_pct: float,
@@ -469,6 +449,7 @@ class Pipeline(DetectionPolicy, PipelineState):
         if state == self.state:
             return
         self.state = state
+        self.policy.on_state(state)
         self.events.append(Event(t_s, "state", why or state.name, {"state": state.name}))
         if state in (ServiceState.INPUT_TIMEOUT, ServiceState.FAULT):
             stop = self.excitation.stop(t_s)
@@ -482,17 +463,11 @@ class Pipeline(DetectionPolicy, PipelineState):
         """The stream clock jumped and the assembler re-anchored its grid: so do the schedules here."""
         self._next_publish = -math.inf if self._next_publish is not None else None  # publish with the next sample
         self._next_physical = -math.inf
-        self._next_learn = None
-        self._next_alarm_repeat = -math.inf
-        self._next_engaged = -math.inf
-        self._next_visit_sample = -math.inf
-        self._next_reject_event = -math.inf
-        self._healthy_since = None  # settle again before learning or detecting
-        self._recent.clear()
+        self.policy.on_time_jump()
         self.events.append(Event(t_s, "time", message, {"time_jumps": self.counters.time_jumps}))
         out.append(self.status(t_s))
 
-    def _judge(self, est: OnlineEstimate, t_s: float) -> ServiceState:
+    def _state_of(self, est: OnlineEstimate, t_s: float) -> ServiceState:
         recent = [t for t in self._reset_times if t_s - t < 10.0]
         if len(recent) >= 3:
             return ServiceState.FAULT
@@ -514,7 +489,7 @@ class Pipeline(DetectionPolicy, PipelineState):
         """The rest of the publication of ``est``: the state it gives, its quality, the status."""
         out: list[Publication] = []
         est = self._estimate = self.estimator.complete_estimate(est)
-        state = self._judge(est, t_s)
+        state = self._state_of(est, t_s)
         self._set_state(state, t_s, out, est.why if state == ServiceState.LEARNING else "")
         if est.valid and (self._physical is None or t_s >= self._next_physical):
             # the refit of the physical parameters (a least-squares fit, ~10 ms) runs on the next sample
@@ -529,12 +504,21 @@ class Pipeline(DetectionPolicy, PipelineState):
         out.append(self.status(t_s))
         return out
 
-    # -- wear and fault detection ------------------------------------------------------------------
     def status(self, t_s: float) -> StatusOut:
         c = self.counters
         # both counts are lower bounds of the frames lost (alive counters see losses anywhere upstream, the kernel
         # its own drops, which the counters see too): the status frame carries the larger
         return StatusOut(t_s, self.state, c.bad_frames, max(c.missing_frames, self.dropped_frames))
+
+    # -- state -----------------------------------------------------------------------------------
+    def get_state(self) -> dict:
+        """Everything a restart must keep (:func:`~online_id.service.persistence.state_document`)."""
+        return state_document(self.estimator, self.policy, self.alerts)
+
+    def load_state(self, state: dict, new_run: bool = False) -> None:
+        """Restore a state saved by :meth:`get_state` (``new_run``: see
+        :func:`~online_id.service.persistence.restore_state`)."""
+        self.alerts = restore_state(state, self.estimator, self.policy, new_run)
 
     # -- results ---------------------------------------------------------------------------------
     def result(self) -> dict:
@@ -553,6 +537,7 @@ class Pipeline(DetectionPolicy, PipelineState):
             return float(x) if x is not None and math.isfinite(x) else None
 
         c = self.counters
+        policy = self.policy
         return {
             "driveline": {
                 "f0_hz": fin(est.f0_hz),
@@ -569,11 +554,11 @@ class Pipeline(DetectionPolicy, PipelineState):
             "active_alarm": self.detector.active.as_dict() if self.detector.active else None,
             "withheld_alarms": dict(self.detector.withheld),
             "baseline": [b.as_dict() for b in self.baseline.bands],
-            "baseline_not_learned": self._rejected,  # learning estimates that disagreed with the baselines
+            "baseline_not_learned": policy.rejected,  # learning estimates that disagreed with the baselines
             "baseline_notes": [{"t_s": e.t_s - t0, "kind": e.kind, "message": e.message} for e in self.events
                                if e.kind in ("learned", "not_learned", "wide_baseline", "backlash")][-20:],
-            "backlash": {"shown": self.baseline.backlash, "tests": self.backlash_tests,
-                         "last_test": self.last_backlash_test.as_dict() if self.last_backlash_test else None,
+            "backlash": {"shown": self.baseline.backlash, "tests": policy.backlash_tests,
+                         "last_test": policy.last_backlash_test.as_dict() if policy.last_backlash_test else None,
                          "engaged_flank": self.engaged.summary()},
             "tracks": [{"id": t.id, "f_hz": t.f_hz, "zeta": t.zeta, "class": t.cls, "confidence": t.confidence,
                         "order": t.order} for t in self.tracker.tracks],

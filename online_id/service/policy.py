@@ -2,26 +2,39 @@
 test and the engaged flank, the visit's first estimates, rechecks of a withheld alarm against the cell's
 own data, and the alarms raised (see :mod:`online_id.monitoring` for the statistics themselves).
 
-:class:`DetectionPolicy` is a part of :class:`~online_id.service.pipeline.Pipeline` (a mixin): it reads
-the estimate the pipeline made and the pipeline's settings, worker and event log, and keeps its own
-baselines, detector and visit state."""
+:class:`DetectionPolicy` is a part the :class:`~online_id.service.pipeline.Pipeline` owns.  It is handed
+each publication's estimate with its stream time, engine speed and the estimator it came from
+(:meth:`~DetectionPolicy.assess`), the input samples its backlash test takes (:meth:`~DetectionPolicy.keep_sample`),
+the service state (:meth:`~DetectionPolicy.on_state`) and the commands (:meth:`~DetectionPolicy.acknowledge`,
+:meth:`~DetectionPolicy.relearn`); it returns the alerts due, writes its events to the event log it is given
+and records its alerts through the recorder it is given.  Its slow work (multi-start refits, rechecks,
+backlash tests) goes to the worker it is given, whose results come back through the worker's callbacks.
+It keeps its own baselines, detector, tracks, engaged flank, reference solutions and windows and visit
+state, and saves and restores them (:meth:`~DetectionPolicy.to_dict`, :meth:`~DetectionPolicy.load`)."""
 
 from __future__ import annotations
 
 import dataclasses
 import itertools
 import math
+from collections import deque
+from typing import Callable
 
 import numpy as np
 
 from online_id.diagnose.bench_data import DEFAULT_PULSES_PER_REV
 from online_id.diagnose.linearity import BacklashTest, backlash_test
+from online_id.config import Settings
+from online_id.monitoring.baseline import Baseline
 from online_id.monitoring.cells import BandStats
-from online_id.monitoring.detection import (DAMPING, FREQUENCY, Alarm, alarm_message, when_text)
+from online_id.monitoring.detection import (DAMPING, FREQUENCY, Alarm, ChangeDetector, alarm_message,
+                                            correlation_for_window, when_text)
 from online_id.monitoring import engaged as engaged_flank
-from online_id.monitoring.engaged import EngagedChange, EngagedReading
-from online_id.estimation.online import OnlineEstimate
+from online_id.monitoring.engaged import EngagedChange, EngagedFlank, EngagedReading
+from online_id.monitoring.tracks import PoleTracker
+from online_id.estimation.online import OnlineDriveline, OnlineEstimate
 from online_id.estimation.reference import ReferenceWindow, judge, refit_each
+from online_id.estimation.window import solve
 from online_id.monitoring.visit import VisitReference
 from online_id.service.events import LINEARITY, WINDOW, Event
 from online_id.records import (
@@ -45,9 +58,215 @@ SPREAD_RATIO_REPORTED = 5.0  # a learned spread this many times the estimator's 
 
 
 class DetectionPolicy:
-    """Detection on the estimates of a :class:`~online_id.service.pipeline.Pipeline` (see module notes)."""
+    """Detection on the estimates of a :class:`~online_id.service.pipeline.Pipeline` (see module notes).
 
-    def _track_and_detect(self, est: OnlineEstimate, t_s: float, speed: float, out: list[Publication]) -> None:
+    Parameters
+    ----------
+    settings
+        The settings in force (``detection`` above all; the model's speed span and pulses per revolution,
+        the input sample rate).
+    dt
+        The estimator's sample period [s] (the pole tracks' time base).
+    worker
+        Where slow work runs (:mod:`online_id.service.offload`): ``submit(lane, fn, args, done)`` and
+        ``busy(lane)``.
+    submit_window
+        ``submit_window(fn, args, done)``: a multi-start refit to the worker's window lane, counted in the
+        pipeline's lag of slow work.
+    clock
+        The stream time now (an alert raised when a backlash test comes back repeats from then).
+    events
+        The event log the policy appends to.
+    record
+        ``record(alert, out, data)``: keep, count and publish an alert (into ``out``).
+    """
+
+    def __init__(self, settings: Settings, dt: float, worker, submit_window: Callable, clock: Callable[[], float],
+                 events: deque[Event], record: Callable) -> None:
+        self.settings = settings
+        self.worker = worker
+        self._submit_window = submit_window
+        self._clock = clock
+        self.events = events
+        self._record = record
+        d = settings.detection
+        self.tracker = PoleTracker(dt=dt, pulses_per_rev=settings.model.pulses_per_rev)
+        self.baseline = Baseline(band_rpm=d.band_rpm, min_count=d.min_count, load_band_nm=d.load_band_nm,
+                                 pool_tolerance_f=d.pool_tolerance_pct / 100.0)
+        self.run_label = ""  # the run learned cells are marked with (replay: the log's name)
+        self.reference_run = False  # cells learned now are a reference (relearn --from LOG)
+        self.detector = ChangeDetector(k=d.k, h_warning=d.h_warning, h_fault=d.h_fault,
+                                       correlation_s=correlation_for_window(settings.model.window_s),
+                                       min_change_f=d.min_freq_change_pct / 100.0,
+                                       min_change_zeta=d.min_damping_change_pct / 100.0)
+        # the engaged flank's readings on a shaft that showed backlash (see _test_backlash)
+        self.engaged = EngagedFlank(dead_band_zeta=d.min_damping_change_pct / 100.0)
+        self._state = ServiceState.STARTING  # the service state, as the pipeline last told (on_state)
+        self._estimate: OnlineEstimate | None = None  # the estimate being judged (a learning refit replaces it)
+        self._verify_results: dict = {}  # purpose -> (t_s submitted, adopted) of finished multi-start checks
+        self._verify_running: set = set()
+        self._next_engaged = -math.inf  # stream time of the next engaged-flank reading in this visit
+        self._engaged_out: list[Publication] = []  # its alerts, published with the next detection
+        self._healthy_since: float | None = None  # start of the current healthy stretch (settle_s)
+        self._recent: deque[tuple[float, float, float]] = deque()  # (t_s, f0, zeta) of the healthy stretch
+        self._healthy_rpm: float | None = None  # engine speed of the last healthy estimate
+        # the input samples of the last BACKLASH_TEST_MAX_S (t, dyno speed, engine speed, torque): the backlash test
+        self._raw: deque[tuple[float, float, float, float]] = deque(
+            maxlen=max(1, int(BACKLASH_TEST_MAX_S * settings.input.sample_rate_hz)))
+        self._visit = 0  # counts the arrivals of healthy estimates at another operating point
+        self._visit_tested = -1  # the visit whose samples the backlash test took
+        self._visit_not_compared = -1  # the visit where another point's baseline was last not compared with
+        self._visit_ref: VisitReference | None = None  # a visit's first estimates, where no learned cell bounds it
+        self._next_visit_sample = 0.0
+        self.backlash_tests = 0
+        self.last_backlash_test: BacklashTest | None = None
+        self._references: dict[int, np.ndarray] = {}  # per baseline band: a window solution it was learned from
+        # per baseline band, one per cell (load): the window of the cell's first estimates, see _keep_window
+        self._windows: dict[int, list[ReferenceWindow]] = {}
+        self._rechecks: dict[str, dict] = {}  # per alarm kind: a recheck of a reference window under way
+        self._accepted: dict | None = None  # the frequency a recheck found the cell's own data give (_still_accepted)
+        self._next_learn: float | None = None
+        self._next_alarm_repeat = 0.0
+        self._stats: BandStats | None = None  # the baseline the latest estimate was compared with
+        self._rejected = 0  # learning estimates not learned (they disagreed with the baselines)
+        self._next_reject_event = 0.0
+
+    # -- the interface ---------------------------------------------------------------------------
+    def assess(self, est: OnlineEstimate, t_s: float, speed_rpm: float, model: OnlineDriveline) -> list[Publication]:
+        """Pole tracks, baseline learning and change detection on the estimate ``est`` of a publication at
+        stream time ``t_s`` and engine speed ``speed_rpm``, made by ``model`` (whose window the checks refit):
+        the alerts due.  :attr:`estimate` is then ``est``, or the multi-start refit a new cell learned from."""
+        self._estimate = est
+        out: list[Publication] = []
+        self._track_and_detect(est, t_s, speed_rpm, model, out)
+        return out
+
+    @property
+    def estimate(self) -> OnlineEstimate | None:
+        """The estimate last judged (a new cell's multi-start refit where one replaced the publication's)."""
+        return self._estimate
+
+    def keep_sample(self, t_s: float, dyno_speed: float, engine_speed: float, dyno_torque: float,
+                    restart: bool = False) -> None:
+        """An input sample, kept while a backlash test may run; ``restart``: the stream broke before it (the
+        samples kept so far are dropped)."""
+        if restart:
+            self._raw.clear()
+        d = self.settings.detection
+        if d.backlash_test_s > 0 and (self.baseline.backlash is None or d.engaged_flank):
+            self._raw.append((t_s, dyno_speed, engine_speed, dyno_torque))
+
+    def on_state(self, state: ServiceState) -> None:
+        """The service state changed (detection and learning run on a tracking estimate only)."""
+        self._state = state
+
+    def on_time_jump(self) -> None:
+        """The stream clock jumped: the schedules start again, and the estimate settles again before learning
+        or detecting."""
+        self._next_learn = None
+        self._next_alarm_repeat = -math.inf
+        self._next_engaged = -math.inf
+        self._next_visit_sample = -math.inf
+        self._next_reject_event = -math.inf
+        self._healthy_since = None
+        self._recent.clear()
+
+    def acknowledge(self) -> None:
+        """The operator acknowledged the alerts: latched alarms (the engaged flank's too) are released."""
+        self.detector.acknowledge()
+        self.engaged.acknowledge()
+
+    def relearn(self) -> None:
+        """Forget the baselines, their reference solutions and windows, the engaged flank and latched alarms."""
+        self.baseline.reset()
+        self._references.clear()
+        self._windows.clear()
+        self._rechecks.clear()
+        self._accepted = None
+        self._visit_ref = None
+        self.detector.reset()
+        self.engaged.reset()
+
+    def forget_baselines(self) -> None:
+        """Forget the learned baselines, their reference solutions and the detector's statistics (a reference
+        run learns anew)."""
+        self.baseline.reset()
+        self._references.clear()
+        self.detector.reset()
+
+    @property
+    def rejected(self) -> int:
+        """Learning estimates not learned: they disagreed with the baselines."""
+        return self._rejected
+
+    def to_dict(self) -> dict:
+        """What a restart keeps: baselines, detector (latched alarms), tracks, the engaged flank, the reference
+        solutions and windows (the items of the state document, :mod:`online_id.service.persistence`)."""
+        return {"baseline": self.baseline.to_dict(), "detector": self.detector.to_dict(),
+                "tracker": self.tracker.to_dict(), "healthy_rpm": self._healthy_rpm,
+                "engaged": self.engaged.to_dict(),
+                "references": {str(k): v.tolist() for k, v in self._references.items()},
+                "windows": {str(k): [w.to_dict() for w in ws] for k, ws in self._windows.items()}}
+
+    def load(self, state: dict, n_params: int, new_run: bool = False) -> None:
+        """Restore the items of :meth:`to_dict` from the state document ``state`` (solutions of ``n_params``
+        model parameters).  ``new_run``: the state comes from an earlier run: the baselines, reference
+        solutions and windows, the engaged flank and the detector's statistics and latched alarms are
+        restored, the pole tracks and the detector's stream start afresh."""
+        if "baseline" in state:
+            self.baseline = Baseline.from_dict(state["baseline"])
+        if "detector" in state:
+            # statistics and latched alarms from the state, levels and dead bands from the config in force
+            self.detector = ChangeDetector.from_dict({**state["detector"], "params": self.detector.params()})
+            if new_run:
+                self.detector.new_stream()
+        if "tracker" in state and not new_run:
+            self.tracker = PoleTracker.from_dict(state["tracker"])
+        self._references = {int(k): np.asarray(v, dtype=float) for k, v in state.get("references", {}).items()
+                            if isinstance(v, (list, np.ndarray)) and len(v) == n_params}
+        windows = state.get("windows", {})
+        self._windows = {}
+        for k, v in windows.items() if isinstance(windows, dict) else ():
+            saved = v if isinstance(v, list) and str(k).lstrip("-").isdigit() else []
+            kept = [w for w in (ReferenceWindow.from_dict(x, n_params) for x in saved if isinstance(x, dict))
+                    if w is not None]
+            if kept:
+                self._windows[int(k)] = kept
+        self._rechecks = {}
+        self._accepted = None
+        self.engaged.load(state.get("engaged"))
+        rpm = state.get("healthy_rpm")
+        self._healthy_rpm = float(rpm) if isinstance(rpm, (int, float)) and not new_run else None
+
+    # -- the policy ------------------------------------------------------------------------------
+    def _verify(self, purpose, t_s: float, model: OnlineDriveline, starts: tuple = (),
+                prefer_last_within: float = 0.0) -> bool | None:
+        """A multi-start refit of the window for ``purpose``: True/False (a fit adopted or not), or PENDING.
+
+        With the inline worker the check runs at once; with the process
+        worker the first call starts it and returns PENDING, and a later call
+        (within ``VERIFY_FRESH_S``) gets its outcome.
+        """
+        done = self._verify_results.pop(purpose, None)
+        if done is not None and 0.0 <= t_s - done[0] <= VERIFY_FRESH_S:
+            return done[1]
+        if purpose in self._verify_running or self.worker.busy(WINDOW):
+            return PENDING
+        job = model.verify_job(starts, prefer_last_within)
+        if job is None:
+            return False
+
+        def finished(fit, error: str | None) -> None:
+            self._verify_running.discard(purpose)
+            self._verify_results[purpose] = (t_s, model.complete(job, fit, error))
+
+        self._verify_running.add(purpose)
+        self._submit_window(solve, (job,), finished)
+        done = self._verify_results.pop(purpose, None)
+        return PENDING if done is None else done[1]
+
+    def _track_and_detect(self, est: OnlineEstimate, t_s: float, speed: float, model: OnlineDriveline,
+                          out: list[Publication]) -> None:
         """Pole tracks, baseline learning (1 Hz) and change detection, at the publish rate.
 
         ``est``, ``t_s`` and ``speed`` are those of the publication (it runs on the sample after it).
@@ -55,7 +274,7 @@ class DetectionPolicy:
         d = self.settings.detection
         load = est.load_nm
         self.tracker.update(t_s=t_s, speed_rpm=speed, poles=est.poles)
-        healthy = (est.valid and not est.frozen and self.state == ServiceState.TRACKING
+        healthy = (est.valid and not est.frozen and self._state == ServiceState.TRACKING
                    and est.excitation_nm >= d.min_excitation_nm)
         learnable = False
         settling = False
@@ -91,14 +310,14 @@ class DetectionPolicy:
         if (healthy and learnable and self.detector.active is None and t_s >= self._next_learn
                 and self._steady(est, t_s)):
             self._next_learn = t_s + 1.0  # about one independent-ish estimate per second
-            est = self._learn(est, t_s, speed, load)
+            est = self._learn(est, t_s, speed, load, model)
             load = est.load_nm
         if healthy and d.backlash_test_s > 0 and not self.worker.busy(LINEARITY):
             if not self.baseline.nonlinear and self._visit_tested != self._visit:
-                self._test_backlash(t_s, speed, load)
+                self._test_backlash(t_s, speed, load, model)
             elif self.baseline.nonlinear and d.engaged_flank and (self._visit_tested != self._visit
                                                                   or t_s >= self._next_engaged):
-                self._test_backlash(t_s, speed, load, engaged_flank.WINDOW_S)
+                self._test_backlash(t_s, speed, load, model, engaged_flank.WINDOW_S)
         stats = self._baseline_for(speed, load)
         if (stats is None and healthy and self.baseline.nonlinear and self._visit_not_compared != self._visit
                 and self.baseline.learned_range_rpm is not None):
@@ -112,13 +331,13 @@ class DetectionPolicy:
                                      f"load, and no learned cell bounds it here; the estimates are compared with "
                                      f"the first estimates of this visit", {}))
         if self._visit_serves(stats):
-            self._visit_sample(est, t_s, speed, load, healthy and not settling, stats)
+            self._visit_sample(est, t_s, speed, load, healthy and not settling, stats, model)
             stats = self._with_visit(stats, load)
         self._stats = stats
         alarm = self.detector.update(
             t_s=t_s, speed_rpm=speed, f0_hz=est.f0_hz, zeta=est.zeta, f0_std_hz=est.f0_std_hz,
             zeta_std=est.zeta_std, baseline=stats, suppressed=not healthy,
-            confirm=lambda kind: self._confirm(kind, stats, t_s),
+            confirm=lambda kind: self._confirm(kind, stats, t_s, model),
             frequency_only_beyond=d.settle_min_freq_change_pct / 100.0 if settling else None,
         )
         if alarm is not None:
@@ -132,7 +351,8 @@ class DetectionPolicy:
             out.extend(self._engaged_out)
             self._engaged_out.clear()
 
-    def _test_backlash(self, t_s: float, speed: float, load: float, window_s: float = BACKLASH_TEST_MAX_S) -> None:
+    def _test_backlash(self, t_s: float, speed: float, load: float, model: OnlineDriveline,
+                       window_s: float = BACKLASH_TEST_MAX_S) -> None:
         """The backlash test (:mod:`online_id.diagnose.linearity`) on this operating point's steady samples, in the
         worker, once the speed has been steady for ``detection.backlash_test_s`` (at most the last ``window_s``).
 
@@ -140,7 +360,7 @@ class DetectionPolicy:
         ``detection.engaged_flank``, every ``EVERY_S`` of a visit on the last ``WINDOW_S`` of steady samples: its
         engaged flank's resonance and damping go to :attr:`engaged` (:mod:`online_id.monitoring.engaged`)."""
         least = self.settings.detection.backlash_test_s
-        steady = min(self.estimator.window.steady_s, window_s)
+        steady = min(model.window.steady_s, window_s)
         rate = self.settings.input.sample_rate_hz
         if steady < least or len(self._raw) < least * rate:
             return
@@ -170,7 +390,7 @@ class DetectionPolicy:
                                          test.as_dict() | {"released": n}))
             if self.baseline.nonlinear and self.settings.detection.engaged_flank:
                 reading = EngagedReading(t_s, visit, speed, load, test.engaged_f0_hz, test.engaged_zeta, self.run_label)
-                learn = self.detector.active is None and self.state == ServiceState.TRACKING
+                learn = self.detector.active is None and self._state == ServiceState.TRACKING
                 for change in self.engaged.offer(reading, learn=learn):
                     self._raise_engaged(change)
 
@@ -200,7 +420,7 @@ class DetectionPolicy:
         self._record(self._alert_out(alarm, alarm.detected_t_s), self._engaged_out,
                      alarm.as_dict() | {"baseline_kind": "engaged", "baseline_source": change.source,
                                         "threshold_pct": 100 * change.threshold})
-        self._next_alarm_repeat = self.t_s + 1.0
+        self._next_alarm_repeat = self._clock() + 1.0
 
     def _steady(self, est: OnlineEstimate, t_s: float) -> bool:
         """Whether the estimate stood still over the last ``STEADY_S``: its frequency within the dead band
@@ -253,7 +473,7 @@ class DetectionPolicy:
         return self.baseline.nonlinear and (stats is None or stats.kind == "bracketed")
 
     def _visit_sample(self, est: OnlineEstimate, t_s: float, speed: float, load: float, settled: bool,
-                      bounds: BandStats | None) -> None:
+                      bounds: BandStats | None, model: OnlineDriveline) -> None:
         """Offer a settled estimate (about one a second) to the first estimates of this visit
         (:mod:`~online_id.monitoring.visit`); one that the detector would count as outside the one-sided ``bounds``
         (beyond the dead band) does not join, so that there the bound goes on serving."""
@@ -274,10 +494,10 @@ class DetectionPolicy:
             self._next_visit_sample = t_s
         if t_s >= self._next_visit_sample:
             self._next_visit_sample = t_s + 1.0  # about one independent-ish estimate per second
-            solution = self.estimator.solution
+            solution = model.solution
             if (ref.add(t_s, est.f0_hz, est.zeta, load, self.detector.min_change_f, solution,
                         self.detector.min_change_zeta) and len(ref.f) <= ref.min_count and solution is not None):
-                job = self.estimator.verify_job()  # the data of the frozen first estimates, for a recheck
+                job = model.verify_job()  # the data of the frozen first estimates, for a recheck
                 if job is not None:
                     ref.window = ReferenceWindow(job.y, job.u, solution, speed, load, t_s)
 
@@ -322,7 +542,8 @@ class DetectionPolicy:
         return (stats.band[0] <= speed < stats.band[1]
                 and not abs(stats.load_nm - load) > 0.5 * self.baseline.load_band_nm)
 
-    def _learn(self, est: OnlineEstimate, t_s: float, speed: float, load: float) -> OnlineEstimate:
+    def _learn(self, est: OnlineEstimate, t_s: float, speed: float, load: float,
+               model: OnlineDriveline) -> OnlineEstimate:
         """One estimate into the baseline of its cell, unless the cell is learned or the estimate disagrees.
 
         A cell still learning compares each estimate with what serves it
@@ -348,11 +569,11 @@ class DetectionPolicy:
         learned = cell is not None and cell.count >= d.min_count
         # a new cell is learned from the best of several starts, not from whichever of the nearly equal
         # minima of a mismatched model (backlash) the warm-started refits happen to follow
-        verified = self._verify("learn", t_s) if cell is None else False
+        verified = self._verify("learn", t_s, model) if cell is None else False
         if verified is PENDING:
             return est
         if verified:
-            est = self.estimator.estimate()
+            est = model.estimate()
             self._estimate = est
             load = est.load_nm
         if not (est.valid and math.isfinite(load) and math.isfinite(est.f0_hz) and est.zeta > 0):
@@ -388,12 +609,12 @@ class DetectionPolicy:
         self.baseline.learn(speed_rpm=speed, f0_hz=est.f0_hz, zeta=est.zeta, load_nm=load,
                             f0_std_hz=est.f0_std_hz, zeta_std=est.zeta_std, source=self.run_label,
                             reference=self.reference_run, held=why is not None)
-        solution = self.estimator.solution
+        solution = model.solution
         if solution is not None:
             self._references[self.baseline.key(speed)] = solution
         done = self.baseline.cell(speed, load)
         if why is None and solution is not None and done is not None:
-            self._keep_window(done, speed, load, t_s, solution)
+            self._keep_window(done, speed, load, t_s, solution, model)
         if done is not None and done.count == d.min_count:
             ratio = done.spread_ratio
             self.events.append(Event(t_s, "learned", f"cell {speed:.0f} rpm, {load:.1f} Nm learned: f0 "
@@ -407,7 +628,7 @@ class DetectionPolicy:
                                          f"while it was learned", done.as_dict()))
         return est
 
-    def _confirm(self, kind: str, stats: BandStats, t_s: float) -> bool | None:
+    def _confirm(self, kind: str, stats: BandStats, t_s: float, model: OnlineDriveline) -> bool | None:
         """Before a new drift alarm: does the change stand a second look at the window, and a recheck of the
         data the baseline was learned from? True: raise it; False: withhold it; None: a check runs in the worker
         (the detector asks again at its next interval)."""
@@ -418,10 +639,10 @@ class DetectionPolicy:
         if check is None and self._still_accepted(kind, stats, t_s):
             return False
         if check is None:
-            verdict = self._second_look(kind, stats, t_s)
+            verdict = self._second_look(kind, stats, t_s, model)
             if verdict is not True:
                 return verdict
-        return self._recheck(kind, stats, t_s)
+        return self._recheck(kind, stats, t_s, model)
 
     def _still_accepted(self, kind: str, stats: BandStats, t_s: float) -> bool:
         """Does a recheck's finding that the cell's own data give the current resonance still stand?
@@ -455,7 +676,7 @@ class DetectionPolicy:
             {"kind": kind, "change_pct": 100 * step, "recheck_t_s": done["t_s"]}))
         return True
 
-    def _second_look(self, kind: str, stats: BandStats, t_s: float) -> bool | None:
+    def _second_look(self, kind: str, stats: BandStats, t_s: float, model: OnlineDriveline) -> bool | None:
         """Does a refit of the window from several starts still deviate?
 
         The starts include the solution the band's baseline was learned from
@@ -471,9 +692,9 @@ class DetectionPolicy:
         # where the baseline's own minimum fits the window nearly as well as the best, the data do not tell them
         # apart: a mismatched model (backlash) has nearly equal minima whose damping differs by 30-40 % and whose
         # resonance differs by 1-3 %, and the estimate may sit in either for minutes at a learned operating point
-        if self._verify(("confirm", kind), t_s, (ref,), self._tie(kind)) is PENDING:
+        if self._verify(("confirm", kind), t_s, model, (ref,), self._tie(kind)) is PENDING:
             return None
-        est = self.estimator.estimate()
+        est = model.estimate()
         if kind == FREQUENCY:  # beyond the bounds of a bracketed baseline
             change, width = stats.excess_f(est.f0_hz) / stats.mean_f, self.detector.min_change_f
         else:
@@ -485,13 +706,14 @@ class DetectionPolicy:
                                  f"{100 * width:.1f} % dead band", {"kind": kind, "change_pct": 100 * change}))
         return False
 
-    def _keep_window(self, cell: BandStats, speed: float, load: float, t_s: float, solution: np.ndarray) -> None:
+    def _keep_window(self, cell: BandStats, speed: float, load: float, t_s: float, solution: np.ndarray,
+                     model: OnlineDriveline) -> None:
         """Keep the window of a cell's first estimates, the ones its frozen reference holds (up to
         ``provisional_count``), for :meth:`_recheck`; later estimates do not replace it (one learned after a
         change the learning check let through would make the recheck compare the change with itself)."""
         if cell.count > self.baseline.provisional_count:
             return
-        job = self.estimator.verify_job()
+        job = model.verify_job()
         if job is None:
             return
         key = self.baseline.key(speed)
@@ -515,7 +737,7 @@ class DetectionPolicy:
         windows = self._windows.get(self.baseline.key(0.5 * (stats.band[0] + stats.band[1])), [])
         return next((w for w in windows if self._at(stats, w.speed_rpm, w.load_nm)), None)
 
-    def _recheck(self, kind: str, stats: BandStats, t_s: float) -> bool | None:
+    def _recheck(self, kind: str, stats: BandStats, t_s: float, model: OnlineDriveline) -> bool | None:
         """The data the cell's baseline was learned from, refitted from the current window solution: is the
         change still there within one minimum of the criterion? (:mod:`~online_id.estimation.reference`)
 
@@ -530,8 +752,8 @@ class DetectionPolicy:
         """
         check = self._rechecks.get(kind)
         if check is None:
-            window, solution = self._reference_window(stats, kind), self.estimator.solution
-            est = self.estimator.estimate()
+            window, solution = self._reference_window(stats, kind), model.solution
+            est = model.estimate()
             if window is None or solution is None or est is None:
                 return True
             # the tolerance: the dead band plus one standard deviation of the difference of two single estimates
@@ -553,14 +775,14 @@ class DetectionPolicy:
             def finished(fits, error: str | None) -> None:
                 check["result"] = (fits, error)
 
-            self.worker.submit(WINDOW, refit_each, (window.y, window.u, self.estimator.orders,
+            self.worker.submit(WINDOW, refit_each, (window.y, window.u, model.orders,
                                                     (window.solution, check["solution"])), finished)
         if check["result"] is None:
             return PENDING
         del self._rechecks[kind]
         fits, error = check["result"]
         damping, tolerance = kind == DAMPING, check["tolerance"]
-        r = judge(fits, self.estimator.dt, check["f0_hz"], check["zeta"], damping, tolerance, self._tie(kind)) \
+        r = judge(fits, model.dt, check["f0_hz"], check["zeta"], damping, tolerance, self._tie(kind)) \
             if error is None else None
         if r is None or not r.withhold:
             return True

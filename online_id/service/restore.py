@@ -119,8 +119,9 @@ def _trial(state: dict, settings: Settings) -> None:
     json.dumps(_plain(scratch.get_state()), allow_nan=True)
 
 
-def restore_pipeline(path: str | Path, settings: Settings, say: Callable[[str], None]) -> Pipeline | None:
-    """A pipeline restored from the state file at ``path``, or None to start afresh (see module notes)."""
+def restore_pipeline(path: str | Path, settings: Settings, say: Callable[[str], None], worker=None) -> Pipeline | None:
+    """A pipeline restored from the state file at ``path``, or None to start afresh (see module notes); its slow
+    work goes to ``worker`` (default: inline, see :mod:`online_id.service.offload`)."""
     path = Path(path)
     try:
         state = load_state(path)
@@ -129,7 +130,7 @@ def restore_pipeline(path: str | Path, settings: Settings, say: Callable[[str], 
         check_state(state, settings)
         try:
             _trial(state, settings)
-            pipeline = Pipeline(settings)
+            pipeline = Pipeline(settings, worker=worker)
             pipeline.load_state(state)
         except Exception as err:  # noqa: BLE001 - a file from disk fed to the estimators: any failure rejects it
             text = " ".join(str(err).split())[:200]

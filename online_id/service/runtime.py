@@ -105,9 +105,14 @@ class Runtime:
     def on_frame(self, t_s: float, arbitration_id: int, data: bytes, is_extended: bool = False,
                  is_error: bool = False) -> list[OutFrame]:
         """One received frame; returns the frames to publish."""
-        pubs = self.publications(t_s, arbitration_id, data, is_extended, is_error)
-        pubs += self.finish()
+        pubs = self.all_publications(t_s, arbitration_id, data, is_extended, is_error)
         return self.frames(pubs) if pubs else []
+
+    def all_publications(self, t_s: float, arbitration_id: int, data: bytes, is_extended: bool = False,
+                         is_error: bool = False) -> list[Publication]:
+        """One received frame; returns everything it publishes, not yet encoded: :meth:`publications` and
+        :meth:`finish` in one (what replay and the evaluation's frame path take)."""
+        return self.publications(t_s, arbitration_id, data, is_extended, is_error) + self.finish()
 
     def publications(self, t_s: float, arbitration_id: int, data: bytes, is_extended: bool = False,
                      is_error: bool = False) -> list[Publication]:
@@ -116,7 +121,8 @@ class Runtime:
 
         The live service encodes and sends that estimate's frame (:meth:`first_frame`) before the rest of
         the publication is made, and before the samples after it in the frame are taken (see
-        :meth:`Pipeline.on_signal` with ``split``); replay and the tests take :meth:`on_frame`.
+        :meth:`Pipeline.on_signal` with ``split``); replay and the tests take :meth:`on_frame` or
+        :meth:`all_publications`.
         """
         self.frames_in += 1
         if is_error:
