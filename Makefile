@@ -35,7 +35,7 @@ test: system-deps $(STAMP)
 
 ## Only the fast tier (no slow identification runs).
 test-fast: $(STAMP)
-	$(PY) -m pytest -n 2 -m "not slow and not vcan and not live" $(PYTEST_ARGS)
+	$(PY) -m pytest -n 2 --dist loadscope --no-loadscope-reorder -m "not slow and not vcan and not live" $(PYTEST_ARGS)
 
 ## Benchmarks (run by hand; figures go into the README).
 bench: $(STAMP)

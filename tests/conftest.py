@@ -8,6 +8,19 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 
+@pytest.fixture(autouse=True)
+def _environment_as_it_was():
+    """Put back the process environment after each test. A Dask ``LocalCluster``'s nannies write their workers'
+    pre-spawn variables into the calling process (``MALLOC_TRIM_THRESHOLD_=65536``, ``PYTHONHASHSEED``): left
+    there, every process a later test starts in this pytest worker inherits them, and that trim threshold alone
+    doubles numpy's CPU time in those processes."""
+    before = dict(os.environ)
+    yield
+    if os.environ != before:
+        os.environ.clear()
+        os.environ.update(before)
+
+
 @pytest.fixture
 def cli_error(capsys):
     """Run ``online-id ARGV``; expect exit status 2 and return its error, one line without a traceback."""
@@ -21,3 +34,33 @@ def cli_error(capsys):
         return err
 
     return run
+
+
+# Modules whose tests take longest in all (CPU seconds per module of the native tier, docs/testing.md), longest
+# first. Only the order of the run depends on this list: a module missing from it runs in its usual place.
+HEAVY_FIRST = ("test_detection_learning", "test_reference", "test_archive_evaluate", "test_engaged_flank",
+               "test_diagnose_bench", "test_linearity", "test_detection_e2e", "test_detection_damping_learning",
+               "test_identification", "test_sysid_uncertainty", "test_window", "test_archive", "test_cli",
+               "test_hardening_time", "test_hardening_soak", "test_engaged_resonance", "test_diagnose",
+               "test_hardening_signals")
+
+
+def pytest_collection_modifyitems(config, items):
+    """On several workers (pytest-xdist, ``--dist loadscope --no-loadscope-reorder`` as ``make test`` runs it:
+    a module's tests on one worker, so its module fixtures and caches are made once), the heaviest modules come
+    first (``HEAVY_FIRST``), the rest in their usual order: each worker takes the next module when it is done
+    with its own, so the long end-to-end modules start early and the short ones fill the end, instead of a long
+    module starting last beside an idle worker."""
+    argv = getattr(config, "workerinput", {}).get("mainargv", [])  # (a worker sees the run's --dist only there)
+    if not any(a.endswith(("loadscope", "loadgroup")) for a in argv):
+        return  # (the default --dist load hands out long slices of the list: the heavy modules would share one)
+    rank = {name: i for i, name in enumerate(HEAVY_FIRST)}
+    first: dict[str, int] = {}
+    for i, item in enumerate(items):
+        first.setdefault(item.nodeid.split("::")[0], i)
+
+    def key(item):
+        path = item.nodeid.split("::")[0]
+        return rank.get(path.rsplit("/", 1)[-1].removesuffix(".py"), len(rank)), first[path]
+
+    items.sort(key=key)

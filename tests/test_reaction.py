@@ -26,10 +26,28 @@ def test_other_time_bases_and_long_reactions():
         r.add(v)
     assert r.n == 0 and r.unmeasurable == 4 and np.isnan(r.percentile_s(50))
     assert "not measured" in r.summary()
-    r.add(0.5)  # beyond the histogram: the overflow bin, its value kept as the maximum
+    r.add(0.5)  # beyond the 10 us bins: a 1 ms bin, its value kept as the maximum
     r.add(1e-4)
     assert r.percentile_s(100) == pytest.approx(0.5) and r.max_s == pytest.approx(0.5)
     assert abs(r.percentile_s(10) - 1e-4) <= BIN_S
+
+
+@pytest.mark.parametrize("seed", [4, 5, 6])
+def test_a_loop_seconds_behind_keeps_its_tail_apart(seed):
+    """Reactions of 0.1-10 s (a loop that falls seconds behind): p50, p99 and the maximum stay apart, each the
+    upper edge of the 1 ms bin (10 us below 100 ms) that holds the sample of its rank, instead of all reading
+    as the largest."""
+    rng = np.random.default_rng(seed)
+    x = np.concatenate([rng.lognormal(np.log(rng.uniform(2e-4, 1e-3)), 0.5, size=500),
+                        rng.uniform(0.1, rng.uniform(2.0, 9.9), size=2000)])
+    r = ReactionTimes()
+    for v in x:
+        r.add(float(v))
+    assert r.n == x.size and r.unmeasurable == 0
+    for q in (10, 50, 90, 99):
+        at_rank = np.percentile(x, q, method="inverted_cdf")
+        assert 0.0 <= r.percentile_s(q) - at_rank <= (BIN_S if at_rank < 0.1 else 1e-3) + 1e-9
+    assert r.percentile_s(50) < r.percentile_s(99) < r.max_s == pytest.approx(x.max())
 
 
 def test_summaries_read_back_from_a_log():
