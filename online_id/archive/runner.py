@@ -135,6 +135,7 @@ def cluster(scheduler: str | None = None, workers: int = 2, *, quiet: bool = Fal
     require_dask()
     import logging
 
+    import dask
     from distributed import Client, LocalCluster
 
     # the cluster's own log lines (worker start, a lost worker) go to stderr at WARNING; not our output
@@ -156,9 +157,13 @@ def cluster(scheduler: str | None = None, workers: int = 2, *, quiet: bool = Fal
     # still serves its HTTP endpoints there, without the dashboard's pages)
     dashboard = "127.0.0.1:0"
     env = {k: "1" for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
-    local = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
-                         dashboard_address=dashboard, memory_limit=memory_limit, env=env,
-                         silence_logs=logging.ERROR)
+    # Dask's nannies set MALLOC_TRIM_THRESHOLD_=65536 in their workers (and in this process): glibc then gives
+    # freed memory back to the system so eagerly that the fits' linear algebra pays for fresh pages again and
+    # again (measured: 1.5-2x the CPU of the same cases); the default threshold of glibc is kept instead
+    with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
+        local = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+                             dashboard_address=dashboard, memory_limit=memory_limit, env=env,
+                             silence_logs=logging.ERROR)
     client = Client(local, set_as_default=False)
     try:
         yield client
