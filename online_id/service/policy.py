@@ -15,28 +15,25 @@ state, and saves and restores them (:meth:`~DetectionPolicy.to_dict`, :meth:`~De
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import math
 from collections import deque
 from typing import Callable
 
 import numpy as np
 
-from online_id.diagnose.bench_data import DEFAULT_PULSES_PER_REV
-from online_id.diagnose.linearity import BacklashTest, backlash_test
+from online_id.diagnose.linearity import BacklashTest
 from online_id.config import Settings
 from online_id.monitoring.baseline import Baseline
 from online_id.monitoring.cells import BandStats
-from online_id.monitoring.detection import (DAMPING, FREQUENCY, Alarm, ChangeDetector, alarm_message,
-                                            correlation_for_window, when_text)
-from online_id.monitoring import engaged as engaged_flank
+from online_id.monitoring.detection import FREQUENCY, Alarm, ChangeDetector, correlation_for_window
 from online_id.monitoring.engaged import EngagedChange, EngagedFlank, EngagedReading
 from online_id.monitoring.tracks import PoleTracker
 from online_id.estimation.online import OnlineDriveline, OnlineEstimate
-from online_id.estimation.reference import ReferenceWindow, judge, refit_each
-from online_id.estimation.window import solve
+from online_id.estimation.reference import ReferenceWindow
 from online_id.monitoring.visit import VisitReference
-from online_id.service.events import LINEARITY, WINDOW, Event
+from online_id.service.backlash import BacklashTests, engaged_alarm
+from online_id.service.confirmation import PENDING, AlarmChecks, in_cell
+from online_id.service.events import Event
 from online_id.records import (
     AlertKind,
     AlertOut,
@@ -45,14 +42,6 @@ from online_id.records import (
 )
 
 
-BACKLASH_TEST_MAX_S = 30.0  # the backlash test takes at most this much of an operating point's steady samples
-PENDING = None  # a multi-start check is running in the worker: decide later
-VERIFY_FRESH_S = 5.0  # a multi-start check older than this is not used for a decision
-RECHECK_WAIT_S = 10.0  # a recheck of a reference window older than this is dropped (see _confirm)
-# the two nearly equal minima of a model that does not fit exactly (backlash) differ by 1-3 % in the resonance
-# (see online_id.monitoring.detection): a frequency change a recheck withheld stands only within this
-MINIMA_SPREAD_F = 0.03
-ACCEPTED_SIGMAS = 3.0  # ... while the estimate moves no farther from the baseline than this many of its own stds
 STEADY_S = 5.0  # learning needs the estimates this long ago within the dead bands (or 3 own stds), see _steady
 SPREAD_RATIO_REPORTED = 5.0  # a learned spread this many times the estimator's own uncertainty is reported
 
@@ -85,7 +74,6 @@ class DetectionPolicy:
                  events: deque[Event], record: Callable) -> None:
         self.settings = settings
         self.worker = worker
-        self._submit_window = submit_window
         self._clock = clock
         self.events = events
         self._record = record
@@ -103,28 +91,18 @@ class DetectionPolicy:
         self.engaged = EngagedFlank(dead_band_zeta=d.min_damping_change_pct / 100.0)
         self._state = ServiceState.STARTING  # the service state, as the pipeline last told (on_state)
         self._estimate: OnlineEstimate | None = None  # the estimate being judged (a learning refit replaces it)
-        self._verify_results: dict = {}  # purpose -> (t_s submitted, adopted) of finished multi-start checks
-        self._verify_running: set = set()
-        self._next_engaged = -math.inf  # stream time of the next engaged-flank reading in this visit
         self._engaged_out: list[Publication] = []  # its alerts, published with the next detection
         self._healthy_since: float | None = None  # start of the current healthy stretch (settle_s)
         self._recent: deque[tuple[float, float, float]] = deque()  # (t_s, f0, zeta) of the healthy stretch
         self._healthy_rpm: float | None = None  # engine speed of the last healthy estimate
-        # the input samples of the last BACKLASH_TEST_MAX_S (t, dyno speed, engine speed, torque): the backlash test
-        self._raw: deque[tuple[float, float, float, float]] = deque(
-            maxlen=max(1, int(BACKLASH_TEST_MAX_S * settings.input.sample_rate_hz)))
         self._visit = 0  # counts the arrivals of healthy estimates at another operating point
-        self._visit_tested = -1  # the visit whose samples the backlash test took
         self._visit_not_compared = -1  # the visit where another point's baseline was last not compared with
         self._visit_ref: VisitReference | None = None  # a visit's first estimates, where no learned cell bounds it
         self._next_visit_sample = 0.0
-        self.backlash_tests = 0
-        self.last_backlash_test: BacklashTest | None = None
-        self._references: dict[int, np.ndarray] = {}  # per baseline band: a window solution it was learned from
-        # per baseline band, one per cell (load): the window of the cell's first estimates, see _keep_window
-        self._windows: dict[int, list[ReferenceWindow]] = {}
-        self._rechecks: dict[str, dict] = {}  # per alarm kind: a recheck of a reference window under way
-        self._accepted: dict | None = None  # the frequency a recheck found the cell's own data give (_still_accepted)
+        # the backlash tests: their input samples, their schedule, the tests done
+        self.backlash = BacklashTests(d, settings.input.sample_rate_hz, settings.model.pulses_per_rev, worker)
+        # the checks before a drift alarm stands, and the reference solutions and windows they compare with
+        self.checks = AlarmChecks(d, worker, submit_window, events)
         self._next_learn: float | None = None
         self._next_alarm_repeat = 0.0
         self._stats: BandStats | None = None  # the baseline the latest estimate was compared with
@@ -150,11 +128,8 @@ class DetectionPolicy:
                     restart: bool = False) -> None:
         """An input sample, kept while a backlash test may run; ``restart``: the stream broke before it (the
         samples kept so far are dropped)."""
-        if restart:
-            self._raw.clear()
-        d = self.settings.detection
-        if d.backlash_test_s > 0 and (self.baseline.backlash is None or d.engaged_flank):
-            self._raw.append((t_s, dyno_speed, engine_speed, dyno_torque))
+        wanted = self.baseline.backlash is None or self.settings.detection.engaged_flank
+        self.backlash.keep(t_s, dyno_speed, engine_speed, dyno_torque, restart, wanted)
 
     def on_state(self, state: ServiceState) -> None:
         """The service state changed (detection and learning run on a tracking estimate only)."""
@@ -165,7 +140,7 @@ class DetectionPolicy:
         or detecting."""
         self._next_learn = None
         self._next_alarm_repeat = -math.inf
-        self._next_engaged = -math.inf
+        self.backlash.on_time_jump()
         self._next_visit_sample = -math.inf
         self._next_reject_event = -math.inf
         self._healthy_since = None
@@ -179,10 +154,7 @@ class DetectionPolicy:
     def relearn(self) -> None:
         """Forget the baselines, their reference solutions and windows, the engaged flank and latched alarms."""
         self.baseline.reset()
-        self._references.clear()
-        self._windows.clear()
-        self._rechecks.clear()
-        self._accepted = None
+        self.checks.forget()
         self._visit_ref = None
         self.detector.reset()
         self.engaged.reset()
@@ -191,8 +163,18 @@ class DetectionPolicy:
         """Forget the learned baselines, their reference solutions and the detector's statistics (a reference
         run learns anew)."""
         self.baseline.reset()
-        self._references.clear()
+        self.checks.references.clear()
         self.detector.reset()
+
+    @property
+    def backlash_tests(self) -> int:
+        """The backlash tests that came back."""
+        return self.backlash.count
+
+    @property
+    def last_backlash_test(self) -> BacklashTest | None:
+        """The last backlash test done."""
+        return self.backlash.last
 
     @property
     def rejected(self) -> int:
@@ -205,8 +187,8 @@ class DetectionPolicy:
         return {"baseline": self.baseline.to_dict(), "detector": self.detector.to_dict(),
                 "tracker": self.tracker.to_dict(), "healthy_rpm": self._healthy_rpm,
                 "engaged": self.engaged.to_dict(),
-                "references": {str(k): v.tolist() for k, v in self._references.items()},
-                "windows": {str(k): [w.to_dict() for w in ws] for k, ws in self._windows.items()}}
+                "references": {str(k): v.tolist() for k, v in self.checks.references.items()},
+                "windows": {str(k): [w.to_dict() for w in ws] for k, ws in self.checks.windows.items()}}
 
     def load(self, state: dict, n_params: int, new_run: bool = False) -> None:
         """Restore the items of :meth:`to_dict` from the state document ``state`` (solutions of ``n_params``
@@ -222,49 +204,23 @@ class DetectionPolicy:
                 self.detector.new_stream()
         if "tracker" in state and not new_run:
             self.tracker = PoleTracker.from_dict(state["tracker"])
-        self._references = {int(k): np.asarray(v, dtype=float) for k, v in state.get("references", {}).items()
+        checks = self.checks
+        checks.references = {int(k): np.asarray(v, dtype=float) for k, v in state.get("references", {}).items()
                             if isinstance(v, (list, np.ndarray)) and len(v) == n_params}
         windows = state.get("windows", {})
-        self._windows = {}
+        checks.windows = {}
         for k, v in windows.items() if isinstance(windows, dict) else ():
             saved = v if isinstance(v, list) and str(k).lstrip("-").isdigit() else []
             kept = [w for w in (ReferenceWindow.from_dict(x, n_params) for x in saved if isinstance(x, dict))
                     if w is not None]
             if kept:
-                self._windows[int(k)] = kept
-        self._rechecks = {}
-        self._accepted = None
+                checks.windows[int(k)] = kept
+        checks.restart()
         self.engaged.load(state.get("engaged"))
         rpm = state.get("healthy_rpm")
         self._healthy_rpm = float(rpm) if isinstance(rpm, (int, float)) and not new_run else None
 
     # -- the policy ------------------------------------------------------------------------------
-    def _verify(self, purpose, t_s: float, model: OnlineDriveline, starts: tuple = (),
-                prefer_last_within: float = 0.0) -> bool | None:
-        """A multi-start refit of the window for ``purpose``: True/False (a fit adopted or not), or PENDING.
-
-        With the inline worker the check runs at once; with the process
-        worker the first call starts it and returns PENDING, and a later call
-        (within ``VERIFY_FRESH_S``) gets its outcome.
-        """
-        done = self._verify_results.pop(purpose, None)
-        if done is not None and 0.0 <= t_s - done[0] <= VERIFY_FRESH_S:
-            return done[1]
-        if purpose in self._verify_running or self.worker.busy(WINDOW):
-            return PENDING
-        job = model.verify_job(starts, prefer_last_within)
-        if job is None:
-            return False
-
-        def finished(fit, error: str | None) -> None:
-            self._verify_running.discard(purpose)
-            self._verify_results[purpose] = (t_s, model.complete(job, fit, error))
-
-        self._verify_running.add(purpose)
-        self._submit_window(solve, (job,), finished)
-        done = self._verify_results.pop(purpose, None)
-        return PENDING if done is None else done[1]
-
     def _track_and_detect(self, est: OnlineEstimate, t_s: float, speed: float, model: OnlineDriveline,
                           out: list[Publication]) -> None:
         """Pole tracks, baseline learning (1 Hz) and change detection, at the publish rate.
@@ -312,12 +268,9 @@ class DetectionPolicy:
             self._next_learn = t_s + 1.0  # about one independent-ish estimate per second
             est = self._learn(est, t_s, speed, load, model)
             load = est.load_nm
-        if healthy and d.backlash_test_s > 0 and not self.worker.busy(LINEARITY):
-            if not self.baseline.nonlinear and self._visit_tested != self._visit:
-                self._test_backlash(t_s, speed, load, model)
-            elif self.baseline.nonlinear and d.engaged_flank and (self._visit_tested != self._visit
-                                                                  or t_s >= self._next_engaged):
-                self._test_backlash(t_s, speed, load, model, engaged_flank.WINDOW_S)
+        window_s = self.backlash.due(t_s, self._visit, self.baseline.nonlinear) if healthy else None
+        if window_s is not None:
+            self._test_backlash(t_s, speed, load, model, window_s)
         stats = self._baseline_for(speed, load)
         if (stats is None and healthy and self.baseline.nonlinear and self._visit_not_compared != self._visit
                 and self.baseline.learned_range_rpm is not None):
@@ -351,36 +304,22 @@ class DetectionPolicy:
             out.extend(self._engaged_out)
             self._engaged_out.clear()
 
-    def _test_backlash(self, t_s: float, speed: float, load: float, model: OnlineDriveline,
-                       window_s: float = BACKLASH_TEST_MAX_S) -> None:
+    def _test_backlash(self, t_s: float, speed: float, load: float, model: OnlineDriveline, window_s: float) -> None:
         """The backlash test (:mod:`online_id.diagnose.linearity`) on this operating point's steady samples, in the
-        worker, once the speed has been steady for ``detection.backlash_test_s`` (at most the last ``window_s``).
-
-        Until one point shows backlash, once per visit. On a shaft that showed backlash, with
-        ``detection.engaged_flank``, every ``EVERY_S`` of a visit on the last ``WINDOW_S`` of steady samples: its
-        engaged flank's resonance and damping go to :attr:`engaged` (:mod:`online_id.monitoring.engaged`)."""
-        least = self.settings.detection.backlash_test_s
-        steady = min(model.window.steady_s, window_s)
-        rate = self.settings.input.sample_rate_hz
-        if steady < least or len(self._raw) < least * rate:
-            return
-        self._visit_tested = self._visit
-        self._next_engaged = t_s + engaged_flank.EVERY_S
-        n = min(len(self._raw), int(steady * rate))
-        rows = np.asarray(list(itertools.islice(self._raw, len(self._raw) - n, None)), dtype=float)
+        worker, once the speed has been steady for ``detection.backlash_test_s`` (at most the last ``window_s``);
+        on a shaft that showed backlash, with ``detection.engaged_flank``, its engaged flank's resonance and
+        damping go to :attr:`engaged` (:mod:`online_id.monitoring.engaged`)."""
         visit = self._visit
 
         def done(test: BacklashTest | None, error: str | None) -> None:
-            self.backlash_tests += 1
             if test is None:
                 self.events.append(Event(t_s, "backlash_test", f"backlash test at {speed:.0f} rpm not done: {error}",
                                          {"error": error}))
                 return
-            self.last_backlash_test = test
             if test.shows_backlash(self.settings.detection.backlash_gain_pct / 100.0) and not self.baseline.nonlinear:
                 self.baseline.backlash = {**test.as_dict(), "source": self.run_label}
                 if not self.settings.detection.engaged_flank:
-                    self._raw.clear()  # no test runs any more
+                    self.backlash.samples.clear()  # no test runs any more
                 # a cell held for disagreeing with another point's baseline: that baseline predicts nothing here
                 n = self.baseline.release()
                 self.events.append(Event(t_s, "backlash", f"the shaft shows backlash at {test.speed_rpm:.0f} rpm: a "
@@ -394,27 +333,12 @@ class DetectionPolicy:
                 for change in self.engaged.offer(reading, learn=learn):
                     self._raise_engaged(change)
 
-        # the compression orders the test declares: the model's, else the bench diagnosis's default (a test with
-        # none failed on every point of a config without model.pulses_per_rev)
-        pulses = self.settings.model.pulses_per_rev or DEFAULT_PULSES_PER_REV
-        self.worker.submit(LINEARITY, backlash_test, (rows[:, 0], rows[:, 3], rows[:, 1], rows[:, 2], pulses), done)
+        self.backlash.start(t_s, visit, model.window.steady_s, window_s, done)
 
     def _raise_engaged(self, change: EngagedChange) -> None:
         """A change of the engaged flank: latched by the detector (acknowledged as its own alarms are), raised
         unless an alarm of its kind of the same or a higher level is latched (an escalation keeps its onset)."""
-        latched = next((a for a in self.detector.alarms if a.kind == change.kind), None)
-        since = latched.since_t_s if latched is not None else change.since_t_s
-        stiff = None if change.stiffness_change is None else 100.0 * change.stiffness_change
-        pct = 100.0 * change.change
-        frequency = change.kind == FREQUENCY
-        ref = f"{change.reference:.2f} Hz" if frequency else f"zeta {change.reference:.4f}"
-        message = (alarm_message(change.kind, change.level, pct, stiff, since, change.speed_rpm,
-                                 what=f"driveline engaged flank's {'resonance' if frequency else 'damping'}")
-                   + f" (cell {change.speed_rpm:.0f} rpm, {change.load_nm:.0f} Nm, against the engaged-flank "
-                   f"reference of {change.learned} backlash tests ({ref})"
-                   + (f", learned from {change.source}" if change.source else "")
-                   + f"; threshold {100 * change.threshold:.1f} %)")
-        alarm = Alarm(change.kind, change.level, since, change.detected_t_s, change.speed_rpm, pct, stiff, message)
+        alarm = engaged_alarm(change, next((a for a in self.detector.alarms if a.kind == change.kind), None))
         if not self.detector.latch(alarm):
             return
         self._record(self._alert_out(alarm, alarm.detected_t_s), self._engaged_out,
@@ -523,24 +447,12 @@ class DetectionPolicy:
             stats, mean_zeta=visit.mean_zeta, std_zeta=visit.std_zeta, tolerance_zeta=0.0, between_zeta=math.nan,
             widen=visit.widen, zeta_visit=True)
 
-    @staticmethod
-    def _of_visit(stats: BandStats, kind: str) -> bool:
-        """Whether an alarm of ``kind`` against ``stats`` is checked against the visit's first estimates (their
-        solution and window): of the visit's own baseline (kind ``"visit"``), or of a bracket's damping that is
-        the visit's (:attr:`BandStats.zeta_visit`)."""
-        return stats.kind == "visit" or (kind == DAMPING and stats.zeta_visit)
-
     def _own(self, stats: BandStats, speed: float, load: float) -> bool:
         """Whether ``stats`` is the baseline of the cell of ``speed`` and ``load`` itself (not the pool's or
         another band's or load's)."""
         if stats.kind == "learning":
             return True  # only a cell's own first estimates serve it while it learns
-        return stats.kind in ("learned", "reference") and self._at(stats, speed, load)
-
-    def _at(self, stats: BandStats, speed: float, load: float) -> bool:
-        """Whether ``speed`` and ``load`` fall in the band and load cell of ``stats`` (any load if it has none)."""
-        return (stats.band[0] <= speed < stats.band[1]
-                and not abs(stats.load_nm - load) > 0.5 * self.baseline.load_band_nm)
+        return stats.kind in ("learned", "reference") and in_cell(stats, speed, load, self.baseline.load_band_nm)
 
     def _learn(self, est: OnlineEstimate, t_s: float, speed: float, load: float,
                model: OnlineDriveline) -> OnlineEstimate:
@@ -569,7 +481,7 @@ class DetectionPolicy:
         learned = cell is not None and cell.count >= d.min_count
         # a new cell is learned from the best of several starts, not from whichever of the nearly equal
         # minima of a mismatched model (backlash) the warm-started refits happen to follow
-        verified = self._verify("learn", t_s, model) if cell is None else False
+        verified = self.checks.verify("learn", t_s, model) if cell is None else False
         if verified is PENDING:
             return est
         if verified:
@@ -611,10 +523,10 @@ class DetectionPolicy:
                             reference=self.reference_run, held=why is not None)
         solution = model.solution
         if solution is not None:
-            self._references[self.baseline.key(speed)] = solution
+            self.checks.references[self.baseline.key(speed)] = solution
         done = self.baseline.cell(speed, load)
         if why is None and solution is not None and done is not None:
-            self._keep_window(done, speed, load, t_s, solution, model)
+            self.checks.keep_window(done, speed, load, t_s, solution, model, self.baseline)
         if done is not None and done.count == d.min_count:
             ratio = done.spread_ratio
             self.events.append(Event(t_s, "learned", f"cell {speed:.0f} rpm, {load:.1f} Nm learned: f0 "
@@ -629,180 +541,10 @@ class DetectionPolicy:
         return est
 
     def _confirm(self, kind: str, stats: BandStats, t_s: float, model: OnlineDriveline) -> bool | None:
-        """Before a new drift alarm: does the change stand a second look at the window, and a recheck of the
-        data the baseline was learned from? True: raise it; False: withhold it; None: a check runs in the worker
-        (the detector asks again at its next interval)."""
-        check = self._rechecks.get(kind)
-        if check is not None and (t_s - check["t_s"] > RECHECK_WAIT_S or check["band"] != stats.band):
-            del self._rechecks[kind]  # of an alarm the detector no longer asks about: this one starts afresh
-            check = None
-        if check is None and self._still_accepted(kind, stats, t_s):
-            return False
-        if check is None:
-            verdict = self._second_look(kind, stats, t_s, model)
-            if verdict is not True:
-                return verdict
-        return self._recheck(kind, stats, t_s, model)
-
-    def _still_accepted(self, kind: str, stats: BandStats, t_s: float) -> bool:
-        """Does a recheck's finding that the cell's own data give the current resonance still stand?
-
-        Each recheck's fits carry their own noise: asking the same question every few tens of seconds until
-        one answer differs is how plant 1017 of the fault-free hours raised a warning (withheld at 2031 s,
-        the estimate the same 31.08 Hz at 2075 s, a loss 1.6 % against the 1 % tie in the second recheck).
-        The finding stands, and the alarm is withheld without another recheck, only where it can be the
-        hop between minima it describes, and nothing since says otherwise: a frequency change within
-        ``MINIMA_SPREAD_F`` of the baseline, at the same cell in the same visit, with the estimate within
-        the recheck's tolerance of the value it accepted and no farther from the baseline than
-        ``ACCEPTED_SIGMAS`` of its own standard deviations (over a long visit a healthy estimate wanders by
-        more than one). A larger change (plant 13703 of family (a): a recheck withheld a 7.3 % drop after a
-        15 % stiffness loss, the next one raised it) or an estimate moving on towards the alarm's side is
-        rechecked afresh each time.
-        """
-        done = self._accepted
-        est = self._estimate
-        if kind != FREQUENCY or done is None or est is None or not math.isfinite(est.f0_hz):
-            return False
-        step = est.f0_hz / done["f0_hz"] - 1.0
-        own = est.f0_std_hz / est.f0_hz if math.isfinite(est.f0_std_hz) else 0.0
-        if (done["band"] != stats.band or done["visit"] != self._visit or abs(step) > done["tolerance"]
-                or math.copysign(1.0, done["change"]) * step > ACCEPTED_SIGMAS * own):
-            self._accepted = None
-            return False
-        self.events.append(Event(
-            t_s, "withheld", f"{kind} alarm withheld: the estimate is where the recheck at {when_text(done['t_s'])} "
-            f"found the cell's own data give it ({100 * step:+.2f} %, within its {100 * done['tolerance']:.1f} % "
-            f"tolerance, no farther from the baseline than {ACCEPTED_SIGMAS:.0f} of its own standard deviations)",
-            {"kind": kind, "change_pct": 100 * step, "recheck_t_s": done["t_s"]}))
-        return True
-
-    def _second_look(self, kind: str, stats: BandStats, t_s: float, model: OnlineDriveline) -> bool | None:
-        """Does a refit of the window from several starts still deviate?
-
-        The starts include the solution the band's baseline was learned from
-        (see :class:`~online_id.monitoring.detection.ChangeDetector`, *confirm*).
-        None while the refit runs in the worker.
-        """
-        if self._of_visit(stats, kind) and self._visit_ref is not None:
-            ref = self._visit_ref.solution  # the minimum the visit's first estimates sat in
-        else:
-            key = self.baseline.key(0.5 * (stats.band[0] + stats.band[1]))
-            near = sorted(self._references, key=lambda k: abs(k - key))  # a pool: the nearest learned band's
-            ref = self._references[near[0]] if near else None
-        # where the baseline's own minimum fits the window nearly as well as the best, the data do not tell them
-        # apart: a mismatched model (backlash) has nearly equal minima whose damping differs by 30-40 % and whose
-        # resonance differs by 1-3 %, and the estimate may sit in either for minutes at a learned operating point
-        if self._verify(("confirm", kind), t_s, model, (ref,), self._tie(kind)) is PENDING:
-            return None
-        est = model.estimate()
-        if kind == FREQUENCY:  # beyond the bounds of a bracketed baseline
-            change, width = stats.excess_f(est.f0_hz) / stats.mean_f, self.detector.min_change_f
-        else:
-            change, width = est.zeta / stats.mean_zeta - 1.0, self.detector.min_change_zeta
-        if not math.isfinite(change) or abs(change) > width:
-            return True
-        self.events.append(Event(t_s, "withheld", f"{kind} alarm withheld: a refit of the window from other starts "
-                                 f"is {100 * change:+.1f} % from the baseline, inside the "
-                                 f"{100 * width:.1f} % dead band", {"kind": kind, "change_pct": 100 * change}))
-        return False
-
-    def _keep_window(self, cell: BandStats, speed: float, load: float, t_s: float, solution: np.ndarray,
-                     model: OnlineDriveline) -> None:
-        """Keep the window of a cell's first estimates, the ones its frozen reference holds (up to
-        ``provisional_count``), for :meth:`_recheck`; later estimates do not replace it (one learned after a
-        change the learning check let through would make the recheck compare the change with itself)."""
-        if cell.count > self.baseline.provisional_count:
-            return
-        job = model.verify_job()
-        if job is None:
-            return
-        key = self.baseline.key(speed)
-        kept = [w for w in self._windows.get(key, []) if not self._at(cell, w.speed_rpm, w.load_nm)]
-        self._windows[key] = kept + [ReferenceWindow(job.y, job.u, solution, speed, load, t_s)]
-
-    def _tie(self, kind: str) -> float:
-        """The share of loss within which two minima are not told apart (``detection.*_tie_pct``), for ``kind``."""
-        d = self.settings.detection
-        return (d.damping_tie_pct if kind == DAMPING else d.frequency_tie_pct) / 100.0
-
-    def _reference_window(self, stats: BandStats, kind: str) -> ReferenceWindow | None:
-        """The window of the first estimates of the cell of ``stats``, where ``stats`` is a cell's own baseline
-        (learned, learning or from a reference run), or of this visit's (kind ``"visit"``, or the damping of a
-        bracket that holds the visit's, :attr:`BandStats.zeta_visit`)."""
-        if self._of_visit(stats, kind):
-            ref = self._visit_ref
-            return ref.window if ref is not None and ref.visit == self._visit else None
-        if stats.kind not in ("learned", "learning", "reference"):
-            return None
-        windows = self._windows.get(self.baseline.key(0.5 * (stats.band[0] + stats.band[1])), [])
-        return next((w for w in windows if self._at(stats, w.speed_rpm, w.load_nm)), None)
-
-    def _recheck(self, kind: str, stats: BandStats, t_s: float, model: OnlineDriveline) -> bool | None:
-        """The data the cell's baseline was learned from, refitted from the current window solution: is the
-        change still there within one minimum of the criterion? (:mod:`~online_id.estimation.reference`)
-
-        Withheld where the reference data in the current minimum give the
-        current estimate again (within the dead band plus one standard
-        deviation of the comparison) and fit there within the second look's
-        tie of their own minimum: the estimate moved to another minimum, the
-        driveline did not change. Raised where no window serves or a fit
-        fails. A recheck the detector has not asked about again within
-        ``RECHECK_WAIT_S`` (or asks about at another band) is dropped, and the
-        next alarm starts with a second look.
-        """
-        check = self._rechecks.get(kind)
-        if check is None:
-            window, solution = self._reference_window(stats, kind), model.solution
-            est = model.estimate()
-            if window is None or solution is None or est is None:
-                return True
-            # the tolerance: the dead band plus one standard deviation of the difference of two single estimates
-            damping = kind == DAMPING
-            value, own, spread = ((est.zeta, est.zeta_std, stats.std_zeta) if damping
-                                  else (est.f0_hz, est.f0_std_hz, stats.std_f))
-            noise = math.hypot(*(x if math.isfinite(x) else 0.0 for x in (own, spread))) / value if value > 0 else 0.0
-            width = self.detector.min_change_zeta if damping else self.detector.min_change_f
-            check = self._rechecks[kind] = {"t_s": t_s, "band": stats.band, "window": window, "f0_hz": est.f0_hz,
-                                            "zeta": est.zeta, "solution": solution, "result": None,
-                                            "submitted": False,
-                                            "tolerance": width + (noise if math.isfinite(noise) else 0.0)}
-        if not check["submitted"]:
-            if self.worker.busy(WINDOW):
-                return PENDING
-            check["submitted"] = True
-            window = check["window"]
-
-            def finished(fits, error: str | None) -> None:
-                check["result"] = (fits, error)
-
-            self.worker.submit(WINDOW, refit_each, (window.y, window.u, model.orders,
-                                                    (window.solution, check["solution"])), finished)
-        if check["result"] is None:
-            return PENDING
-        del self._rechecks[kind]
-        fits, error = check["result"]
-        damping, tolerance = kind == DAMPING, check["tolerance"]
-        r = judge(fits, model.dt, check["f0_hz"], check["zeta"], damping, tolerance, self._tie(kind)) \
-            if error is None else None
-        if r is None or not r.withhold:
-            return True
-        change = stats.excess_f(check["f0_hz"]) / stats.mean_f if stats.mean_f > 0 else math.nan
-        if not damping and 0.0 < abs(change) <= MINIMA_SPREAD_F:
-            self._accepted = {"band": stats.band, "visit": self._visit, "t_s": t_s, "tolerance": tolerance,
-                              "f0_hz": check["f0_hz"], "change": change}
-        window = check["window"]
-        what = f"{r.zeta:.4f}" if damping else f"{r.f0_hz:.3f} Hz"
-        whose = ("of this visit's first estimates" if self._of_visit(stats, kind) else
-                 f"cell {window.speed_rpm:.0f} rpm, {window.load_nm:.1f} Nm was learned from")
-        self.events.append(Event(
-            t_s, "withheld", f"{kind} alarm withheld: the data {whose} ({when_text(window.t_s)}), refitted from "
-            f"the current window solution, give {what}, {100 * r.change:+.1f} % from the current estimate, within the "
-            f"{100 * tolerance:.1f} % tolerance (dead band and the comparison's noise; loss "
-            f"{100 * r.loss_ratio:+.1f} % against their own solution): the estimate moved to another minimum "
-            f"of the criterion, not the driveline",
-            {"kind": kind, "change_pct": 100 * r.change, "tolerance_pct": 100 * tolerance,
-             "loss_ratio_pct": 100 * r.loss_ratio, "reference_t_s": window.t_s}))
-        return False
+        """Before a new drift alarm: the checks it must pass (:meth:`AlarmChecks.confirm`). True: raise it;
+        False: withhold it; None: a check runs in the worker (the detector asks again at its next interval)."""
+        return self.checks.confirm(kind, stats, t_s, model, self._estimate, self.baseline, self.detector,
+                                   self._visit, self._visit_ref)
 
     def _alert_out(self, alarm: Alarm, t_s: float) -> AlertOut:
         kind = AlertKind.FREQ_DRIFT if alarm.kind == "frequency" else AlertKind.DAMPING_DRIFT
