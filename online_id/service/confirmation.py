@@ -100,6 +100,26 @@ class AlarmChecks:
         self._rechecks = {}
         self._accepted = None
 
+    def to_dict(self) -> dict:
+        """The reference solutions and windows, items of the state document (:mod:`online_id.service.persistence`)."""
+        return {"references": {str(k): v.tolist() for k, v in self.references.items()},
+                "windows": {str(k): [w.to_dict() for w in ws] for k, ws in self.windows.items()}}
+
+    def load(self, state: dict, n_params: int) -> None:
+        """Restore the items of :meth:`to_dict` from the state document ``state`` (solutions of ``n_params`` model
+        parameters; others are dropped), without checks under way."""
+        self.references = {int(k): np.asarray(v, dtype=float) for k, v in state.get("references", {}).items()
+                           if isinstance(v, (list, np.ndarray)) and len(v) == n_params}
+        windows = state.get("windows", {})
+        self.windows = {}
+        for k, v in windows.items() if isinstance(windows, dict) else ():
+            saved = v if isinstance(v, list) and str(k).lstrip("-").isdigit() else []
+            kept = [w for w in (ReferenceWindow.from_dict(x, n_params) for x in saved if isinstance(x, dict))
+                    if w is not None]
+            if kept:
+                self.windows[int(k)] = kept
+        self.restart()
+
     def verify(self, purpose, t_s: float, model: OnlineDriveline, starts: tuple = (),
                prefer_last_within: float = 0.0) -> bool | None:
         """A multi-start refit of the window for ``purpose``: True/False (a fit adopted or not), or PENDING.
@@ -136,8 +156,8 @@ class AlarmChecks:
         job = model.verify_job()
         if job is None:
             return
-        key = baseline.key(speed)
-        kept = [w for w in self.windows.get(key, []) if not in_cell(cell, w.speed_rpm, w.load_nm, baseline.load_band_nm)]
+        key, width = baseline.key(speed), baseline.load_band_nm
+        kept = [w for w in self.windows.get(key, []) if not in_cell(cell, w.speed_rpm, w.load_nm, width)]
         self.windows[key] = kept + [ReferenceWindow(job.y, job.u, solution, speed, load, t_s)]
 
     def confirm(self, kind: str, stats: BandStats, t_s: float, model: OnlineDriveline, estimate: OnlineEstimate | None,

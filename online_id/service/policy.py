@@ -1,6 +1,5 @@
-"""The detection policy of the pipeline: pole tracks, learned baselines per operating point, the backlash
-test and the engaged flank, the visit's first estimates, rechecks of a withheld alarm against the cell's
-own data, and the alarms raised (see :mod:`online_id.monitoring` for the statistics themselves).
+"""The detection policy of the pipeline: pole tracks, learned baselines per operating point, and the alarms
+raised (see :mod:`online_id.monitoring` for the statistics themselves).
 
 :class:`DetectionPolicy` is a part the :class:`~online_id.service.pipeline.Pipeline` owns.  It is handed
 each publication's estimate with its stream time, engine speed and the estimator it came from
@@ -9,8 +8,12 @@ the service state (:meth:`~DetectionPolicy.on_state`) and the commands (:meth:`~
 :meth:`~DetectionPolicy.relearn`); it returns the alerts due, writes its events to the event log it is given
 and records its alerts through the recorder it is given.  Its slow work (multi-start refits, rechecks,
 backlash tests) goes to the worker it is given, whose results come back through the worker's callbacks.
-It keeps its own baselines, detector, tracks, engaged flank, reference solutions and windows and visit
-state, and saves and restores them (:meth:`~DetectionPolicy.to_dict`, :meth:`~DetectionPolicy.load`)."""
+
+Its parts: the baselines, the detector, the pole tracks and the engaged flank (:mod:`online_id.monitoring`);
+what an estimate is compared with and the visits of operating points (:mod:`online_id.service.comparison`); the
+backlash tests' samples and schedule (:mod:`online_id.service.backlash`); the checks before a drift alarm stands
+and the reference solutions and windows they compare with (:mod:`online_id.service.confirmation`).  It saves and
+restores them (:meth:`~DetectionPolicy.to_dict`, :meth:`~DetectionPolicy.load`)."""
 
 from __future__ import annotations
 
@@ -19,20 +22,17 @@ import math
 from collections import deque
 from typing import Callable
 
-import numpy as np
-
 from online_id.diagnose.linearity import BacklashTest
 from online_id.config import Settings
 from online_id.monitoring.baseline import Baseline
 from online_id.monitoring.cells import BandStats
-from online_id.monitoring.detection import FREQUENCY, Alarm, ChangeDetector, correlation_for_window
+from online_id.monitoring.detection import Alarm, ChangeDetector, correlation_for_window
 from online_id.monitoring.engaged import EngagedChange, EngagedFlank, EngagedReading
 from online_id.monitoring.tracks import PoleTracker
 from online_id.estimation.online import OnlineDriveline, OnlineEstimate
-from online_id.estimation.reference import ReferenceWindow
-from online_id.monitoring.visit import VisitReference
 from online_id.service.backlash import BacklashTests, engaged_alarm
-from online_id.service.confirmation import PENDING, AlarmChecks, in_cell
+from online_id.service.comparison import Comparison, against_text, is_own, versus_text
+from online_id.service.confirmation import PENDING, AlarmChecks
 from online_id.service.events import Event
 from online_id.records import (
     AlertKind,
@@ -95,10 +95,8 @@ class DetectionPolicy:
         self._healthy_since: float | None = None  # start of the current healthy stretch (settle_s)
         self._recent: deque[tuple[float, float, float]] = deque()  # (t_s, f0, zeta) of the healthy stretch
         self._healthy_rpm: float | None = None  # engine speed of the last healthy estimate
-        self._visit = 0  # counts the arrivals of healthy estimates at another operating point
-        self._visit_not_compared = -1  # the visit where another point's baseline was last not compared with
-        self._visit_ref: VisitReference | None = None  # a visit's first estimates, where no learned cell bounds it
-        self._next_visit_sample = 0.0
+        # what an estimate is compared with; the visits of operating points and the first estimates of one
+        self.comparison = Comparison(d)
         # the backlash tests: their input samples, their schedule, the tests done
         self.backlash = BacklashTests(d, settings.input.sample_rate_hz, settings.model.pulses_per_rev, worker)
         # the checks before a drift alarm stands, and the reference solutions and windows they compare with
@@ -141,7 +139,7 @@ class DetectionPolicy:
         self._next_learn = None
         self._next_alarm_repeat = -math.inf
         self.backlash.on_time_jump()
-        self._next_visit_sample = -math.inf
+        self.comparison.on_time_jump()
         self._next_reject_event = -math.inf
         self._healthy_since = None
         self._recent.clear()
@@ -155,7 +153,7 @@ class DetectionPolicy:
         """Forget the baselines, their reference solutions and windows, the engaged flank and latched alarms."""
         self.baseline.reset()
         self.checks.forget()
-        self._visit_ref = None
+        self.comparison.visit_ref = None
         self.detector.reset()
         self.engaged.reset()
 
@@ -187,8 +185,7 @@ class DetectionPolicy:
         return {"baseline": self.baseline.to_dict(), "detector": self.detector.to_dict(),
                 "tracker": self.tracker.to_dict(), "healthy_rpm": self._healthy_rpm,
                 "engaged": self.engaged.to_dict(),
-                "references": {str(k): v.tolist() for k, v in self.checks.references.items()},
-                "windows": {str(k): [w.to_dict() for w in ws] for k, ws in self.checks.windows.items()}}
+                **self.checks.to_dict()}
 
     def load(self, state: dict, n_params: int, new_run: bool = False) -> None:
         """Restore the items of :meth:`to_dict` from the state document ``state`` (solutions of ``n_params``
@@ -204,18 +201,7 @@ class DetectionPolicy:
                 self.detector.new_stream()
         if "tracker" in state and not new_run:
             self.tracker = PoleTracker.from_dict(state["tracker"])
-        checks = self.checks
-        checks.references = {int(k): np.asarray(v, dtype=float) for k, v in state.get("references", {}).items()
-                            if isinstance(v, (list, np.ndarray)) and len(v) == n_params}
-        windows = state.get("windows", {})
-        checks.windows = {}
-        for k, v in windows.items() if isinstance(windows, dict) else ():
-            saved = v if isinstance(v, list) and str(k).lstrip("-").isdigit() else []
-            kept = [w for w in (ReferenceWindow.from_dict(x, n_params) for x in saved if isinstance(x, dict))
-                    if w is not None]
-            if kept:
-                checks.windows[int(k)] = kept
-        checks.restart()
+        self.checks.load(state, n_params)
         self.engaged.load(state.get("engaged"))
         rpm = state.get("healthy_rpm")
         self._healthy_rpm = float(rpm) if isinstance(rpm, (int, float)) and not new_run else None
@@ -249,7 +235,7 @@ class DetectionPolicy:
                         and abs(speed - self._healthy_rpm) <= self.settings.model.max_speed_span_rpm)
                 self._healthy_since = t_s - (d.settle_s if same else 0.0)
                 if not same:
-                    self._visit += 1
+                    self.comparison.visit += 1
             self._healthy_rpm = speed
             # full detection resumes settle_detect_s after the estimate is healthy at the new point (the refit
             # window holds only the new point from its first fit on: what the wait covers is the first cold
@@ -268,23 +254,16 @@ class DetectionPolicy:
             self._next_learn = t_s + 1.0  # about one independent-ish estimate per second
             est = self._learn(est, t_s, speed, load, model)
             load = est.load_nm
-        window_s = self.backlash.due(t_s, self._visit, self.baseline.nonlinear) if healthy else None
+        window_s = self.backlash.due(t_s, self.comparison.visit, self.baseline.nonlinear) if healthy else None
         if window_s is not None:
             self._test_backlash(t_s, speed, load, model, window_s)
         stats = self._baseline_for(speed, load)
-        if (stats is None and healthy and self.baseline.nonlinear and self._visit_not_compared != self._visit
-                and self.baseline.learned_range_rpm is not None):
-            # on a shaft with backlash the resonance moves with the operating point (rising with the load's
-            # magnitude): where no learned cell bounds it (a load below them all, farther than they span, or
-            # no cell yet), the visit's own first settled estimates serve, then the cell's,
-            # and a change that comes with the visit shows at the established points (it shows everywhere)
-            self._visit_not_compared = self._visit
-            self.events.append(Event(t_s, "not_compared", f"at {speed:.0f} rpm, {load:.1f} Nm no learned cell is "
-                                     f"compared with: the shaft shows backlash, so its resonance moves with the "
-                                     f"load, and no learned cell bounds it here; the estimates are compared with "
-                                     f"the first estimates of this visit", {}))
-        if self._visit_serves(stats):
-            self._visit_sample(est, t_s, speed, load, healthy and not settling, stats, model)
+        note = self.comparison.not_compared(self.baseline, t_s, speed, load) if stats is None and healthy else None
+        if note is not None:
+            self.events.append(note)
+        if self.comparison.visit_serves(stats, self.baseline.nonlinear):
+            self.comparison.sample_visit(est, t_s, speed, load, healthy and not settling, stats, model, self.baseline,
+                                         self.detector)
             stats = self._with_visit(stats, load)
         self._stats = stats
         alarm = self.detector.update(
@@ -309,7 +288,7 @@ class DetectionPolicy:
         worker, once the speed has been steady for ``detection.backlash_test_s`` (at most the last ``window_s``);
         on a shaft that showed backlash, with ``detection.engaged_flank``, its engaged flank's resonance and
         damping go to :attr:`engaged` (:mod:`online_id.monitoring.engaged`)."""
-        visit = self._visit
+        visit = self.comparison.visit
 
         def done(test: BacklashTest | None, error: str | None) -> None:
             if test is None:
@@ -352,7 +331,7 @@ class DetectionPolicy:
         dead band (or three of its own standard deviations). A baseline is learned from steady estimates
         only: a change of the driveline shows first as estimates that move while the fit window takes it in
         (for about the window's length), and a cell that learns them takes in the change (a +50 % damping
-        change came into a cell learning at the time as +32 % on plant 11703: the damping moves through its
+        change came into a cell learning at the time as +32 %: the damping moves through its
         20 % dead band within the 5 s)."""
         then = next(((f, z) for t, f, z in self._recent if t >= t_s - STEADY_S - 1e-6), None)
         if then is None or self._recent[0][0] > t_s - STEADY_S + 0.5:
@@ -363,96 +342,12 @@ class DetectionPolicy:
                 and abs(est.zeta - then[1]) <= max(0.5 * self.detector.min_change_zeta * abs(then[1]), 3.0 * std_z))
 
     def _baseline_for(self, speed: float, load: float, learning: bool = False) -> BandStats | None:
-        """What an estimate is compared with: its own cell, learned, or still learning (not held) with its first
-        estimates (frozen: ``provisional_count`` of them, then ``freeze_count``) once it holds them (the same
-        operating point: a learned cell at another load of the band differs by 0.1-0.5 % per Nm with backlash);
-        else a learned cell of the band at another load or of an adjacent band (:meth:`Baseline.lookup`); else
-        the pooled baseline (for detection the pool's spread is doubled, for the learning check,
-        ``learning``, it is not). On a shaft that showed backlash (:attr:`Baseline.nonlinear`) no other single
-        point serves: the learned cells of smaller and larger loads bound the resonance
-        (:meth:`Baseline.bracketed`, its bounds widened by the order's slack; None where none does)."""
-        n = self.baseline.provisional_count
-        own = self.baseline.cell(speed, load, frozen=True)
-        if own is not None and own.count >= n:
-            return own  # as it is: its spread is widened while it holds fewer than freeze_count estimates
-        stats = self.baseline.lookup(speed, load)
-        nonlinear = self.baseline.nonlinear
-        if stats is not None and (not nonlinear or self._own(stats, speed, load)):
-            return stats
-        if nonlinear:
-            # a shaft with backlash: its resonance moves with the operating point, but rises with the magnitude of
-            # the load; the learned cells of smaller and larger loads bound it (None where nothing does)
-            pool = self.baseline.bracketed(speed, load)
-        else:
-            pool = self.baseline.pooled(speed, load, min_n=n)
-        if pool is not None and not learning and pool.kind == "pooled":
-            # for detection, doubled: it stands for a point it has not seen (a bracket's bounds hold the slack)
-            pool = dataclasses.replace(pool, std_f=2.0 * pool.std_f, std_zeta=2.0 * pool.std_zeta)
-        return pool
-
-    def _visit_serves(self, stats: BandStats | None) -> bool:
-        """Whether the first estimates of the visit serve where ``stats`` (what :meth:`_baseline_for` gives)
-        does: on a shaft with backlash, where no learned cell of this point serves (its damping; its frequency
-        too where no learned cell bounds the point, or bounds it on one side only)."""
-        return self.baseline.nonlinear and (stats is None or stats.kind == "bracketed")
-
-    def _visit_sample(self, est: OnlineEstimate, t_s: float, speed: float, load: float, settled: bool,
-                      bounds: BandStats | None, model: OnlineDriveline) -> None:
-        """Offer a settled estimate (about one a second) to the first estimates of this visit
-        (:mod:`~online_id.monitoring.visit`); one that the detector would count as outside the one-sided ``bounds``
-        (beyond the dead band) does not join, so that there the bound goes on serving."""
-        d = self.settings.detection
-        ref = self._visit_ref
-        if ref is not None and not ref.matches(self._visit, load, d.load_band_nm):
-            ref = self._visit_ref = None  # another visit, or the load moved: another operating point
-        if not settled:
-            return
-        if bounds is not None and bounds.outside_f(est.f0_hz, self.detector.min_change_f, 0.0):
-            return  # beyond the dead band of the bound the learned cells set: a change must not become the reference
-        if ref is None:
-            ref = self._visit_ref = VisitReference(self._visit, load, self.baseline.band_of(speed),
-                                                   min_count=self.baseline.provisional_count,
-                                                   size=self.baseline.freeze_count,
-                                                   min_rel_std_f=self.baseline.min_rel_std_f,
-                                                   min_rel_std_zeta=self.baseline.min_rel_std_zeta)
-            self._next_visit_sample = t_s
-        if t_s >= self._next_visit_sample:
-            self._next_visit_sample = t_s + 1.0  # about one independent-ish estimate per second
-            solution = model.solution
-            if (ref.add(t_s, est.f0_hz, est.zeta, load, self.detector.min_change_f, solution,
-                        self.detector.min_change_zeta) and len(ref.f) <= ref.min_count and solution is not None):
-                job = model.verify_job()  # the data of the frozen first estimates, for a recheck
-                if job is not None:
-                    ref.window = ReferenceWindow(job.y, job.u, solution, speed, load, t_s)
+        """What an estimate at ``speed`` and ``load`` is compared with (:meth:`Comparison.baseline_for`)."""
+        return self.comparison.baseline_for(self.baseline, speed, load, learning)
 
     def _with_visit(self, stats: BandStats | None, load: float) -> BandStats | None:
-        """``stats``, or the first estimates of this visit where they serve (:meth:`_visit_serves`) and hold
-        ``provisional_count`` estimates: their frequency where nothing or one side bounds the point; their damping
-        where the learned cells do not measure how far it moves between points (fewer than
-        ``MIN_CELLS_DAMPING``, :meth:`Baseline.bracketed`: it moves 3-57 % between points with backlash, and
-        was not compared at all), in a two-sided bracket too (:attr:`BandStats.zeta_visit`)."""
-        ref = self._visit_ref
-        if not self._visit_serves(stats) or ref is None or not ref.matches(self._visit, load,
-                                                                           self.settings.detection.load_band_nm):
-            return stats
-        visit = ref.stats()
-        if visit is None or stats is None:
-            return visit or stats
-        measured = math.isfinite(stats.std_zeta)  # the learned cells measure how far the damping moves between points
-        if not math.isfinite(stats.above_f + stats.below_f):  # bounded on one side only: the visit's frequency
-            return visit if not measured else dataclasses.replace(
-                visit, mean_zeta=stats.mean_zeta, std_zeta=stats.std_zeta, tolerance_zeta=stats.tolerance_zeta,
-                between_zeta=stats.between_zeta, zeta_visit=False)
-        return stats if measured else dataclasses.replace(
-            stats, mean_zeta=visit.mean_zeta, std_zeta=visit.std_zeta, tolerance_zeta=0.0, between_zeta=math.nan,
-            widen=visit.widen, zeta_visit=True)
-
-    def _own(self, stats: BandStats, speed: float, load: float) -> bool:
-        """Whether ``stats`` is the baseline of the cell of ``speed`` and ``load`` itself (not the pool's or
-        another band's or load's)."""
-        if stats.kind == "learning":
-            return True  # only a cell's own first estimates serve it while it learns
-        return stats.kind in ("learned", "reference") and in_cell(stats, speed, load, self.baseline.load_band_nm)
+        """``stats``, or the first estimates of this visit where they serve (:meth:`Comparison.with_visit`)."""
+        return self.comparison.with_visit(stats, load, self.baseline.nonlinear)
 
     def _learn(self, est: OnlineEstimate, t_s: float, speed: float, load: float,
                model: OnlineDriveline) -> OnlineEstimate:
@@ -495,7 +390,7 @@ class DetectionPolicy:
         # the damping with half its dead band (see BandStats.disagrees): a change on its way in must not be learned
         why = (ref.disagrees(est.f0_hz, est.zeta, self.detector.min_change_f, 0.5 * self.detector.min_change_zeta)
                if ref is not None else None)
-        own = ref is not None and self._own(ref, speed, load)
+        own = ref is not None and is_own(ref, speed, load, self.baseline.load_band_nm)
         n = self.baseline.release() if why is None and own else 0  # held cells: the driveline did not change
         if n:
             self.events.append(Event(t_s, "released", f"{n} held cell(s) released: at {speed:.0f} rpm, "
@@ -504,7 +399,7 @@ class DetectionPolicy:
                                      f"not change since", {"cells": n}))
         if learned:
             return est  # a learned cell stays fixed until re-learned
-        versus = _versus(why, est, ref) if why is not None else ""
+        versus = versus_text(why, est, ref) if why is not None else ""
         if why is not None and own:
             self.baseline.reject(speed_rpm=speed, load_nm=load)
             self._rejected += 1
@@ -544,7 +439,7 @@ class DetectionPolicy:
         """Before a new drift alarm: the checks it must pass (:meth:`AlarmChecks.confirm`). True: raise it;
         False: withhold it; None: a check runs in the worker (the detector asks again at its next interval)."""
         return self.checks.confirm(kind, stats, t_s, model, self._estimate, self.baseline, self.detector,
-                                   self._visit, self._visit_ref)
+                                   self.comparison.visit, self.comparison.visit_ref)
 
     def _alert_out(self, alarm: Alarm, t_s: float) -> AlertOut:
         kind = AlertKind.FREQ_DRIFT if alarm.kind == "frequency" else AlertKind.DAMPING_DRIFT
@@ -556,40 +451,7 @@ class DetectionPolicy:
         if stats is not None:
             load = self._estimate.load_nm if self._estimate is not None else float("nan")
             cell = f"cell {alarm.speed_rpm:.0f} rpm" + (f", {load:.0f} Nm" if math.isfinite(load) else "")
-            alarm = dataclasses.replace(alarm, message=f"{alarm.message} ({cell}, against {_against(stats)})")
+            alarm = dataclasses.replace(alarm, message=f"{alarm.message} ({cell}, against {against_text(stats)})")
             data |= {"message": alarm.message, "baseline_kind": stats.kind, "baseline_source": stats.source}
         self._record(self._alert_out(alarm, alarm.detected_t_s), out, data)
 
-
-def _versus(why: str, est: OnlineEstimate, ref: BandStats) -> str:
-    """The disagreeing quantity of ``est`` against ``ref`` for an event: "26.412 Hz against 26.583 +- 0.053 Hz"."""
-    if why == FREQUENCY and ref.kind == "bracketed":
-        return f"{est.f0_hz:.3f} Hz against {_bounds(ref)}, +- {ref.std_f:.3f} Hz"
-    if why == FREQUENCY:
-        return f"{est.f0_hz:.3f} Hz against {ref.mean_f:.3f} +- {ref.std_f:.3f} Hz"
-    return f"zeta {est.zeta:.4f} against {ref.mean_zeta:.4f} +- {ref.std_zeta:.4f}"
-
-
-def _against(stats: BandStats) -> str:
-    """What an alarm was raised against, for people: "the learned baseline of 1500 rpm, 20 Nm (24.10 Hz), learned
-    from run 3", "the pooled baseline (...)", "the bounds of the learned cells of other loads (...)", "the first
-    estimates of this visit since t = 67.0 s (22.28 Hz)"."""
-    if stats.kind == "visit":
-        return (f"the first estimates of {stats.source} ({stats.mean_f:.2f} Hz"
-                + (f", zeta {stats.mean_zeta:.4f})" if stats.zeta_visit else
-                   "), the damping against the learned cells of other loads"))
-    what = (f"the pooled baseline ({stats.mean_f:.2f} Hz)" if stats.kind == "pooled" else
-            f"the bounds of the learned cells of other loads ({_bounds(stats)})" if stats.kind == "bracketed" else
-            f"the {stats.kind} baseline of {0.5 * (stats.band[0] + stats.band[1]):.0f} rpm"
-            + (f", {stats.load_nm:.0f} Nm" if math.isfinite(stats.load_nm) else "") + f" ({stats.mean_f:.2f} Hz)")
-    return (what + (f", learned from {stats.source}" if stats.source else "")
-            + (f", the damping against the first estimates of this visit ({stats.mean_zeta:.4f})"
-               if stats.zeta_visit else ""))
-
-
-def _bounds(stats: BandStats) -> str:
-    """A bracketed baseline's bounds for people: ``f0 >= 20.10 Hz``, ``f0 <= ...`` or ``20.10-20.50 Hz``."""
-    lo, hi = stats.bounds_f
-    if math.isfinite(lo) and math.isfinite(hi):
-        return f"{lo:.2f}-{hi:.2f} Hz"
-    return f"f0 >= {lo:.2f} Hz" if math.isfinite(lo) else f"f0 <= {hi:.2f} Hz"
