@@ -42,7 +42,7 @@ def main() -> None:
     args = ap.parse_args()
     sc = dataclasses.replace(BenchScenario(), seed=3, operating_points=(OperatingPoint(1500.0, 45.0),))
     pipe = run_bench_data(simulate_bench(sc).to_data("bench"), ev.settings_for(ev.RunSpec("x", 3, sc)))
-    windows = [w for ws in pipe.policy._windows.values() for w in ws]
+    windows = [w for ws in pipe.policy.checks.windows.values() for w in ws]
     if not windows:
         raise SystemExit("no cell learned on the bench: nothing to measure")
     one = windows[0]
@@ -53,7 +53,7 @@ def main() -> None:
         path = Path(tmp) / "state.json"
         for _ in range(args.repeats):
             for n in CELLS:  # interleaved: the machine's drift spreads over every size alike
-                pipe.policy._windows = {k: [one] for k in range(n)}
+                pipe.policy.checks.windows = {k: [one] for k in range(n)}
                 t0 = time.perf_counter()
                 state = pipe.get_state()
                 t1 = time.perf_counter()

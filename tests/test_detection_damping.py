@@ -52,13 +52,13 @@ def test_the_confirm_of_each_kind_prefers_the_baselines_minimum_within_its_own_t
     from online_id.config import DetectionSettings, Settings
     from online_id.monitoring.cells import BandStats
     from online_id.service.pipeline import Pipeline
-    from online_id.service.policy import PENDING
+    from online_id.service.confirmation import PENDING
 
     pipe = Pipeline(Settings(detection=DetectionSettings(damping_tie_pct=1.2, frequency_tie_pct=2.5)))
     policy = pipe.policy
-    policy._references = {6: np.arange(3.0)}
+    policy.checks.references = {6: np.arange(3.0)}
     asked = []
-    monkeypatch.setattr(policy, "_verify", lambda purpose, t_s, model, starts=(), within=0.0: asked.append(
+    monkeypatch.setattr(policy.checks, "verify", lambda purpose, t_s, model, starts=(), within=0.0: asked.append(
         (purpose, starts, within)) or PENDING)
     stats = BandStats(25.0, 0.05, 0.05, 0.002, 20, (1375.0, 1625.0), -8.0, "learned", "run")
     assert policy._confirm(kind, stats, 100.0, pipe.estimator) is None  # the refit runs (here: never), decided later

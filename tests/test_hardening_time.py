@@ -201,7 +201,8 @@ def test_a_clock_step_re_anchors_every_stream_time_schedule_of_the_pipeline():
     # clock steps back 2 h, one left in the old time base would hold its work back for 2 h (the engaged flank's
     # readings, the visit's first estimates and the learning events did, within a visit)
     p = Pipeline(Settings())
-    schedules = [(part, k) for part in (p, p.policy) for k in vars(part) if k.startswith("_next_")]
+    parts = (p, p.policy, p.policy.backlash, p.policy.comparison)
+    schedules = [(part, k) for part in parts for k in vars(part) if k.startswith("_next_")]
     assert ({"_next_publish", "_next_learn", "_next_engaged", "_next_visit_sample"}
             <= {k for _, k in schedules})
     for part, k in schedules:

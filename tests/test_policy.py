@@ -39,7 +39,7 @@ def test_the_policy_restores_and_saves_its_items_of_a_state_document_unchanged()
     fresh, _ = _policy(settings)
     fresh.load(again, _n_params(settings))
     assert fresh.to_dict() == again
-    assert policy.baseline.nonlinear and policy.detector.active is not None and policy._windows
+    assert policy.baseline.nonlinear and policy.detector.active is not None and policy.checks.windows
 
 
 def test_acknowledge_releases_the_latched_alarm_and_relearn_forgets_the_baselines():
@@ -51,7 +51,7 @@ def test_acknowledge_releases_the_latched_alarm_and_relearn_forgets_the_baseline
     policy.load(load_state(SAVED), _n_params(settings))
     policy.relearn()
     assert policy.detector.active is None and not policy.baseline.bands
-    assert not policy._references and not policy._windows and not policy.engaged.summary()["learned"]
+    assert not policy.checks.references and not policy.checks.windows and not policy.engaged.summary()["learned"]
 
 
 @pytest.mark.parametrize("backlash_test_s, kept", [(0.0, 0), (10.0, 3)])
@@ -59,6 +59,6 @@ def test_the_backlash_tests_samples_are_kept_only_while_a_test_may_run(backlash_
     policy, _ = _policy(Settings(detection=DetectionSettings(backlash_test_s=backlash_test_s)))
     for k in range(3):
         policy.keep_sample(0.001 * k, 150.0, 150.0, 20.0)
-    assert len(policy._raw) == kept
+    assert len(policy.backlash.samples) == kept
     policy.keep_sample(1.0, 150.0, 150.0, 20.0, restart=True)  # the stream broke: the samples before go
-    assert len(policy._raw) == (1 if kept else 0)
+    assert len(policy.backlash.samples) == (1 if kept else 0)

@@ -13,7 +13,7 @@ import pytest
 from scipy.signal import lfilter
 
 from online_id.service import pipeline as pl
-from online_id.service.policy import MINIMA_SPREAD_F
+from online_id.service.confirmation import MINIMA_SPREAD_F
 from online_id.bench import evaluate as ev
 from online_id.bench.scenario import BenchScenario, Fault, OperatingPoint
 from online_id.bench.simulate import simulate_bench
@@ -162,7 +162,7 @@ def test_a_baseline_learned_in_another_minimum_is_not_alarmed_against_but_a_chan
     # the service's state file keeps them: saved, checked and restored whole
     save_state(tmp_path / "state.json", state)
     restored = restore_pipeline(tmp_path / "state.json", settings, lambda text: None)
-    assert restored is not None and restored.policy._windows.keys() == first.policy._windows.keys()
+    assert restored is not None and restored.policy.checks.windows.keys() == first.policy.checks.windows.keys()
     later = dataclasses.replace(sc, seed=seed + 100, operating_points=(OperatingPoint(sc.operating_points[0].speed_rpm,
                                                                                        50.0),))
     data = simulate_bench(later).to_data("day 2")

@@ -154,13 +154,13 @@ def test_what_the_visit_serves_next_to_the_bounds_the_learned_cells_set(seed):
     # the bounds where both are
     from online_id.config import Settings
     from online_id.service.pipeline import Pipeline
-    from online_id.service.policy import _against
+    from online_id.service.comparison import against_text as _against
 
     rng = np.random.default_rng([seed, 19])
     pipe = Pipeline(Settings())
     pipe.baseline.backlash = {"gain": 0.1}
     f0, z0 = float(rng.uniform(18.0, 30.0)), float(rng.uniform(0.03, 0.08))
-    pipe.policy._visit_ref = ref = VisitReference(pipe.policy._visit, -10.0, (1875.0, 2125.0))
+    pipe.policy.comparison.visit_ref = ref = VisitReference(pipe.policy.comparison.visit, -10.0, (1875.0, 2125.0))
     for k in range(3):
         ref.add(float(k), f0 * (1 + 0.001 * k), z0 * (1 + 0.01 * k), -10.0, 0.005, min_change_zeta=0.2)
     visit = ref.stats()

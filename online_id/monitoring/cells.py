@@ -63,7 +63,7 @@ class BandStats:
         Of a pooled baseline: how many cells it pools (1 for a cell).
     zeta_visit
         Its damping is that of the first estimates of the visit (this point's own, where the learned cells'
-        damping is other points'; ``DetectionPolicy._with_visit``): of a ``"visit"`` baseline unless the learned cells
+        damping is other points'; ``Comparison.with_visit``): of a ``"visit"`` baseline unless the learned cells
         measure the damping between points, and of a ``"bracketed"`` one where they do not.
     above_f, below_f
         Of a ``"bracketed"`` baseline (:meth:`~online_id.monitoring.baseline.Baseline.bracketed`): how far

@@ -18,7 +18,7 @@ It compares the damping too, with the same frozen first estimates (spread floore
 and widened alike); a later estimate joins only when its damping agrees as well (half the damping dead band plus three
 unwidened spreads, the learning check's). The damping of a mismatched model moves by 30-40 % between nearly equal
 minima of the fit, which a visit's few estimates cannot tell from a change; the alarm's checks do (see
-``DetectionPolicy._confirm``): the second look refits the window from the minimum the reference sat in (:attr:`solution`),
+``AlarmChecks.confirm``): the second look refits the window from the minimum the reference sat in (:attr:`solution`),
 and the recheck refits the data of the reference's first estimates (:attr:`window`, a
 :class:`~online_id.estimation.reference.ReferenceWindow` the caller keeps) from the current solution, which gives the
 current estimate again where only the minimum moved. Without the visit's damping, a damping change at a point no

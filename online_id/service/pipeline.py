@@ -22,7 +22,8 @@ the estimator (:class:`~online_id.estimation.online.OnlineDriveline`), the excit
 detection policy (:class:`~online_id.service.policy.DetectionPolicy`, :attr:`Pipeline.policy`), which judges
 each publication's estimate and returns the alerts due.  Slow work runs in the worker
 (:mod:`online_id.service.offload`); the state a restart keeps is :mod:`online_id.service.persistence`'s
-document of the estimator and the policy.
+document of the estimator and the policy; what a run gives (:meth:`Pipeline.result`) is
+:mod:`online_id.service.summary`'s.
 """
 
 from __future__ import annotations
@@ -42,12 +43,12 @@ from online_id.estimation.online import OnlineDriveline, OnlineEstimate, physica
 from online_id.estimation.window import RefitJob, solve
 from online_id.analysis.physical import DrivelineParameters
 from online_id.monitoring.tracks import PoleTracker
-from online_id.errors import EstimationError
 from online_id.analysis.excitation import Excitation
 from online_id.service.events import MAX_EVENTS, PHYSICAL, WINDOW, Event
 from online_id.service.offload import InlineWorker
 from online_id.service.persistence import restore_state, state_document
 from online_id.service.policy import DetectionPolicy
+from online_id.service.summary import run_summary
 from online_id.records import (
     AlertKind,
     AlertOut,
@@ -522,58 +523,9 @@ class Pipeline:
 
     # -- results ---------------------------------------------------------------------------------
     def result(self) -> dict:
-        """The final estimate and the history of states and alerts (times from the stream start)."""
-        est = self._estimate or self.estimator.estimate()
-        inert = self.settings.inertias
-        phys = None
-        if np.isfinite(est.f0_hz):
-            try:
-                phys = self.estimator.physical(est, inert.J1, inert.J2, inert.J_total)
-            except (EstimationError, FloatingPointError, ValueError):
-                phys = None
-        t0 = self.t_first or 0.0
-
-        def fin(x):
-            return float(x) if x is not None and math.isfinite(x) else None
-
-        c = self.counters
-        policy = self.policy
-        return {
-            "driveline": {
-                "f0_hz": fin(est.f0_hz),
-                "zeta": fin(est.zeta),
-                "c_s": fin(phys.c_s) if phys else None,
-                "d_s": fin(phys.d_s) if phys else None,
-                "J1": fin(phys.J1) if phys else None,
-                "J2": fin(phys.J2) if phys else None,
-                "valid": bool(est.valid),
-            },
-            "quality": {"residual_rms": fin(est.residual_rms), "fpe": fin(est.fpe),
-                        "excitation_nm": fin(est.excitation_nm), "samples_used": est.samples_used},
-            "state": self.state.name,
-            "active_alarm": self.detector.active.as_dict() if self.detector.active else None,
-            "withheld_alarms": dict(self.detector.withheld),
-            "baseline": [b.as_dict() for b in self.baseline.bands],
-            "baseline_not_learned": policy.rejected,  # learning estimates that disagreed with the baselines
-            "baseline_notes": [{"t_s": e.t_s - t0, "kind": e.kind, "message": e.message} for e in self.events
-                               if e.kind in ("learned", "not_learned", "wide_baseline", "backlash")][-20:],
-            "backlash": {"shown": self.baseline.backlash, "tests": policy.backlash_tests,
-                         "last_test": policy.last_backlash_test.as_dict() if policy.last_backlash_test else None,
-                         "engaged_flank": self.engaged.summary()},
-            "tracks": [{"id": t.id, "f_hz": t.f_hz, "zeta": t.zeta, "class": t.cls, "confidence": t.confidence,
-                        "order": t.order} for t in self.tracker.tracks],
-            "status_changes": [{"t_s": e.t_s - t0, "state": e.data["state"], "why": e.message}
-                               for e in self.events if e.kind == "state"],
-            "alerts": [{"t_s": a.t_s - t0, "kind": a.kind.name, "severity": a.severity, "message": a.message}
-                       for a in self.alerts],
-            "counters": {
-                "samples": c.samples, "gaps": c.gaps, "timeouts": c.timeouts, "time_jumps": c.time_jumps,
-                "bad_frames": c.bad_frames, "missing_frames": c.missing_frames,
-                "dropped_frames": self.dropped_frames,
-                **{f"frames_{k.name.lower()}": v for k, v in c.faults.items()},
-            },
-        }
-
+        """The final estimate and the history of states and alerts (times from the stream start,
+        :func:`~online_id.service.summary.run_summary`)."""
+        return run_summary(self)
 
 def run_bench_data(data, settings: Settings, progress=None, on_output=None, state: dict | None = None,
                    run_label: str = "", worker=None, reference: bool = False) -> Pipeline:

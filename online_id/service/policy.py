@@ -1,6 +1,5 @@
-"""The detection policy of the pipeline: pole tracks, learned baselines per operating point, the backlash
-test and the engaged flank, the visit's first estimates, rechecks of a withheld alarm against the cell's
-own data, and the alarms raised (see :mod:`online_id.monitoring` for the statistics themselves).
+"""The detection policy of the pipeline: pole tracks, learned baselines per operating point, and the alarms
+raised (see :mod:`online_id.monitoring` for the statistics themselves).
 
 :class:`DetectionPolicy` is a part the :class:`~online_id.service.pipeline.Pipeline` owns.  It is handed
 each publication's estimate with its stream time, engine speed and the estimator it came from
@@ -9,34 +8,32 @@ the service state (:meth:`~DetectionPolicy.on_state`) and the commands (:meth:`~
 :meth:`~DetectionPolicy.relearn`); it returns the alerts due, writes its events to the event log it is given
 and records its alerts through the recorder it is given.  Its slow work (multi-start refits, rechecks,
 backlash tests) goes to the worker it is given, whose results come back through the worker's callbacks.
-It keeps its own baselines, detector, tracks, engaged flank, reference solutions and windows and visit
-state, and saves and restores them (:meth:`~DetectionPolicy.to_dict`, :meth:`~DetectionPolicy.load`)."""
+
+Its parts: the baselines, the detector, the pole tracks and the engaged flank (:mod:`online_id.monitoring`);
+what an estimate is compared with and the visits of operating points (:mod:`online_id.service.comparison`); the
+backlash tests' samples and schedule (:mod:`online_id.service.backlash`); the checks before a drift alarm stands
+and the reference solutions and windows they compare with (:mod:`online_id.service.confirmation`).  It saves and
+restores them (:meth:`~DetectionPolicy.to_dict`, :meth:`~DetectionPolicy.load`)."""
 
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import math
 from collections import deque
 from typing import Callable
 
-import numpy as np
-
-from online_id.diagnose.bench_data import DEFAULT_PULSES_PER_REV
-from online_id.diagnose.linearity import BacklashTest, backlash_test
+from online_id.diagnose.linearity import BacklashTest
 from online_id.config import Settings
 from online_id.monitoring.baseline import Baseline
 from online_id.monitoring.cells import BandStats
-from online_id.monitoring.detection import (DAMPING, FREQUENCY, Alarm, ChangeDetector, alarm_message,
-                                            correlation_for_window, when_text)
-from online_id.monitoring import engaged as engaged_flank
+from online_id.monitoring.detection import Alarm, ChangeDetector, correlation_for_window
 from online_id.monitoring.engaged import EngagedChange, EngagedFlank, EngagedReading
 from online_id.monitoring.tracks import PoleTracker
 from online_id.estimation.online import OnlineDriveline, OnlineEstimate
-from online_id.estimation.reference import ReferenceWindow, judge, refit_each
-from online_id.estimation.window import solve
-from online_id.monitoring.visit import VisitReference
-from online_id.service.events import LINEARITY, WINDOW, Event
+from online_id.service.backlash import BacklashTests, engaged_alarm
+from online_id.service.comparison import Comparison, against_text, is_own, versus_text
+from online_id.service.confirmation import PENDING, AlarmChecks
+from online_id.service.events import Event
 from online_id.records import (
     AlertKind,
     AlertOut,
@@ -45,14 +42,6 @@ from online_id.records import (
 )
 
 
-BACKLASH_TEST_MAX_S = 30.0  # the backlash test takes at most this much of an operating point's steady samples
-PENDING = None  # a multi-start check is running in the worker: decide later
-VERIFY_FRESH_S = 5.0  # a multi-start check older than this is not used for a decision
-RECHECK_WAIT_S = 10.0  # a recheck of a reference window older than this is dropped (see _confirm)
-# the two nearly equal minima of a model that does not fit exactly (backlash) differ by 1-3 % in the resonance
-# (see online_id.monitoring.detection): a frequency change a recheck withheld stands only within this
-MINIMA_SPREAD_F = 0.03
-ACCEPTED_SIGMAS = 3.0  # ... while the estimate moves no farther from the baseline than this many of its own stds
 STEADY_S = 5.0  # learning needs the estimates this long ago within the dead bands (or 3 own stds), see _steady
 SPREAD_RATIO_REPORTED = 5.0  # a learned spread this many times the estimator's own uncertainty is reported
 
@@ -85,7 +74,6 @@ class DetectionPolicy:
                  events: deque[Event], record: Callable) -> None:
         self.settings = settings
         self.worker = worker
-        self._submit_window = submit_window
         self._clock = clock
         self.events = events
         self._record = record
@@ -103,28 +91,16 @@ class DetectionPolicy:
         self.engaged = EngagedFlank(dead_band_zeta=d.min_damping_change_pct / 100.0)
         self._state = ServiceState.STARTING  # the service state, as the pipeline last told (on_state)
         self._estimate: OnlineEstimate | None = None  # the estimate being judged (a learning refit replaces it)
-        self._verify_results: dict = {}  # purpose -> (t_s submitted, adopted) of finished multi-start checks
-        self._verify_running: set = set()
-        self._next_engaged = -math.inf  # stream time of the next engaged-flank reading in this visit
         self._engaged_out: list[Publication] = []  # its alerts, published with the next detection
         self._healthy_since: float | None = None  # start of the current healthy stretch (settle_s)
         self._recent: deque[tuple[float, float, float]] = deque()  # (t_s, f0, zeta) of the healthy stretch
         self._healthy_rpm: float | None = None  # engine speed of the last healthy estimate
-        # the input samples of the last BACKLASH_TEST_MAX_S (t, dyno speed, engine speed, torque): the backlash test
-        self._raw: deque[tuple[float, float, float, float]] = deque(
-            maxlen=max(1, int(BACKLASH_TEST_MAX_S * settings.input.sample_rate_hz)))
-        self._visit = 0  # counts the arrivals of healthy estimates at another operating point
-        self._visit_tested = -1  # the visit whose samples the backlash test took
-        self._visit_not_compared = -1  # the visit where another point's baseline was last not compared with
-        self._visit_ref: VisitReference | None = None  # a visit's first estimates, where no learned cell bounds it
-        self._next_visit_sample = 0.0
-        self.backlash_tests = 0
-        self.last_backlash_test: BacklashTest | None = None
-        self._references: dict[int, np.ndarray] = {}  # per baseline band: a window solution it was learned from
-        # per baseline band, one per cell (load): the window of the cell's first estimates, see _keep_window
-        self._windows: dict[int, list[ReferenceWindow]] = {}
-        self._rechecks: dict[str, dict] = {}  # per alarm kind: a recheck of a reference window under way
-        self._accepted: dict | None = None  # the frequency a recheck found the cell's own data give (_still_accepted)
+        # what an estimate is compared with; the visits of operating points and the first estimates of one
+        self.comparison = Comparison(d)
+        # the backlash tests: their input samples, their schedule, the tests done
+        self.backlash = BacklashTests(d, settings.input.sample_rate_hz, settings.model.pulses_per_rev, worker)
+        # the checks before a drift alarm stands, and the reference solutions and windows they compare with
+        self.checks = AlarmChecks(d, worker, submit_window, events)
         self._next_learn: float | None = None
         self._next_alarm_repeat = 0.0
         self._stats: BandStats | None = None  # the baseline the latest estimate was compared with
@@ -150,11 +126,8 @@ class DetectionPolicy:
                     restart: bool = False) -> None:
         """An input sample, kept while a backlash test may run; ``restart``: the stream broke before it (the
         samples kept so far are dropped)."""
-        if restart:
-            self._raw.clear()
-        d = self.settings.detection
-        if d.backlash_test_s > 0 and (self.baseline.backlash is None or d.engaged_flank):
-            self._raw.append((t_s, dyno_speed, engine_speed, dyno_torque))
+        wanted = self.baseline.backlash is None or self.settings.detection.engaged_flank
+        self.backlash.keep(t_s, dyno_speed, engine_speed, dyno_torque, restart, wanted)
 
     def on_state(self, state: ServiceState) -> None:
         """The service state changed (detection and learning run on a tracking estimate only)."""
@@ -165,8 +138,8 @@ class DetectionPolicy:
         or detecting."""
         self._next_learn = None
         self._next_alarm_repeat = -math.inf
-        self._next_engaged = -math.inf
-        self._next_visit_sample = -math.inf
+        self.backlash.on_time_jump()
+        self.comparison.on_time_jump()
         self._next_reject_event = -math.inf
         self._healthy_since = None
         self._recent.clear()
@@ -179,11 +152,8 @@ class DetectionPolicy:
     def relearn(self) -> None:
         """Forget the baselines, their reference solutions and windows, the engaged flank and latched alarms."""
         self.baseline.reset()
-        self._references.clear()
-        self._windows.clear()
-        self._rechecks.clear()
-        self._accepted = None
-        self._visit_ref = None
+        self.checks.forget()
+        self.comparison.visit_ref = None
         self.detector.reset()
         self.engaged.reset()
 
@@ -191,8 +161,18 @@ class DetectionPolicy:
         """Forget the learned baselines, their reference solutions and the detector's statistics (a reference
         run learns anew)."""
         self.baseline.reset()
-        self._references.clear()
+        self.checks.references.clear()
         self.detector.reset()
+
+    @property
+    def backlash_tests(self) -> int:
+        """The backlash tests that came back."""
+        return self.backlash.count
+
+    @property
+    def last_backlash_test(self) -> BacklashTest | None:
+        """The last backlash test done."""
+        return self.backlash.last
 
     @property
     def rejected(self) -> int:
@@ -205,8 +185,7 @@ class DetectionPolicy:
         return {"baseline": self.baseline.to_dict(), "detector": self.detector.to_dict(),
                 "tracker": self.tracker.to_dict(), "healthy_rpm": self._healthy_rpm,
                 "engaged": self.engaged.to_dict(),
-                "references": {str(k): v.tolist() for k, v in self._references.items()},
-                "windows": {str(k): [w.to_dict() for w in ws] for k, ws in self._windows.items()}}
+                **self.checks.to_dict()}
 
     def load(self, state: dict, n_params: int, new_run: bool = False) -> None:
         """Restore the items of :meth:`to_dict` from the state document ``state`` (solutions of ``n_params``
@@ -222,49 +201,12 @@ class DetectionPolicy:
                 self.detector.new_stream()
         if "tracker" in state and not new_run:
             self.tracker = PoleTracker.from_dict(state["tracker"])
-        self._references = {int(k): np.asarray(v, dtype=float) for k, v in state.get("references", {}).items()
-                            if isinstance(v, (list, np.ndarray)) and len(v) == n_params}
-        windows = state.get("windows", {})
-        self._windows = {}
-        for k, v in windows.items() if isinstance(windows, dict) else ():
-            saved = v if isinstance(v, list) and str(k).lstrip("-").isdigit() else []
-            kept = [w for w in (ReferenceWindow.from_dict(x, n_params) for x in saved if isinstance(x, dict))
-                    if w is not None]
-            if kept:
-                self._windows[int(k)] = kept
-        self._rechecks = {}
-        self._accepted = None
+        self.checks.load(state, n_params)
         self.engaged.load(state.get("engaged"))
         rpm = state.get("healthy_rpm")
         self._healthy_rpm = float(rpm) if isinstance(rpm, (int, float)) and not new_run else None
 
     # -- the policy ------------------------------------------------------------------------------
-    def _verify(self, purpose, t_s: float, model: OnlineDriveline, starts: tuple = (),
-                prefer_last_within: float = 0.0) -> bool | None:
-        """A multi-start refit of the window for ``purpose``: True/False (a fit adopted or not), or PENDING.
-
-        With the inline worker the check runs at once; with the process
-        worker the first call starts it and returns PENDING, and a later call
-        (within ``VERIFY_FRESH_S``) gets its outcome.
-        """
-        done = self._verify_results.pop(purpose, None)
-        if done is not None and 0.0 <= t_s - done[0] <= VERIFY_FRESH_S:
-            return done[1]
-        if purpose in self._verify_running or self.worker.busy(WINDOW):
-            return PENDING
-        job = model.verify_job(starts, prefer_last_within)
-        if job is None:
-            return False
-
-        def finished(fit, error: str | None) -> None:
-            self._verify_running.discard(purpose)
-            self._verify_results[purpose] = (t_s, model.complete(job, fit, error))
-
-        self._verify_running.add(purpose)
-        self._submit_window(solve, (job,), finished)
-        done = self._verify_results.pop(purpose, None)
-        return PENDING if done is None else done[1]
-
     def _track_and_detect(self, est: OnlineEstimate, t_s: float, speed: float, model: OnlineDriveline,
                           out: list[Publication]) -> None:
         """Pole tracks, baseline learning (1 Hz) and change detection, at the publish rate.
@@ -293,7 +235,7 @@ class DetectionPolicy:
                         and abs(speed - self._healthy_rpm) <= self.settings.model.max_speed_span_rpm)
                 self._healthy_since = t_s - (d.settle_s if same else 0.0)
                 if not same:
-                    self._visit += 1
+                    self.comparison.visit += 1
             self._healthy_rpm = speed
             # full detection resumes settle_detect_s after the estimate is healthy at the new point (the refit
             # window holds only the new point from its first fit on: what the wait covers is the first cold
@@ -312,26 +254,16 @@ class DetectionPolicy:
             self._next_learn = t_s + 1.0  # about one independent-ish estimate per second
             est = self._learn(est, t_s, speed, load, model)
             load = est.load_nm
-        if healthy and d.backlash_test_s > 0 and not self.worker.busy(LINEARITY):
-            if not self.baseline.nonlinear and self._visit_tested != self._visit:
-                self._test_backlash(t_s, speed, load, model)
-            elif self.baseline.nonlinear and d.engaged_flank and (self._visit_tested != self._visit
-                                                                  or t_s >= self._next_engaged):
-                self._test_backlash(t_s, speed, load, model, engaged_flank.WINDOW_S)
+        window_s = self.backlash.due(t_s, self.comparison.visit, self.baseline.nonlinear) if healthy else None
+        if window_s is not None:
+            self._test_backlash(t_s, speed, load, model, window_s)
         stats = self._baseline_for(speed, load)
-        if (stats is None and healthy and self.baseline.nonlinear and self._visit_not_compared != self._visit
-                and self.baseline.learned_range_rpm is not None):
-            # on a shaft with backlash the resonance moves with the operating point (rising with the load's
-            # magnitude): where no learned cell bounds it (a load below them all, farther than they span, or
-            # no cell yet), the visit's own first settled estimates serve, then the cell's,
-            # and a change that comes with the visit shows at the established points (it shows everywhere)
-            self._visit_not_compared = self._visit
-            self.events.append(Event(t_s, "not_compared", f"at {speed:.0f} rpm, {load:.1f} Nm no learned cell is "
-                                     f"compared with: the shaft shows backlash, so its resonance moves with the "
-                                     f"load, and no learned cell bounds it here; the estimates are compared with "
-                                     f"the first estimates of this visit", {}))
-        if self._visit_serves(stats):
-            self._visit_sample(est, t_s, speed, load, healthy and not settling, stats, model)
+        note = self.comparison.not_compared(self.baseline, t_s, speed, load) if stats is None and healthy else None
+        if note is not None:
+            self.events.append(note)
+        if self.comparison.visit_serves(stats, self.baseline.nonlinear):
+            self.comparison.sample_visit(est, t_s, speed, load, healthy and not settling, stats, model, self.baseline,
+                                         self.detector)
             stats = self._with_visit(stats, load)
         self._stats = stats
         alarm = self.detector.update(
@@ -351,36 +283,22 @@ class DetectionPolicy:
             out.extend(self._engaged_out)
             self._engaged_out.clear()
 
-    def _test_backlash(self, t_s: float, speed: float, load: float, model: OnlineDriveline,
-                       window_s: float = BACKLASH_TEST_MAX_S) -> None:
+    def _test_backlash(self, t_s: float, speed: float, load: float, model: OnlineDriveline, window_s: float) -> None:
         """The backlash test (:mod:`online_id.diagnose.linearity`) on this operating point's steady samples, in the
-        worker, once the speed has been steady for ``detection.backlash_test_s`` (at most the last ``window_s``).
-
-        Until one point shows backlash, once per visit. On a shaft that showed backlash, with
-        ``detection.engaged_flank``, every ``EVERY_S`` of a visit on the last ``WINDOW_S`` of steady samples: its
-        engaged flank's resonance and damping go to :attr:`engaged` (:mod:`online_id.monitoring.engaged`)."""
-        least = self.settings.detection.backlash_test_s
-        steady = min(model.window.steady_s, window_s)
-        rate = self.settings.input.sample_rate_hz
-        if steady < least or len(self._raw) < least * rate:
-            return
-        self._visit_tested = self._visit
-        self._next_engaged = t_s + engaged_flank.EVERY_S
-        n = min(len(self._raw), int(steady * rate))
-        rows = np.asarray(list(itertools.islice(self._raw, len(self._raw) - n, None)), dtype=float)
-        visit = self._visit
+        worker, once the speed has been steady for ``detection.backlash_test_s`` (at most the last ``window_s``);
+        on a shaft that showed backlash, with ``detection.engaged_flank``, its engaged flank's resonance and
+        damping go to :attr:`engaged` (:mod:`online_id.monitoring.engaged`)."""
+        visit = self.comparison.visit
 
         def done(test: BacklashTest | None, error: str | None) -> None:
-            self.backlash_tests += 1
             if test is None:
                 self.events.append(Event(t_s, "backlash_test", f"backlash test at {speed:.0f} rpm not done: {error}",
                                          {"error": error}))
                 return
-            self.last_backlash_test = test
             if test.shows_backlash(self.settings.detection.backlash_gain_pct / 100.0) and not self.baseline.nonlinear:
                 self.baseline.backlash = {**test.as_dict(), "source": self.run_label}
                 if not self.settings.detection.engaged_flank:
-                    self._raw.clear()  # no test runs any more
+                    self.backlash.samples.clear()  # no test runs any more
                 # a cell held for disagreeing with another point's baseline: that baseline predicts nothing here
                 n = self.baseline.release()
                 self.events.append(Event(t_s, "backlash", f"the shaft shows backlash at {test.speed_rpm:.0f} rpm: a "
@@ -394,27 +312,12 @@ class DetectionPolicy:
                 for change in self.engaged.offer(reading, learn=learn):
                     self._raise_engaged(change)
 
-        # the compression orders the test declares: the model's, else the bench diagnosis's default (a test with
-        # none failed on every point of a config without model.pulses_per_rev)
-        pulses = self.settings.model.pulses_per_rev or DEFAULT_PULSES_PER_REV
-        self.worker.submit(LINEARITY, backlash_test, (rows[:, 0], rows[:, 3], rows[:, 1], rows[:, 2], pulses), done)
+        self.backlash.start(t_s, visit, model.window.steady_s, window_s, done)
 
     def _raise_engaged(self, change: EngagedChange) -> None:
         """A change of the engaged flank: latched by the detector (acknowledged as its own alarms are), raised
         unless an alarm of its kind of the same or a higher level is latched (an escalation keeps its onset)."""
-        latched = next((a for a in self.detector.alarms if a.kind == change.kind), None)
-        since = latched.since_t_s if latched is not None else change.since_t_s
-        stiff = None if change.stiffness_change is None else 100.0 * change.stiffness_change
-        pct = 100.0 * change.change
-        frequency = change.kind == FREQUENCY
-        ref = f"{change.reference:.2f} Hz" if frequency else f"zeta {change.reference:.4f}"
-        message = (alarm_message(change.kind, change.level, pct, stiff, since, change.speed_rpm,
-                                 what=f"driveline engaged flank's {'resonance' if frequency else 'damping'}")
-                   + f" (cell {change.speed_rpm:.0f} rpm, {change.load_nm:.0f} Nm, against the engaged-flank "
-                   f"reference of {change.learned} backlash tests ({ref})"
-                   + (f", learned from {change.source}" if change.source else "")
-                   + f"; threshold {100 * change.threshold:.1f} %)")
-        alarm = Alarm(change.kind, change.level, since, change.detected_t_s, change.speed_rpm, pct, stiff, message)
+        alarm = engaged_alarm(change, next((a for a in self.detector.alarms if a.kind == change.kind), None))
         if not self.detector.latch(alarm):
             return
         self._record(self._alert_out(alarm, alarm.detected_t_s), self._engaged_out,
@@ -428,7 +331,7 @@ class DetectionPolicy:
         dead band (or three of its own standard deviations). A baseline is learned from steady estimates
         only: a change of the driveline shows first as estimates that move while the fit window takes it in
         (for about the window's length), and a cell that learns them takes in the change (a +50 % damping
-        change came into a cell learning at the time as +32 % on plant 11703: the damping moves through its
+        change came into a cell learning at the time as +32 %: the damping moves through its
         20 % dead band within the 5 s)."""
         then = next(((f, z) for t, f, z in self._recent if t >= t_s - STEADY_S - 1e-6), None)
         if then is None or self._recent[0][0] > t_s - STEADY_S + 0.5:
@@ -439,108 +342,12 @@ class DetectionPolicy:
                 and abs(est.zeta - then[1]) <= max(0.5 * self.detector.min_change_zeta * abs(then[1]), 3.0 * std_z))
 
     def _baseline_for(self, speed: float, load: float, learning: bool = False) -> BandStats | None:
-        """What an estimate is compared with: its own cell, learned, or still learning (not held) with its first
-        estimates (frozen: ``provisional_count`` of them, then ``freeze_count``) once it holds them (the same
-        operating point: a learned cell at another load of the band differs by 0.1-0.5 % per Nm with backlash);
-        else a learned cell of the band at another load or of an adjacent band (:meth:`Baseline.lookup`); else
-        the pooled baseline (for detection the pool's spread is doubled, for the learning check,
-        ``learning``, it is not). On a shaft that showed backlash (:attr:`Baseline.nonlinear`) no other single
-        point serves: the learned cells of smaller and larger loads bound the resonance
-        (:meth:`Baseline.bracketed`, its bounds widened by the order's slack; None where none does)."""
-        n = self.baseline.provisional_count
-        own = self.baseline.cell(speed, load, frozen=True)
-        if own is not None and own.count >= n:
-            return own  # as it is: its spread is widened while it holds fewer than freeze_count estimates
-        stats = self.baseline.lookup(speed, load)
-        nonlinear = self.baseline.nonlinear
-        if stats is not None and (not nonlinear or self._own(stats, speed, load)):
-            return stats
-        if nonlinear:
-            # a shaft with backlash: its resonance moves with the operating point, but rises with the magnitude of
-            # the load; the learned cells of smaller and larger loads bound it (None where nothing does)
-            pool = self.baseline.bracketed(speed, load)
-        else:
-            pool = self.baseline.pooled(speed, load, min_n=n)
-        if pool is not None and not learning and pool.kind == "pooled":
-            # for detection, doubled: it stands for a point it has not seen (a bracket's bounds hold the slack)
-            pool = dataclasses.replace(pool, std_f=2.0 * pool.std_f, std_zeta=2.0 * pool.std_zeta)
-        return pool
-
-    def _visit_serves(self, stats: BandStats | None) -> bool:
-        """Whether the first estimates of the visit serve where ``stats`` (what :meth:`_baseline_for` gives)
-        does: on a shaft with backlash, where no learned cell of this point serves (its damping; its frequency
-        too where no learned cell bounds the point, or bounds it on one side only)."""
-        return self.baseline.nonlinear and (stats is None or stats.kind == "bracketed")
-
-    def _visit_sample(self, est: OnlineEstimate, t_s: float, speed: float, load: float, settled: bool,
-                      bounds: BandStats | None, model: OnlineDriveline) -> None:
-        """Offer a settled estimate (about one a second) to the first estimates of this visit
-        (:mod:`~online_id.monitoring.visit`); one that the detector would count as outside the one-sided ``bounds``
-        (beyond the dead band) does not join, so that there the bound goes on serving."""
-        d = self.settings.detection
-        ref = self._visit_ref
-        if ref is not None and not ref.matches(self._visit, load, d.load_band_nm):
-            ref = self._visit_ref = None  # another visit, or the load moved: another operating point
-        if not settled:
-            return
-        if bounds is not None and bounds.outside_f(est.f0_hz, self.detector.min_change_f, 0.0):
-            return  # beyond the dead band of the bound the learned cells set: a change must not become the reference
-        if ref is None:
-            ref = self._visit_ref = VisitReference(self._visit, load, self.baseline.band_of(speed),
-                                                   min_count=self.baseline.provisional_count,
-                                                   size=self.baseline.freeze_count,
-                                                   min_rel_std_f=self.baseline.min_rel_std_f,
-                                                   min_rel_std_zeta=self.baseline.min_rel_std_zeta)
-            self._next_visit_sample = t_s
-        if t_s >= self._next_visit_sample:
-            self._next_visit_sample = t_s + 1.0  # about one independent-ish estimate per second
-            solution = model.solution
-            if (ref.add(t_s, est.f0_hz, est.zeta, load, self.detector.min_change_f, solution,
-                        self.detector.min_change_zeta) and len(ref.f) <= ref.min_count and solution is not None):
-                job = model.verify_job()  # the data of the frozen first estimates, for a recheck
-                if job is not None:
-                    ref.window = ReferenceWindow(job.y, job.u, solution, speed, load, t_s)
+        """What an estimate at ``speed`` and ``load`` is compared with (:meth:`Comparison.baseline_for`)."""
+        return self.comparison.baseline_for(self.baseline, speed, load, learning)
 
     def _with_visit(self, stats: BandStats | None, load: float) -> BandStats | None:
-        """``stats``, or the first estimates of this visit where they serve (:meth:`_visit_serves`) and hold
-        ``provisional_count`` estimates: their frequency where nothing or one side bounds the point; their damping
-        where the learned cells do not measure how far it moves between points (fewer than
-        ``MIN_CELLS_DAMPING``, :meth:`Baseline.bracketed`: it moves 3-57 % between points with backlash, and
-        was not compared at all), in a two-sided bracket too (:attr:`BandStats.zeta_visit`)."""
-        ref = self._visit_ref
-        if not self._visit_serves(stats) or ref is None or not ref.matches(self._visit, load,
-                                                                           self.settings.detection.load_band_nm):
-            return stats
-        visit = ref.stats()
-        if visit is None or stats is None:
-            return visit or stats
-        measured = math.isfinite(stats.std_zeta)  # the learned cells measure how far the damping moves between points
-        if not math.isfinite(stats.above_f + stats.below_f):  # bounded on one side only: the visit's frequency
-            return visit if not measured else dataclasses.replace(
-                visit, mean_zeta=stats.mean_zeta, std_zeta=stats.std_zeta, tolerance_zeta=stats.tolerance_zeta,
-                between_zeta=stats.between_zeta, zeta_visit=False)
-        return stats if measured else dataclasses.replace(
-            stats, mean_zeta=visit.mean_zeta, std_zeta=visit.std_zeta, tolerance_zeta=0.0, between_zeta=math.nan,
-            widen=visit.widen, zeta_visit=True)
-
-    @staticmethod
-    def _of_visit(stats: BandStats, kind: str) -> bool:
-        """Whether an alarm of ``kind`` against ``stats`` is checked against the visit's first estimates (their
-        solution and window): of the visit's own baseline (kind ``"visit"``), or of a bracket's damping that is
-        the visit's (:attr:`BandStats.zeta_visit`)."""
-        return stats.kind == "visit" or (kind == DAMPING and stats.zeta_visit)
-
-    def _own(self, stats: BandStats, speed: float, load: float) -> bool:
-        """Whether ``stats`` is the baseline of the cell of ``speed`` and ``load`` itself (not the pool's or
-        another band's or load's)."""
-        if stats.kind == "learning":
-            return True  # only a cell's own first estimates serve it while it learns
-        return stats.kind in ("learned", "reference") and self._at(stats, speed, load)
-
-    def _at(self, stats: BandStats, speed: float, load: float) -> bool:
-        """Whether ``speed`` and ``load`` fall in the band and load cell of ``stats`` (any load if it has none)."""
-        return (stats.band[0] <= speed < stats.band[1]
-                and not abs(stats.load_nm - load) > 0.5 * self.baseline.load_band_nm)
+        """``stats``, or the first estimates of this visit where they serve (:meth:`Comparison.with_visit`)."""
+        return self.comparison.with_visit(stats, load, self.baseline.nonlinear)
 
     def _learn(self, est: OnlineEstimate, t_s: float, speed: float, load: float,
                model: OnlineDriveline) -> OnlineEstimate:
@@ -569,7 +376,7 @@ class DetectionPolicy:
         learned = cell is not None and cell.count >= d.min_count
         # a new cell is learned from the best of several starts, not from whichever of the nearly equal
         # minima of a mismatched model (backlash) the warm-started refits happen to follow
-        verified = self._verify("learn", t_s, model) if cell is None else False
+        verified = self.checks.verify("learn", t_s, model) if cell is None else False
         if verified is PENDING:
             return est
         if verified:
@@ -583,7 +390,7 @@ class DetectionPolicy:
         # the damping with half its dead band (see BandStats.disagrees): a change on its way in must not be learned
         why = (ref.disagrees(est.f0_hz, est.zeta, self.detector.min_change_f, 0.5 * self.detector.min_change_zeta)
                if ref is not None else None)
-        own = ref is not None and self._own(ref, speed, load)
+        own = ref is not None and is_own(ref, speed, load, self.baseline.load_band_nm)
         n = self.baseline.release() if why is None and own else 0  # held cells: the driveline did not change
         if n:
             self.events.append(Event(t_s, "released", f"{n} held cell(s) released: at {speed:.0f} rpm, "
@@ -592,7 +399,7 @@ class DetectionPolicy:
                                      f"not change since", {"cells": n}))
         if learned:
             return est  # a learned cell stays fixed until re-learned
-        versus = _versus(why, est, ref) if why is not None else ""
+        versus = versus_text(why, est, ref) if why is not None else ""
         if why is not None and own:
             self.baseline.reject(speed_rpm=speed, load_nm=load)
             self._rejected += 1
@@ -611,10 +418,10 @@ class DetectionPolicy:
                             reference=self.reference_run, held=why is not None)
         solution = model.solution
         if solution is not None:
-            self._references[self.baseline.key(speed)] = solution
+            self.checks.references[self.baseline.key(speed)] = solution
         done = self.baseline.cell(speed, load)
         if why is None and solution is not None and done is not None:
-            self._keep_window(done, speed, load, t_s, solution, model)
+            self.checks.keep_window(done, speed, load, t_s, solution, model, self.baseline)
         if done is not None and done.count == d.min_count:
             ratio = done.spread_ratio
             self.events.append(Event(t_s, "learned", f"cell {speed:.0f} rpm, {load:.1f} Nm learned: f0 "
@@ -629,180 +436,10 @@ class DetectionPolicy:
         return est
 
     def _confirm(self, kind: str, stats: BandStats, t_s: float, model: OnlineDriveline) -> bool | None:
-        """Before a new drift alarm: does the change stand a second look at the window, and a recheck of the
-        data the baseline was learned from? True: raise it; False: withhold it; None: a check runs in the worker
-        (the detector asks again at its next interval)."""
-        check = self._rechecks.get(kind)
-        if check is not None and (t_s - check["t_s"] > RECHECK_WAIT_S or check["band"] != stats.band):
-            del self._rechecks[kind]  # of an alarm the detector no longer asks about: this one starts afresh
-            check = None
-        if check is None and self._still_accepted(kind, stats, t_s):
-            return False
-        if check is None:
-            verdict = self._second_look(kind, stats, t_s, model)
-            if verdict is not True:
-                return verdict
-        return self._recheck(kind, stats, t_s, model)
-
-    def _still_accepted(self, kind: str, stats: BandStats, t_s: float) -> bool:
-        """Does a recheck's finding that the cell's own data give the current resonance still stand?
-
-        Each recheck's fits carry their own noise: asking the same question every few tens of seconds until
-        one answer differs is how plant 1017 of the fault-free hours raised a warning (withheld at 2031 s,
-        the estimate the same 31.08 Hz at 2075 s, a loss 1.6 % against the 1 % tie in the second recheck).
-        The finding stands, and the alarm is withheld without another recheck, only where it can be the
-        hop between minima it describes, and nothing since says otherwise: a frequency change within
-        ``MINIMA_SPREAD_F`` of the baseline, at the same cell in the same visit, with the estimate within
-        the recheck's tolerance of the value it accepted and no farther from the baseline than
-        ``ACCEPTED_SIGMAS`` of its own standard deviations (over a long visit a healthy estimate wanders by
-        more than one). A larger change (plant 13703 of family (a): a recheck withheld a 7.3 % drop after a
-        15 % stiffness loss, the next one raised it) or an estimate moving on towards the alarm's side is
-        rechecked afresh each time.
-        """
-        done = self._accepted
-        est = self._estimate
-        if kind != FREQUENCY or done is None or est is None or not math.isfinite(est.f0_hz):
-            return False
-        step = est.f0_hz / done["f0_hz"] - 1.0
-        own = est.f0_std_hz / est.f0_hz if math.isfinite(est.f0_std_hz) else 0.0
-        if (done["band"] != stats.band or done["visit"] != self._visit or abs(step) > done["tolerance"]
-                or math.copysign(1.0, done["change"]) * step > ACCEPTED_SIGMAS * own):
-            self._accepted = None
-            return False
-        self.events.append(Event(
-            t_s, "withheld", f"{kind} alarm withheld: the estimate is where the recheck at {when_text(done['t_s'])} "
-            f"found the cell's own data give it ({100 * step:+.2f} %, within its {100 * done['tolerance']:.1f} % "
-            f"tolerance, no farther from the baseline than {ACCEPTED_SIGMAS:.0f} of its own standard deviations)",
-            {"kind": kind, "change_pct": 100 * step, "recheck_t_s": done["t_s"]}))
-        return True
-
-    def _second_look(self, kind: str, stats: BandStats, t_s: float, model: OnlineDriveline) -> bool | None:
-        """Does a refit of the window from several starts still deviate?
-
-        The starts include the solution the band's baseline was learned from
-        (see :class:`~online_id.monitoring.detection.ChangeDetector`, *confirm*).
-        None while the refit runs in the worker.
-        """
-        if self._of_visit(stats, kind) and self._visit_ref is not None:
-            ref = self._visit_ref.solution  # the minimum the visit's first estimates sat in
-        else:
-            key = self.baseline.key(0.5 * (stats.band[0] + stats.band[1]))
-            near = sorted(self._references, key=lambda k: abs(k - key))  # a pool: the nearest learned band's
-            ref = self._references[near[0]] if near else None
-        # where the baseline's own minimum fits the window nearly as well as the best, the data do not tell them
-        # apart: a mismatched model (backlash) has nearly equal minima whose damping differs by 30-40 % and whose
-        # resonance differs by 1-3 %, and the estimate may sit in either for minutes at a learned operating point
-        if self._verify(("confirm", kind), t_s, model, (ref,), self._tie(kind)) is PENDING:
-            return None
-        est = model.estimate()
-        if kind == FREQUENCY:  # beyond the bounds of a bracketed baseline
-            change, width = stats.excess_f(est.f0_hz) / stats.mean_f, self.detector.min_change_f
-        else:
-            change, width = est.zeta / stats.mean_zeta - 1.0, self.detector.min_change_zeta
-        if not math.isfinite(change) or abs(change) > width:
-            return True
-        self.events.append(Event(t_s, "withheld", f"{kind} alarm withheld: a refit of the window from other starts "
-                                 f"is {100 * change:+.1f} % from the baseline, inside the "
-                                 f"{100 * width:.1f} % dead band", {"kind": kind, "change_pct": 100 * change}))
-        return False
-
-    def _keep_window(self, cell: BandStats, speed: float, load: float, t_s: float, solution: np.ndarray,
-                     model: OnlineDriveline) -> None:
-        """Keep the window of a cell's first estimates, the ones its frozen reference holds (up to
-        ``provisional_count``), for :meth:`_recheck`; later estimates do not replace it (one learned after a
-        change the learning check let through would make the recheck compare the change with itself)."""
-        if cell.count > self.baseline.provisional_count:
-            return
-        job = model.verify_job()
-        if job is None:
-            return
-        key = self.baseline.key(speed)
-        kept = [w for w in self._windows.get(key, []) if not self._at(cell, w.speed_rpm, w.load_nm)]
-        self._windows[key] = kept + [ReferenceWindow(job.y, job.u, solution, speed, load, t_s)]
-
-    def _tie(self, kind: str) -> float:
-        """The share of loss within which two minima are not told apart (``detection.*_tie_pct``), for ``kind``."""
-        d = self.settings.detection
-        return (d.damping_tie_pct if kind == DAMPING else d.frequency_tie_pct) / 100.0
-
-    def _reference_window(self, stats: BandStats, kind: str) -> ReferenceWindow | None:
-        """The window of the first estimates of the cell of ``stats``, where ``stats`` is a cell's own baseline
-        (learned, learning or from a reference run), or of this visit's (kind ``"visit"``, or the damping of a
-        bracket that holds the visit's, :attr:`BandStats.zeta_visit`)."""
-        if self._of_visit(stats, kind):
-            ref = self._visit_ref
-            return ref.window if ref is not None and ref.visit == self._visit else None
-        if stats.kind not in ("learned", "learning", "reference"):
-            return None
-        windows = self._windows.get(self.baseline.key(0.5 * (stats.band[0] + stats.band[1])), [])
-        return next((w for w in windows if self._at(stats, w.speed_rpm, w.load_nm)), None)
-
-    def _recheck(self, kind: str, stats: BandStats, t_s: float, model: OnlineDriveline) -> bool | None:
-        """The data the cell's baseline was learned from, refitted from the current window solution: is the
-        change still there within one minimum of the criterion? (:mod:`~online_id.estimation.reference`)
-
-        Withheld where the reference data in the current minimum give the
-        current estimate again (within the dead band plus one standard
-        deviation of the comparison) and fit there within the second look's
-        tie of their own minimum: the estimate moved to another minimum, the
-        driveline did not change. Raised where no window serves or a fit
-        fails. A recheck the detector has not asked about again within
-        ``RECHECK_WAIT_S`` (or asks about at another band) is dropped, and the
-        next alarm starts with a second look.
-        """
-        check = self._rechecks.get(kind)
-        if check is None:
-            window, solution = self._reference_window(stats, kind), model.solution
-            est = model.estimate()
-            if window is None or solution is None or est is None:
-                return True
-            # the tolerance: the dead band plus one standard deviation of the difference of two single estimates
-            damping = kind == DAMPING
-            value, own, spread = ((est.zeta, est.zeta_std, stats.std_zeta) if damping
-                                  else (est.f0_hz, est.f0_std_hz, stats.std_f))
-            noise = math.hypot(*(x if math.isfinite(x) else 0.0 for x in (own, spread))) / value if value > 0 else 0.0
-            width = self.detector.min_change_zeta if damping else self.detector.min_change_f
-            check = self._rechecks[kind] = {"t_s": t_s, "band": stats.band, "window": window, "f0_hz": est.f0_hz,
-                                            "zeta": est.zeta, "solution": solution, "result": None,
-                                            "submitted": False,
-                                            "tolerance": width + (noise if math.isfinite(noise) else 0.0)}
-        if not check["submitted"]:
-            if self.worker.busy(WINDOW):
-                return PENDING
-            check["submitted"] = True
-            window = check["window"]
-
-            def finished(fits, error: str | None) -> None:
-                check["result"] = (fits, error)
-
-            self.worker.submit(WINDOW, refit_each, (window.y, window.u, model.orders,
-                                                    (window.solution, check["solution"])), finished)
-        if check["result"] is None:
-            return PENDING
-        del self._rechecks[kind]
-        fits, error = check["result"]
-        damping, tolerance = kind == DAMPING, check["tolerance"]
-        r = judge(fits, model.dt, check["f0_hz"], check["zeta"], damping, tolerance, self._tie(kind)) \
-            if error is None else None
-        if r is None or not r.withhold:
-            return True
-        change = stats.excess_f(check["f0_hz"]) / stats.mean_f if stats.mean_f > 0 else math.nan
-        if not damping and 0.0 < abs(change) <= MINIMA_SPREAD_F:
-            self._accepted = {"band": stats.band, "visit": self._visit, "t_s": t_s, "tolerance": tolerance,
-                              "f0_hz": check["f0_hz"], "change": change}
-        window = check["window"]
-        what = f"{r.zeta:.4f}" if damping else f"{r.f0_hz:.3f} Hz"
-        whose = ("of this visit's first estimates" if self._of_visit(stats, kind) else
-                 f"cell {window.speed_rpm:.0f} rpm, {window.load_nm:.1f} Nm was learned from")
-        self.events.append(Event(
-            t_s, "withheld", f"{kind} alarm withheld: the data {whose} ({when_text(window.t_s)}), refitted from "
-            f"the current window solution, give {what}, {100 * r.change:+.1f} % from the current estimate, within the "
-            f"{100 * tolerance:.1f} % tolerance (dead band and the comparison's noise; loss "
-            f"{100 * r.loss_ratio:+.1f} % against their own solution): the estimate moved to another minimum "
-            f"of the criterion, not the driveline",
-            {"kind": kind, "change_pct": 100 * r.change, "tolerance_pct": 100 * tolerance,
-             "loss_ratio_pct": 100 * r.loss_ratio, "reference_t_s": window.t_s}))
-        return False
+        """Before a new drift alarm: the checks it must pass (:meth:`AlarmChecks.confirm`). True: raise it;
+        False: withhold it; None: a check runs in the worker (the detector asks again at its next interval)."""
+        return self.checks.confirm(kind, stats, t_s, model, self._estimate, self.baseline, self.detector,
+                                   self.comparison.visit, self.comparison.visit_ref)
 
     def _alert_out(self, alarm: Alarm, t_s: float) -> AlertOut:
         kind = AlertKind.FREQ_DRIFT if alarm.kind == "frequency" else AlertKind.DAMPING_DRIFT
@@ -814,40 +451,7 @@ class DetectionPolicy:
         if stats is not None:
             load = self._estimate.load_nm if self._estimate is not None else float("nan")
             cell = f"cell {alarm.speed_rpm:.0f} rpm" + (f", {load:.0f} Nm" if math.isfinite(load) else "")
-            alarm = dataclasses.replace(alarm, message=f"{alarm.message} ({cell}, against {_against(stats)})")
+            alarm = dataclasses.replace(alarm, message=f"{alarm.message} ({cell}, against {against_text(stats)})")
             data |= {"message": alarm.message, "baseline_kind": stats.kind, "baseline_source": stats.source}
         self._record(self._alert_out(alarm, alarm.detected_t_s), out, data)
 
-
-def _versus(why: str, est: OnlineEstimate, ref: BandStats) -> str:
-    """The disagreeing quantity of ``est`` against ``ref`` for an event: "26.412 Hz against 26.583 +- 0.053 Hz"."""
-    if why == FREQUENCY and ref.kind == "bracketed":
-        return f"{est.f0_hz:.3f} Hz against {_bounds(ref)}, +- {ref.std_f:.3f} Hz"
-    if why == FREQUENCY:
-        return f"{est.f0_hz:.3f} Hz against {ref.mean_f:.3f} +- {ref.std_f:.3f} Hz"
-    return f"zeta {est.zeta:.4f} against {ref.mean_zeta:.4f} +- {ref.std_zeta:.4f}"
-
-
-def _against(stats: BandStats) -> str:
-    """What an alarm was raised against, for people: "the learned baseline of 1500 rpm, 20 Nm (24.10 Hz), learned
-    from run 3", "the pooled baseline (...)", "the bounds of the learned cells of other loads (...)", "the first
-    estimates of this visit since t = 67.0 s (22.28 Hz)"."""
-    if stats.kind == "visit":
-        return (f"the first estimates of {stats.source} ({stats.mean_f:.2f} Hz"
-                + (f", zeta {stats.mean_zeta:.4f})" if stats.zeta_visit else
-                   "), the damping against the learned cells of other loads"))
-    what = (f"the pooled baseline ({stats.mean_f:.2f} Hz)" if stats.kind == "pooled" else
-            f"the bounds of the learned cells of other loads ({_bounds(stats)})" if stats.kind == "bracketed" else
-            f"the {stats.kind} baseline of {0.5 * (stats.band[0] + stats.band[1]):.0f} rpm"
-            + (f", {stats.load_nm:.0f} Nm" if math.isfinite(stats.load_nm) else "") + f" ({stats.mean_f:.2f} Hz)")
-    return (what + (f", learned from {stats.source}" if stats.source else "")
-            + (f", the damping against the first estimates of this visit ({stats.mean_zeta:.4f})"
-               if stats.zeta_visit else ""))
-
-
-def _bounds(stats: BandStats) -> str:
-    """A bracketed baseline's bounds for people: ``f0 >= 20.10 Hz``, ``f0 <= ...`` or ``20.10-20.50 Hz``."""
-    lo, hi = stats.bounds_f
-    if math.isfinite(lo) and math.isfinite(hi):
-        return f"{lo:.2f}-{hi:.2f} Hz"
-    return f"f0 >= {lo:.2f} Hz" if math.isfinite(lo) else f"f0 <= {hi:.2f} Hz"
