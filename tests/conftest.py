@@ -11,9 +11,9 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 @pytest.fixture(autouse=True)
 def _environment_as_it_was():
     """Put back the process environment after each test. A Dask ``LocalCluster``'s nannies write their workers'
-    pre-spawn variables into the calling process (``MALLOC_TRIM_THRESHOLD_=65536``, ``PYTHONHASHSEED``): left
-    there, every process a later test starts in this pytest worker inherits them, and that trim threshold alone
-    doubles numpy's CPU time in those processes."""
+    pre-spawn variables into the calling process (``PYTHONHASHSEED``, and with Dask's default configuration
+    ``MALLOC_TRIM_THRESHOLD_=65536``, which ``archive.runner.cluster`` unsets): left there, every process a later
+    test starts in this pytest worker would inherit them."""
     before = dict(os.environ)
     yield
     if os.environ != before:
