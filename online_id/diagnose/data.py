@@ -16,7 +16,7 @@ Optional auxiliary signals let the residual tests look for more effects:
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from functools import cached_property
 from dataclasses import dataclass, field
 
@@ -75,6 +75,13 @@ class DiagnoseData:
     joints: Mapping[str, np.ndarray] = field(default_factory=dict)
     shaft_rates: Mapping[str, float] = field(default_factory=dict)
     notes: Mapping[str, object] = field(default_factory=dict)
+    _derived: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def derived(self, key: object, make: Callable[[], np.ndarray]) -> np.ndarray:
+        """A signal derived from this record, computed once (``make()``) and kept under ``key``."""
+        if key not in self._derived:
+            self._derived[key] = make()
+        return self._derived[key]
 
     def __post_init__(self) -> None:
         u = np.asarray(self.u, dtype=float).ravel()

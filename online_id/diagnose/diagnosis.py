@@ -30,7 +30,7 @@ the simulation over the held-out part, started from the measured output.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -129,14 +129,53 @@ class Diagnosis:
     modes: list[dict] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     split: Split | None = None
+    channels: list["Channel"] = field(default_factory=list)
 
     @property
     def val_index(self) -> np.ndarray:
         """Held-out sample indices."""
         return (self.split or Split(len(self.data), self.n_est / len(self.data))).val_index
 
+    def summary(self, main: ErrorFigures | None = None, moved: dict[str, ErrorFigures] | None = None) -> float:
+        """The one summary over every channel: the mean of each channel's held-out one-step RMS relative to
+        its baseline's, the output's at ``main`` (default: after) and each shaft channel's at ``moved``
+        (default: before its own steps)."""
+        main = main or self.error_after
+        moved = moved or {}
+        rel = [main.rms / self.error_before.rms if self.error_before.rms > 0 else 1.0]
+        for c in self.channels:
+            f = moved.get(c.shaft, c.error_before)
+            rel.append(f.rms / c.error_before.rms if c.error_before.rms > 0 else 1.0)
+        return float(np.mean(rel))
+
+    def ordered_effects(self) -> list[tuple[str, "EffectStep", float, float]]:
+        """Every accepted step as ``(channel, step, summary before, summary after)``: the output's steps in
+        order, then the shaft channels' by what they explained (largest first)."""
+        out, moved = [], {}
+        for e in self.effects:
+            out.append(("", e, self.summary(e.error_before), self.summary(e.error_after)))
+        rest = sorted(((c, e) for c in self.channels for e in c.effects), key=lambda ce: -ce[1].explained_variance)
+        for c, e in rest:
+            before = self.summary(moved=moved)
+            moved[c.shaft] = e.error_after
+            out.append((c.shaft, e, before, self.summary(moved=moved)))
+        return out
+
     def as_dict(self) -> dict:
         s = self.baseline
+        effects = []
+        for channel, e, before, after in self.ordered_effects():
+            base = next((c.error_before for c in self.channels if c.shaft == channel), self.error_before)
+            doc = e.as_dict(base)
+            if channel:
+                doc["channel"] = channel
+                doc["accepted_on"]["channels"] = [f"{channel} speed (one-step)"]
+            if self.channels:
+                doc["summary_before"], doc["summary_after"] = before, after
+                doc["error_before"]["rms"], doc["error_after"]["rms"] = before, after
+            effects.append(doc)
+        after = self.summary(moved={c.shaft: c.error_after for c in self.channels})
+        summary = {"rms": after, "summary": CHANNEL_SUMMARY} if self.channels else {}
         return {
             "source": self.data.source,
             "input": self.data.input_name, "output": self.data.output_name,
@@ -147,14 +186,47 @@ class Diagnosis:
             "recording": dict(self.data.notes),
             "shaft_rates": dict(self.data.shaft_rates),
             "warnings": list(self.warnings),
-            "effects": [e.as_dict(self.error_before) for e in self.effects],
-            "error_before": error_doc(self.error_before, self.error_before),
-            "error_after": error_doc(self.error_after, self.error_before),
+            "effects": effects,
+            "error_before": {**error_doc(self.error_before, self.error_before),
+                             **({"summary": CHANNEL_SUMMARY} if self.channels else {})},
+            "error_after": {**error_doc(self.error_after, self.error_before), **summary},
+            "channels": [c.as_dict() for c in self.channels],
             "tests_before": [_test_dict(t) for t in self.tests_before],
             "tests_after": [_test_dict(t) for t in self.tests_after],
             "candidates": [c.__dict__ for c in self.candidates],
             "stop_reason": self.stop_reason,
         }
+
+
+CHANNEL_SUMMARY = ("mean over the channels (the output and each angle-measured shaft's speed) of the held-out "
+                   "one-step RMS relative to the channel's baseline")
+
+
+@dataclass
+class Channel:
+    """The diagnosis of one angle-measured shaft's speed: its own baseline (the torques acting on the shaft:
+    the input and the linear twist and twist rate of its neighbouring joints), its own held-out error and
+    the effects found on it."""
+
+    shaft: str
+    output: str
+    baseline: Structure
+    joints: tuple[str, ...]
+    effects: list[EffectStep]
+    error_before: ErrorFigures
+    error_after: ErrorFigures
+    candidates: list[Candidate]
+    stop_reason: str
+
+    def as_dict(self) -> dict:
+        s = self.baseline
+        return {"shaft": self.shaft, "output": self.output, "joints": list(self.joints),
+                "baseline": {"na": s.na, "nb": s.nb + s.delay, "nc": s.nc, "nk": s.nk,
+                             "terms": "input, " + ", ".join(f"twist and twist rate of {j}" for j in self.joints)},
+                "effects": [e.kind for e in self.effects],
+                "error_before": error_doc(self.error_before, self.error_before),
+                "error_after": error_doc(self.error_after, self.error_before),
+                "candidates": [c.__dict__ for c in self.candidates], "stop_reason": self.stop_reason}
 
 
 def _test_dict(t: ResidualTest) -> dict:
@@ -240,7 +312,7 @@ def _build(kind: str, hint: dict, data: DiagnoseData, cur: AugmentedFit, split: 
         joint = hint.get("joint", "")
         if (data.torsion is None and not joint) or any(t.kind == kind for t in s.terms):
             return None
-        ref = fit_structure(data, s.with_term(fx.LinearTorsion(joint=joint)), split)
+        ref = fit_structure(data, _with(s, fx.LinearTorsion(joint=joint)), split)
         new = fx.search_backlash(data, ref.structure, split, ref.C, joint)
         model = fit_structure(data, new, split)
         return model, _params(kind, model, cur, data), ref.errors(data)
@@ -249,8 +321,8 @@ def _build(kind: str, hint: dict, data: DiagnoseData, cur: AugmentedFit, split: 
             return None
         joint = hint.get("joint", "")
         if joint:  # judged on what it adds to the joint's linear twist and relative speed
-            ref = fit_structure(data, s.with_term(fx.LinearTorsion(joint=joint))
-                                .with_term(fx.LinearSlip(joint, fx.friction_lags(s))), split)
+            ref = fit_structure(data, _with(_with(s, fx.LinearTorsion(joint=joint)),
+                                            fx.LinearSlip(joint, fx.friction_lags(s))), split)
             model = fit_structure(data, fx.coulomb_structure(data, ref.structure, joint), split)
             return model, _params(kind, model, cur, data), ref.errors(data)
         new = fx.coulomb_structure(data, s)
@@ -261,6 +333,11 @@ def _build(kind: str, hint: dict, data: DiagnoseData, cur: AugmentedFit, split: 
         return None
     model = fit_structure(data, new, split)
     return model, _params(kind, model, cur, data, hint), None
+
+
+def _with(s: Structure, term: object) -> Structure:
+    """``s`` with ``term`` unless it has it (a shaft channel's baseline holds its joints' linear terms)."""
+    return s if term in s.terms else s.with_term(term)
 
 
 def _params(kind: str, model: AugmentedFit, cur: AugmentedFit, data: DiagnoseData,
@@ -447,6 +524,176 @@ def _smallest_sufficient(candidates, cost: Callable[[int], float], tol: float) -
     return prev[0]
 
 
+def _search(data: DiagnoseData, cur: Model, split: Split, horizon: int | None, tests: list[ResidualTest],
+            fig: ErrorFigures, e_cur: np.ndarray, held_lines: list[tuple[str, dict]], *, max_effects: int,
+            min_explained: float, max_delay: int, report: Callable[[float, str], None],
+            kinds: tuple[str, ...] | None = None) -> tuple:
+    """The steps of a diagnosis on one output from model ``cur`` (see module notes); ``kinds``: the candidate
+    kinds looked at (``None``: all).  Returns ``(steps, model, errors, figures, tests, candidates, stop)``."""
+    val = split.val_index
+    lags = cur.structure.input_lags
+    steps, evaluated = [], []
+    stop = f"max_effects={max_effects} reached"
+    for step in range(max_effects):
+        if step > 0 and all(t.passed for t in tests):
+            stop = "the residual passes every test"
+            break
+        if isinstance(cur, WienerAbsFit):
+            stop = "absolute-value sensor model: no further extensions"
+            break
+        cands = [c for t in tests for c in t.candidates] + (held_lines if step == 0 else [])
+        cands.append(("sensor_delay", {"lag_samples": 0}))
+        if kinds is not None:
+            cands = [c for c in cands if c[0] in kinds]
+        cands = _dedupe([c if c[0] != "additional_mode" else ("additional_mode", {}) for c in cands])
+        r_cur = (data.y - _sim(cur, data, split, horizon))[val]
+        # an order term is fitted with A, B, C held; a candidate that refits the whole structure (delay,
+        # mode, line, friction) is judged against the same refit without its change, so that it is not
+        # credited with what the refit of the order term alone gains (a "sensor delay" took 34 % so)
+        refit = None
+        if isinstance(cur, AugmentedFit) and any(t.kind == "rotation_order_disturbance" for t in cur.structure.terms):
+            refit = fit_structure(data, cur.structure, split).errors(data)
+        best = None
+        seen: set[tuple[str, str]] = set()
+        for i, (kind, hint) in enumerate(cands):
+            report((step + i / len(cands)) / max_effects, f"step {step + 1}: {kind}")
+            try:
+                built = _build(kind, hint, data, cur, split, max_delay)
+            except EstimationError:
+                continue
+            if built is None:
+                continue
+            model, params, e_ref = built
+            key = (kind, repr(sorted(params.items())))
+            if key in seen:  # two hints that fit the same model (a delay found by a test and the one always tried)
+                continue
+            seen.add(key)
+            e_new = model.errors(data)
+            if not np.all(np.isfinite(e_new[val])):
+                continue
+            e_base = e_cur if e_ref is None else e_ref
+            if e_ref is None and refit is not None and kind != "rotation_order_disturbance":
+                e_base = refit
+            explained = 1.0 - float(np.mean(e_new[val] ** 2)) / float(np.mean(e_base[val] ** 2))
+            t = _t_stat(e_base[val], e_new[val])
+            basis = "one_step"
+            ysim_new = _sim(model, data, split, horizon)
+            r_new = (data.y - ysim_new)[val]
+            if not np.all(np.isfinite(r_new)):
+                continue
+            if e_ref is None and kind in SIM_BASIS_KINDS:
+                # terms that are functions of the output see the measured output one step ahead: their
+                # gain shows only in simulation.  Linear changes (orders, lines, delays, modes) are judged
+                # on the one-step error they were fitted on: a refit that shifts the simulation says
+                # nothing about the effect (on a rig, a one-sample delay "explained" 67 % of the
+                # simulation error and 1 % of the one-step error, ahead of a true order line)
+                x_sim = 1.0 - float(np.mean(r_new**2)) / float(np.mean(r_cur**2))
+                t_sim = _t_stat(r_cur, r_new)
+                if x_sim > explained and t_sim >= T_CRIT:
+                    explained, t, basis = x_sim, t_sim, "simulation"
+            # a line on the rig's order grid passed a test calibrated on clean rigs (its power over the
+            # local floor); a narrow line holds a small share of a broadband residual, so it needs only
+            # the held-out significance, not the share; so does a joint's dead zone or friction (crossed
+            # or slipping at the joint's reversals only), screened by its own test.  Every candidate must
+            # remove more than the held-out error's own uncertainty (materiality)
+            need = max(materiality(e_base[val]), 0.0 if "line_ratio" in hint or hint.get("joint") else min_explained)
+            ok = explained >= need and (t >= T_CRIT or hint.get("held_out_ratio", 0.0) >= RIG_SPLIT_RATIO)
+            rms_new = float(np.sqrt(np.mean(e_new[val] ** 2)))
+            fit_new = fit_percent(data.y[val], ysim_new[val])
+            refused = _guard(fig, rms_new, fit_new) if ok else ""
+            if ok and params.get("unresolved"):
+                refused = ("the added poles are no pole pair below the Nyquist frequency (real or alternating "
+                           "poles of the equation error): not a mode")
+            if ok and "rotation_line" in params:
+                line = params["rotation_line"]
+                refused = (f"the added pole pair is a rotation-order line (order {line['order']:g} of shaft "
+                           f"{line['shaft']!r}, damping {params['damping']:.4f}), not a mode")
+            evaluated.append(Candidate(step + 1, kind, params, explained, t, ok, rms_new, fit_new,
+                                       ok and not refused, refused))
+            if ok and not refused and (best is None or explained > best[0]):
+                best = (explained, t, kind, params, model, basis)
+                if "locked_to" in params:
+                    best = (explained, t, "rotation_order_disturbance",
+                            {**params.pop("locked_to"), "freq_hz": params["freq_hz"],
+                             "note": "one operating point: a line fixed in Hz at a multiple of the shaft's rate "
+                                     "cannot be told from a rotation order; named the order"}, model, basis)
+        if best is None:
+            stop = ("no candidate effect improves the held-out error significantly"
+                    + (" (the residual passes every test)" if all(t.passed for t in tests) else ""))
+            break
+        explained, t, kind, params, model, basis = best
+        fig_new, e_new = _figures(model, data, split, horizon)
+        steps.append(EffectStep(kind, params, explained, t, fig, fig_new, basis))
+        cur, e_cur, fig = model, e_new, fig_new
+        tests = run_tests(data, e_cur, val, lags, isinstance(cur, WienerAbsFit))
+    else:
+        if all(t.passed for t in tests):
+            stop = "the residual passes every test"
+    return steps, cur, e_cur, fig, tests, evaluated, stop
+
+
+CHANNEL_GRID = (2, 4, 8, 12)
+CHANNEL_NC = 4
+CHANNEL_KINDS = ("rotation_order_disturbance", "fixed_frequency_disturbance", "additional_mode", "backlash",
+                 "coulomb_friction")
+"""What a shaft channel looks for: lines, modes and its joints' dead zone and friction (a sensor's delay is
+judged on the output, whose input it shifts)."""
+
+
+def output_shaft(data: DiagnoseData) -> str | None:
+    """The shaft whose speed the output is (within 1 % of its spread), if any."""
+    for name, w in data.shaft_speeds_rad_s.items():
+        if np.sqrt(np.mean((data.y - w) ** 2)) <= 0.01 * max(float(np.std(w)), 1e-12):
+            return name
+    return None
+
+
+def neighbour_joints(data: DiagnoseData, shaft: str) -> tuple[str, ...]:
+    """The joints (``a-b``) with ``shaft`` on one side."""
+    return tuple(j for j in data.joints if j.startswith(f"{shaft}-") or j.endswith(f"-{shaft}"))
+
+
+def shaft_channels(data: DiagnoseData) -> list[tuple[str, DiagnoseData]]:
+    """A channel per shaft at a joint of the rig (measured by angle) other than the output's: the record with
+    that shaft's speed as the output and its neighbouring joints only."""
+    if len(data.shaft_rates) < 2 or not data.joints:
+        return []
+    own = output_shaft(data)
+    out = []
+    for name, w in data.shaft_speeds_rad_s.items():
+        near = neighbour_joints(data, name)
+        if name == own or not near:
+            continue
+        out.append((name, replace(data, y=w, output_name=f"{name} speed", velocity=None, output_is_velocity=True,
+                                  torsion=None, joints={j: data.joints[j] for j in near})))
+    return out
+
+
+def diagnose_channel(shaft: str, data: DiagnoseData, split: Split, *, nc: int, horizon: int | None,
+                     min_explained: float, max_effects: int = 1) -> Channel:
+    """One shaft's channel: its baseline (ARMAX of its speed from the input and its joints' linear twist and
+    twist rate, ``na`` from :data:`CHANNEL_GRID`) and the steps of :func:`_search` on it (kinds
+    :data:`CHANNEL_KINDS`)."""
+    joints = tuple(data.joints)
+    na = _smallest_sufficient(CHANNEL_GRID, lambda n: fit_structure(data, _channel_structure(data, n, 0, joints),
+                                                                     split).V_est, NA_TOL)
+    cur = fit_structure(data, _channel_structure(data, na, nc, joints), split)
+    fig0, e0 = _figures(cur, data, split, horizon)
+    tests0 = run_tests(data, e0, split.val_index, cur.structure.input_lags)
+    steps, cur, e_cur, fig, tests, evaluated, stop = _search(
+        data, cur, split, horizon, tests0, fig0, e0, [], max_effects=max_effects, min_explained=min_explained,
+        max_delay=0, report=lambda f, m: None, kinds=CHANNEL_KINDS)
+    return Channel(shaft, data.output_name, _channel_structure(data, na, nc, joints), joints, steps, fig0, fig,
+                   evaluated, stop)
+
+
+def _channel_structure(data: DiagnoseData, na: int, nc: int, joints: tuple[str, ...]) -> Structure:
+    s = Structure(na, na, nc, 1)
+    for j in joints:
+        s = s.with_term(fx.LinearTorsion(joint=j)).with_term(fx.LinearSlip(j, fx.friction_lags(s)))
+    return s
+
+
 def diagnose(data: DiagnoseData, *, na: int | None, nb: int | None, nc: int, nk: int = 1, input_lead: int | None = None,
              estimation_fraction: float = 0.6, min_explained: float = 0.1,
              max_effects: int = 3, max_delay_samples: int = 25,
@@ -522,101 +769,18 @@ def diagnose(data: DiagnoseData, *, na: int | None, nb: int | None, nc: int, nk:
     warnings = fit_warnings(cur, data, split, modes) + line_warnings(modes)
     held_lines = [("rotation_order_disturbance", {"shaft": m["line"]["shaft"], "order": m["line"]["order"],
                                                   "held": True}) for m in modes if "line" in m]
-    tests, fig, steps, evaluated = tests0, fig0, [], []
-    stop = f"max_effects={max_effects} reached"
-    for step in range(max_effects):
-        if step > 0 and all(t.passed for t in tests):
-            stop = "the residual passes every test"
-            break
-        if isinstance(cur, WienerAbsFit):
-            stop = "absolute-value sensor model: no further extensions"
-            break
-        cands = [c for t in tests for c in t.candidates] + (held_lines if step == 0 else [])
-        cands.append(("sensor_delay", {"lag_samples": 0}))
-        cands = _dedupe([c if c[0] != "additional_mode" else ("additional_mode", {}) for c in cands])
-        r_cur = (data.y - _sim(cur, data, split, horizon))[val]
-        # an order term is fitted with A, B, C held; a candidate that refits the whole structure (delay,
-        # mode, line, friction) is judged against the same refit without its change, so that it is not
-        # credited with what the refit of the order term alone gains (a "sensor delay" took 34 % so)
-        refit = None
-        if isinstance(cur, AugmentedFit) and any(t.kind == "rotation_order_disturbance" for t in cur.structure.terms):
-            refit = fit_structure(data, cur.structure, split).errors(data)
-        best = None
-        seen: set[tuple[str, str]] = set()
-        for i, (kind, hint) in enumerate(cands):
-            report((step + i / len(cands)) / max_effects, f"step {step + 1}: {kind}")
-            try:
-                built = _build(kind, hint, data, cur, split, max_delay_samples)
-            except EstimationError:
-                continue
-            if built is None:
-                continue
-            model, params, e_ref = built
-            key = (kind, repr(sorted(params.items())))
-            if key in seen:  # two hints that fit the same model (a delay found by a test and the one always tried)
-                continue
-            seen.add(key)
-            e_new = model.errors(data)
-            if not np.all(np.isfinite(e_new[val])):
-                continue
-            e_base = e_cur if e_ref is None else e_ref
-            if e_ref is None and refit is not None and kind != "rotation_order_disturbance":
-                e_base = refit
-            explained = 1.0 - float(np.mean(e_new[val] ** 2)) / float(np.mean(e_base[val] ** 2))
-            t = _t_stat(e_base[val], e_new[val])
-            basis = "one_step"
-            ysim_new = _sim(model, data, split, horizon)
-            r_new = (data.y - ysim_new)[val]
-            if not np.all(np.isfinite(r_new)):
-                continue
-            if e_ref is None and kind in SIM_BASIS_KINDS:
-                # terms that are functions of the output see the measured output one step ahead: their
-                # gain shows only in simulation.  Linear changes (orders, lines, delays, modes) are judged
-                # on the one-step error they were fitted on: a refit that shifts the simulation says
-                # nothing about the effect (on a rig, a one-sample delay "explained" 67 % of the
-                # simulation error and 1 % of the one-step error, ahead of a true order line)
-                x_sim = 1.0 - float(np.mean(r_new**2)) / float(np.mean(r_cur**2))
-                t_sim = _t_stat(r_cur, r_new)
-                if x_sim > explained and t_sim >= T_CRIT:
-                    explained, t, basis = x_sim, t_sim, "simulation"
-            # a line on the rig's order grid passed a test calibrated on clean rigs (its power over the
-            # local floor); a narrow line holds a small share of a broadband residual, so it needs only
-            # the held-out significance, not the share; so does a joint's dead zone or friction (crossed
-            # or slipping at the joint's reversals only), screened by its own test.  Every candidate must
-            # remove more than the held-out error's own uncertainty (materiality)
-            need = max(materiality(e_base[val]), 0.0 if "line_ratio" in hint or hint.get("joint") else min_explained)
-            ok = explained >= need and (t >= T_CRIT or hint.get("held_out_ratio", 0.0) >= RIG_SPLIT_RATIO)
-            rms_new = float(np.sqrt(np.mean(e_new[val] ** 2)))
-            fit_new = fit_percent(data.y[val], ysim_new[val])
-            refused = _guard(fig, rms_new, fit_new) if ok else ""
-            if ok and params.get("unresolved"):
-                refused = ("the added poles are no pole pair below the Nyquist frequency (real or alternating "
-                           "poles of the equation error): not a mode")
-            if ok and "rotation_line" in params:
-                line = params["rotation_line"]
-                refused = (f"the added pole pair is a rotation-order line (order {line['order']:g} of shaft "
-                           f"{line['shaft']!r}, damping {params['damping']:.4f}), not a mode")
-            evaluated.append(Candidate(step + 1, kind, params, explained, t, ok, rms_new, fit_new,
-                                       ok and not refused, refused))
-            if ok and not refused and (best is None or explained > best[0]):
-                best = (explained, t, kind, params, model, basis)
-                if "locked_to" in params:
-                    best = (explained, t, "rotation_order_disturbance",
-                            {**params.pop("locked_to"), "freq_hz": params["freq_hz"],
-                             "note": "one operating point: a line fixed in Hz at a multiple of the shaft's rate "
-                                     "cannot be told from a rotation order; named the order"}, model, basis)
-        if best is None:
-            stop = ("no candidate effect improves the held-out error significantly"
-                    + (" (the residual passes every test)" if all(t.passed for t in tests) else ""))
-            break
-        explained, t, kind, params, model, basis = best
-        fig_new, e_new = _figures(model, data, split, horizon)
-        steps.append(EffectStep(kind, params, explained, t, fig, fig_new, basis))
-        cur, e_cur, fig = model, e_new, fig_new
-        tests = run_tests(data, e_cur, val, lags, isinstance(cur, WienerAbsFit))
-    else:
-        if all(t.passed for t in tests):
-            stop = "the residual passes every test"
+    steps, cur, e_cur, fig, tests, evaluated, stop = _search(
+        data, cur, split, horizon, tests0, fig0, e_cur, held_lines, max_effects=max_effects,
+        min_explained=min_explained, max_delay=max_delay_samples, report=report)
+    channels = []
+    shafts = shaft_channels(data)
+    for i, (shaft, cdata) in enumerate(shafts):
+        report(1.0, f"channel {shaft} ({i + 1}/{len(shafts)})")
+        try:
+            channels.append(diagnose_channel(shaft, cdata, split, nc=min(nc, CHANNEL_NC), horizon=horizon,
+                                             min_explained=min_explained))
+        except EstimationError as exc:
+            warnings.append(f"channel {shaft!r}: not diagnosed ({exc})")
     report(1.0, "done")
     return Diagnosis(data, split.n_est, baseline, steps, fig0, fig, tests0, tests,
-                     e0, e_cur, evaluated, stop, modes, warnings, split)
+                     e0, e_cur, evaluated, stop, modes, warnings, split, channels)
