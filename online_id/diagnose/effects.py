@@ -171,6 +171,24 @@ class LinearTorsion:
 
 
 @dataclass(frozen=True)
+class ShaftTorque:
+    """A measured torque acting on ``shaft`` (``data.torques``) at the lags of ``B``: an input of the shaft's
+    channel besides the record's input."""
+
+    shaft: str
+    kind: str = "shaft_torque"
+
+    def columns(self, data: DiagnoseData, lags: np.ndarray) -> np.ndarray:
+        return lag_matrix(data.torques[self.shaft], lags)
+
+    def output_static(self) -> None:
+        return None
+
+    def params(self) -> dict:
+        return {}
+
+
+@dataclass(frozen=True)
 class CoulombTerm:
     """Friction force :math:`F_c\\,\\mathrm{sign}(v)` entering like the input."""
 
