@@ -148,13 +148,24 @@ class Diagnosis:
             rel.append(f.rms / c.error_before.rms if c.error_before.rms > 0 else 1.0)
         return float(np.mean(rel))
 
+    def support(self, e: "EffectStep") -> float:
+        """What a shaft channel's step explains; for a joint's friction or dead zone, which act on both of the
+        joint's sides, the sum of what the same kind in the same joint explains (held out, first step) on every
+        channel that borders the joint (the output's included)."""
+        joint = e.params.get("joint")
+        if not joint:
+            return e.explained_variance
+        cands = list(self.candidates) + [k for c in self.channels for k in c.candidates]
+        return float(sum(max(k.explained_variance, 0.0) for k in cands
+                         if k.step == 1 and k.kind == e.kind and k.params.get("joint") == joint))
+
     def ordered_effects(self) -> list[tuple[str, "EffectStep", float, float]]:
         """Every accepted step as ``(channel, step, summary before, summary after)``: the output's steps in
-        order, then the shaft channels' by what they explained (largest first)."""
+        order, then the shaft channels' by their :meth:`support` (largest first)."""
         out, moved = [], {}
         for e in self.effects:
             out.append(("", e, self.summary(e.error_before), self.summary(e.error_after)))
-        rest = sorted(((c, e) for c in self.channels for e in c.effects), key=lambda ce: -ce[1].explained_variance)
+        rest = sorted(((c, e) for c in self.channels for e in c.effects), key=lambda ce: -self.support(ce[1]))
         for c, e in rest:
             before = self.summary(moved=moved)
             moved[c.shaft] = e.error_after
