@@ -24,7 +24,7 @@ filtering,
 and the minimisation is a trust-region Gauss-Newton: by default scipy's
 ``least_squares(method="trf")`` iteration, with each step's subproblem reduced
 by a QR factorisation of the :math:`n \\times d` Jacobian instead of an SVD
-(:mod:`online_id.estimation.trust_region`: the same steps, a fifth of the cost); or, with ``solver="lm"``, a
+(:mod:`online_id.estimation.trust_region`: the same steps, the factorisation at a fifth to a third of the cost); or, with ``solver="lm"``, a
 Levenberg-Marquardt iteration on the normal equations, whose Jacobian is
 formed and reduced to :math:`J^T J` and :math:`J^T \\varepsilon` block by
 block (a few MB whatever :math:`n`), about ten times faster per step.  Its
