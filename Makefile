@@ -25,10 +25,10 @@ demo: $(STAMP)
 system-deps:
 	scripts/install-system-deps
 
-## Run the whole test suite: everything but the live and vcan tiers natively on both cores (pytest-xdist),
-## then, side by side, the live tier (the service as its own process over kernel sockets, at real time) and
-## the vcan tier on a real SocketCAN vcan0 (natively, or inside another kernel when this one has no vcan:
-## scripts/vm-run). Lists the slowest tests and each tier's time; fails if any part fails (scripts/test-all,
+## Run the whole test suite: the live tier (the service as its own process over kernel sockets, at real time)
+## and the vcan tier on a real SocketCAN vcan0 (natively, or inside another kernel when this one has no vcan:
+## scripts/vm-run) in the background, beside everything else natively on both cores (pytest-xdist, at a lower
+## priority). Lists the slowest tests and each tier's time; fails if any part fails (scripts/test-all,
 ## docs/testing.md).
 test: system-deps $(STAMP)
 	scripts/test-all $(PY) $(PYTEST_ARGS)

@@ -127,11 +127,13 @@ def test_the_store_appends_parts_reads_each_row_once_and_refuses_a_second_writer
 
 
 def test_the_runner_keeps_submission_order_and_turns_failures_into_outcomes():
+    before = dict(os.environ)
     with cluster(workers=2) as client:
         outs = map_tasks(client, _square_or_fail, list(range(7)), quiet=True)
         # the workers run with glibc's own trim threshold, not Dask's eager one (it costs the fits CPU)
         trim = client.run(os.environ.get, "MALLOC_TRIM_THRESHOLD_")
     assert set(trim.values()) == {None}
+    assert dict(os.environ) == before  # the nannies' pre-spawn variables (PYTHONHASHSEED) are not left behind
     assert [o.index for o in outs] == list(range(7))
     assert [o.value for o in outs if o.ok] == [0, 1, 4, 16, 25, 36]
     bad = outs[3]

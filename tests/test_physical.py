@@ -59,3 +59,20 @@ def test_frequency_response_of_discrete_model():
     h = frequency_response(b, a, f, dt)
     zinv = np.exp(-2j * np.pi * f * dt)
     assert np.allclose(h, 0.5 * zinv / (1 - 0.5 * zinv))
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_the_response_fits_jacobian_is_the_residuals_derivative(seed):
+    from scipy.optimize._numdiff import approx_derivative
+
+    from online_id.analysis.physical import _log_residual, _log_residual_jacobian
+
+    rng = np.random.default_rng(seed)
+    f0 = rng.uniform(5, 80)
+    f = np.linspace(0.2 * f0, 3 * f0, int(rng.integers(20, 200)))
+    s = 2j * np.pi * f
+    x = np.array([rng.uniform(-3, 3), 2 * np.pi * f0 * rng.uniform(0.2, 0.95), rng.uniform(0.01, 0.5),
+                  2 * np.pi * f0 * rng.uniform(0.01, 0.5), rng.uniform(-0.01, 0.01)])
+    log_meas = rng.standard_normal(f.size) * 0.1 + 1j * rng.uniform(-0.5, 0.5, f.size)
+    num = approx_derivative(lambda v: _log_residual(v, s, 2 * np.pi * f0, 0.05, log_meas), x, method="3-point")
+    np.testing.assert_allclose(_log_residual_jacobian(x, s), num, rtol=1e-5, atol=1e-6)

@@ -22,7 +22,7 @@ from online_id.estimation.pem import fit_armax
 from online_id.estimation.reference import ReferenceWindow, judge, refit_each
 from online_id.io.statefile import save_state
 from online_id.service.offload import InlineWorker
-from online_id.service.pipeline import run_bench_data
+from online_id.service.pipeline import Pipeline, run_bench_data
 from online_id.service.restore import restore_pipeline
 from online_id.records import AlertKind
 
@@ -212,9 +212,18 @@ class _DeferredWorker(InlineWorker):
 
 
 @pytest.mark.slow
-def test_the_recheck_waits_for_a_worker_that_answers_later():
+def test_the_recheck_waits_for_a_worker_that_answers_later(monkeypatch):
     """With results one poll later (the live service), the recheck gives the inline verdicts: a baseline of
-    another minimum is withheld, a real change alarmed; the second look is not run again while it waits."""
+    another minimum is withheld, a real change alarmed; the second look is not run again while it waits. The
+    recheck is window work like a refit: while it is in flight it counts in the pipeline's slow-work lag."""
+    window_jobs = []
+    submit = Pipeline._submit_window
+
+    def recorded(self, fn, args, done):
+        window_jobs.append(fn.__name__)
+        submit(self, fn, args, done)
+
+    monkeypatch.setattr(Pipeline, "_submit_window", recorded)
     seed, shift = 33, 1.015
     sc, settings = _bench(seed, 60.0)
     first = run_bench_data(simulate_bench(sc).to_data("day 1"), settings, run_label="day 1")
@@ -225,6 +234,7 @@ def test_the_recheck_waits_for_a_worker_that_answers_later():
                              state=_shift_cells(first.get_state(), shift), run_label="day 2")
     assert not [a for a in healthy.alerts if a.kind == AlertKind.FREQ_DRIFT], healthy.alerts
     assert [e for e in healthy.events if e.kind == "withheld" and "another minimum" in e.message]
+    assert "refit_each" in window_jobs  # the recheck's fits went through the window lane's bookkeeping
     changed = dataclasses.replace(later, faults=(Fault(15.0, stiffness_factor=0.9),))
     faulty = run_bench_data(simulate_bench(changed).to_data("day 2"), settings, worker=_DeferredWorker(),
                             state=_shift_cells(first.get_state(), shift), run_label="day 2")

@@ -46,3 +46,29 @@ def test_the_service_restores_a_saved_state(tmp_path):
     pipe = restore_pipeline(SAVED, Settings(), said.append)
     assert pipe is not None, said
     assert _doc(pipe.get_state()) == _doc(load_state(SAVED))
+
+
+def test_relearn_from_a_log_forgets_what_the_relearn_command_forgets(tmp_path, capsys):
+    """``relearn --from LOG`` learns into a state whose baselines, reference solutions and windows and engaged
+    flank are all gone first (a repaired shaft must not be rechecked against the old one's windows)."""
+    import shutil
+
+    from online_id.cli import main
+    from online_id.offline.replay import state_file
+
+    state_dir = tmp_path / "state"
+    state_dir.mkdir()
+    shutil.copy(SAVED, state_file(state_dir))
+    cfg = tmp_path / "short.yaml"
+    cfg.write_text("operating_points: [{speed_rpm: 1500, duration_s: 3}]\nseed: 4\n")
+    log = tmp_path / "short.log"
+    assert main(["simulate", "--config", str(cfg), "--out", str(tmp_path / "s.csv"), "--can-log", str(log)]) == 0
+    assert main(["relearn", "--from", str(log), "--state", str(state_dir)]) == 0
+    assert "0 cells learned" in capsys.readouterr().out
+    after = load_state(state_file(state_dir))
+    commanded = Pipeline(Settings())
+    commanded.load_state(load_state(SAVED))
+    commanded.on_command(2, 0.0)  # RELEARN
+    for key in ("references", "windows", "engaged"):
+        assert _doc(after)[key] == _doc(commanded.get_state())[key], key
+    assert not after["references"] and not after["windows"] and not after["engaged"]["learned"]

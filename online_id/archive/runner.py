@@ -160,6 +160,9 @@ def cluster(scheduler: str | None = None, workers: int = 2, *, quiet: bool = Fal
     # Dask's nannies set MALLOC_TRIM_THRESHOLD_=65536 in their workers (and in this process): glibc then gives
     # freed memory back to the system so eagerly that the fits' linear algebra pays for fresh pages again and
     # again (measured: 1.5-2x the CPU of the same cases); the default threshold of glibc is kept instead
+    # the nannies also write their workers' pre-spawn variables (PYTHONHASHSEED ...) into this process's
+    # environment: it is put back when the cluster closes, so no process started later inherits them
+    environ = dict(os.environ)
     with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
         local = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
                              dashboard_address=dashboard, memory_limit=memory_limit, env=env,
@@ -170,6 +173,9 @@ def cluster(scheduler: str | None = None, workers: int = 2, *, quiet: bool = Fal
     finally:
         client.close()
         local.close()
+        if os.environ != environ:
+            os.environ.clear()
+            os.environ.update(environ)
 
 
 def dashboard_note(client: Any) -> str | None:

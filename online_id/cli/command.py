@@ -179,7 +179,7 @@ def relearn_from(log: str, directory: Path | None, settings) -> int:
     runtime = Runtime(settings)
     restored = restore(runtime, path)
     pipe = runtime.pipeline
-    pipe.policy.forget_baselines()
+    pipe.policy.relearn()  # what the RELEARN command forgets, the engaged flank and reference windows too
     pipe.alerts.clear()
     pipe.run_label = f"reference run {Path(log).name}"
     pipe.reference_run = True

@@ -574,6 +574,15 @@ class Projector:
         den = float(xo @ xo)
         return float(self.r @ xo) ** 2 / den / self.ssr if den > 0 and self.ssr > 0 else 0.0
 
+    def shares(self, X: np.ndarray) -> np.ndarray:
+        """:meth:`share` of each column of ``X`` alone (one product for all of them)."""
+        xo = self.off(X)
+        den = np.einsum("ij,ij->j", xo, xo)
+        if self.ssr <= 0:
+            return np.zeros(X.shape[1])
+        num = (self.r @ xo) ** 2
+        return np.divide(num, den * self.ssr, out=np.zeros_like(num), where=den > 0)
+
     def share_of(self, x: np.ndarray) -> float:
         """Share of the residual sum of squares that the columns ``x`` (2-D) remove together."""
         xo = self.off(x)
@@ -603,16 +612,18 @@ def search_backlash(series: BenchSeries, spec: Spec) -> TwistTerm:
             phi = design(p, spec, eq)[p.est]
             proj[p.index, eq] = Projector(phi, output(p, eq)[p.est])
 
-    def score(p: PlateauSignals, gap: float, c: float) -> float:
-        x = np.clip(p.twist - c, -0.5 * gap, 0.5 * gap)[p.rows - SEARCH_LAG][p.est]
-        return sum(proj[p.index, eq].share(x) for eq in EQS)
+    def scores(p: PlateauSignals, gap: float, cs: np.ndarray) -> np.ndarray:
+        """The summed share of each centre of ``cs`` at ``gap``."""
+        twist = p.twist[p.rows - SEARCH_LAG][p.est]
+        X = np.clip(twist[:, None] - np.asarray(cs)[None, :], -0.5 * gap, 0.5 * gap)
+        return sum(proj[p.index, eq].shares(X) for eq in EQS)
 
     def best_centres(gaps: np.ndarray, centres: list[np.ndarray]) -> tuple[float, tuple[float, ...], float]:
         best = (-np.inf, 0.0, ())
         for g in gaps:
             total, picks = 0.0, []
             for p, cs in zip(ps, centres):
-                vals = [score(p, g, c) for c in cs]
+                vals = scores(p, g, cs)
                 i = int(np.argmax(vals))
                 total += vals[i]
                 picks.append(float(cs[i]))

@@ -21,9 +21,10 @@ filtering,
     \\partial\\varepsilon / \\partial b_j = -u(t-nk-j) / C, \\quad
     \\partial\\varepsilon / \\partial c_k = -\\varepsilon(t-k) / C,
 
-and the minimisation is a trust-region Gauss-Newton: by default
-``scipy.optimize.least_squares(method="trf")``, which takes an SVD of the
-:math:`n \\times d` Jacobian at every step; or, with ``solver="lm"``, a
+and the minimisation is a trust-region Gauss-Newton: by default scipy's
+``least_squares(method="trf")`` iteration, with each step's subproblem reduced
+by a QR factorisation of the :math:`n \\times d` Jacobian instead of an SVD
+(:mod:`online_id.estimation.trust_region`: the same steps, the factorisation at a fifth to a third of the cost); or, with ``solver="lm"``, a
 Levenberg-Marquardt iteration on the normal equations, whose Jacobian is
 formed and reduced to :math:`J^T J` and :math:`J^T \\varepsilon` block by
 block (a few MB whatever :math:`n`), about ten times faster per step.  Its
@@ -56,10 +57,10 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.linalg import solve_triangular
-from scipy.optimize import least_squares
 from scipy.signal import lfilter, lfiltic
 
 from online_id.estimation.model import ArmaxOrders
+from online_id.estimation.trust_region import trust_region_lsq
 from online_id.errors import EstimationError
 
 
@@ -318,13 +319,12 @@ def fit_armax(y: np.ndarray, u: np.ndarray, orders: ArmaxOrders, *,
         H, _ = problem.normal_equations(theta)
         cov = float(np.mean(eps**2)) * np.linalg.pinv(H)
         return _make_fit(orders, theta, eps, orders.n_params, converged, n_iter, message, cov)
-    result = least_squares(problem.residuals, theta0, jac=problem.jacobian, method="trf",
-                           x_scale="jac", ftol=tol, xtol=tol, gtol=tol,
-                           max_nfev=max(int(max_iter), 1))
+    result = trust_region_lsq(problem.residuals, problem.jacobian, theta0, ftol=tol, xtol=tol, gtol=tol,
+                              max_nfev=max(int(max_iter), 1))
     theta = _stabilized(result.x, orders, max_radius=1.0)
     eps = problem.residuals(theta)
     cov = _covariance(problem.jacobian(theta), float(np.mean(eps**2)))
-    n_iter = int(result.njev) if result.njev is not None else int(result.nfev)
+    n_iter = int(result.njev)
     return _make_fit(orders, theta, eps, orders.n_params, bool(result.status > 0),
                      n_iter, str(result.message), cov)
 
@@ -455,8 +455,17 @@ class _PemProblem:
         return parts, eps
 
     def jacobian(self, theta: np.ndarray) -> np.ndarray:
+        """:math:`\\partial \\varepsilon / \\partial \\theta` on the criterion's samples, column-major (the
+        trust-region step factorises it by columns)."""
         parts, _ = self._filtered(theta)
-        return np.hstack([_lag_matrix(x, lags, self.t0) for x, lags in parts])
+        t0, n = self.t0, self.y.size
+        J = np.empty((n - t0, self.orders.n_params), order="F")
+        k = 0
+        for x, lags in parts:
+            for lag in lags:
+                J[:, k] = x[t0 - lag:n - lag]  # (t0 >= max_lag: every lag is inside the data)
+                k += 1
+        return J
 
     def normal_equations(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """:math:`J^T J` and :math:`J^T \\varepsilon` without forming :math:`J`.

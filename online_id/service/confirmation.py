@@ -299,8 +299,8 @@ class AlarmChecks:
             def finished(fits, error: str | None) -> None:
                 check["result"] = (fits, error)
 
-            self.worker.submit(WINDOW, refit_each, (window.y, window.u, model.orders,
-                                                    (window.solution, check["solution"])), finished)
+            self._submit_window(refit_each, (window.y, window.u, model.orders,
+                                             (window.solution, check["solution"])), finished)
         if check["result"] is None:
             return PENDING
         del self._rechecks[kind]

@@ -150,19 +150,13 @@ class DetectionPolicy:
         self.engaged.acknowledge()
 
     def relearn(self) -> None:
-        """Forget the baselines, their reference solutions and windows, the engaged flank and latched alarms."""
+        """Forget the baselines, their reference solutions and windows, the engaged flank and latched alarms
+        (the RELEARN command, and ``relearn --from`` before its reference run)."""
         self.baseline.reset()
         self.checks.forget()
         self.comparison.visit_ref = None
         self.detector.reset()
         self.engaged.reset()
-
-    def forget_baselines(self) -> None:
-        """Forget the learned baselines, their reference solutions and the detector's statistics (a reference
-        run learns anew)."""
-        self.baseline.reset()
-        self.checks.references.clear()
-        self.detector.reset()
 
     @property
     def backlash_tests(self) -> int:
