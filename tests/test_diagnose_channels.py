@@ -54,7 +54,7 @@ def three_shaft_rig(seed: int, *, order: float = 0.0, line_nm: float = 0.0, coul
 
 
 def _run(data):
-    return diagnose(data, na=None, nb=None, nc=4, max_effects=1, input_lead=1)
+    return diagnose(data, na=None, nb=None, nc=4, max_effects=1, input_lead=1, channels=True)
 
 
 def _named(r):

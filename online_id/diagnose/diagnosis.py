@@ -721,7 +721,7 @@ def _channel_structure(data: DiagnoseData, shaft: str, na: int, nc: int, joints:
 def diagnose(data: DiagnoseData, *, na: int | None, nb: int | None, nc: int, nk: int = 1, input_lead: int | None = None,
              estimation_fraction: float = 0.6, min_explained: float = 0.1,
              max_effects: int = 3, max_delay_samples: int = 25,
-             sim_horizon_s: float | None = None, blocks: int | None = None,
+             sim_horizon_s: float | None = None, blocks: int | None = None, channels: bool = False,
              progress: Callable[[float, str], None] | None = None) -> Diagnosis:
     """Find, in order, the effects the baseline model lacks (see module notes).
 
@@ -759,6 +759,13 @@ def diagnose(data: DiagnoseData, *, na: int | None, nb: int | None, nc: int, nk:
         it restarts from the measured output every ``sim_horizon_s`` seconds
         (for integrating plants such as a speed-controlled bench, whose
         open-loop simulation from the measured torque drifts).
+    channels
+        Also diagnose a channel per angle-measured shaft other than the output's
+        (:func:`diagnose_channel`): effects far from the output (a joint's
+        friction next to the load).  Off by default: on the chain family's
+        development rigs it named one more effect right in six, added a false
+        joint friction on one and took about three times as long
+        (docs/diagnose.md).
     progress
         Called as ``progress(fraction, message)``.
 
@@ -796,15 +803,15 @@ def diagnose(data: DiagnoseData, *, na: int | None, nb: int | None, nc: int, nk:
     steps, cur, e_cur, fig, tests, evaluated, stop = _search(
         data, cur, split, horizon, tests0, fig0, e_cur, held_lines, max_effects=max_effects,
         min_explained=min_explained, max_delay=max_delay_samples, report=report)
-    channels = []
-    shafts = shaft_channels(data)
+    diagnosed = []
+    shafts = shaft_channels(data) if channels else []
     for i, (shaft, cdata) in enumerate(shafts):
         report(1.0, f"channel {shaft} ({i + 1}/{len(shafts)})")
         try:
-            channels.append(diagnose_channel(shaft, cdata, split, nc=min(nc, CHANNEL_NC), horizon=horizon,
-                                             min_explained=min_explained))
+            diagnosed.append(diagnose_channel(shaft, cdata, split, nc=min(nc, CHANNEL_NC), horizon=horizon,
+                                              min_explained=min_explained))
         except EstimationError as exc:
             warnings.append(f"channel {shaft!r}: not diagnosed ({exc})")
     report(1.0, "done")
     return Diagnosis(data, split.n_est, baseline, steps, fig0, fig, tests0, tests,
-                     e0, e_cur, evaluated, stop, modes, warnings, split, channels)
+                     e0, e_cur, evaluated, stop, modes, warnings, split, diagnosed)

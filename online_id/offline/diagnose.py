@@ -132,7 +132,8 @@ def run_diagnosis(args: argparse.Namespace, data: DiagnoseData | None = None) ->
         return diagnose(data, na=na, nb=nb, nc=nc, nk=nk, input_lead=1 if bench else None,
                         estimation_fraction=args.estimation_fraction,
                         min_explained=args.min_explained, max_effects=args.max_effects,
-                        sim_horizon_s=horizon, progress=progress)
+                        sim_horizon_s=horizon, channels=args.channels,
+                        progress=progress)
     finally:
         progress.close()
 
