@@ -53,6 +53,9 @@ def add_subparser(subparsers: argparse._SubParsersAction) -> None:
     m.add_argument("--min-explained", type=float, default=0.1, metavar="F",
                    help="smallest share of held-out residual variance an effect must remove (default 0.1)")
     m.add_argument("--max-effects", type=int, default=3)
+    m.add_argument("--channels", action="store_true",
+                   help="rig: also diagnose each angle-measured shaft's own speed (effects far from the output, "
+                   "a joint's friction next to the load; several times slower)")
     m.add_argument("--pulses-per-rev", type=float, metavar="F",
                    help="bench: compression pulses per revolution (declared orders; default from the "
                    "config's model.pulses_per_rev, else 2 = four-stroke four-cylinder)")

@@ -28,6 +28,9 @@ def add_arguments(g: argparse._ArgumentGroup) -> None:
                    help="the twist of these two angle-measured shafts is the torsion (backlash, friction); "
                    "default: the first two --angle-col shafts")
     g.add_argument("--shaft-torque-col", metavar="NAME", help="a measured shaft torque column, used as the torsion")
+    g.add_argument("--torque-col", action="append", default=[], metavar="NAME:SHAFT",
+                   help="a torque acting on SHAFT (a load motor's measured torque or set-point): an input of that "
+                   "shaft's channel (repeatable)")
     g.add_argument("--second-file", metavar="FILE",
                    help="a second CSV (e.g. the sensor logger); any column option may name its columns")
     g.add_argument("--second-time-col", metavar="NAME", help="time column of the second file (default --time-col)")

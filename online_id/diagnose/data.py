@@ -10,13 +10,15 @@ Optional auxiliary signals let the residual tests look for more effects:
 - ``joints``: the twist across each joint of a rig whose both sides are
   measured (name ``a-b`` -> twist [rad of ``b``]), for backlash and Coulomb
   friction in that joint;
+- ``torques``: a torque acting on a shaft (a load motor's), an input of that
+  shaft's channel (:func:`online_id.diagnose.diagnosis.shaft_channels`);
 - ``velocity``: the speed whose sign Coulomb friction follows (by default the
   output itself, which must then be a speed).
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from functools import cached_property
 from dataclasses import dataclass, field
 
@@ -75,6 +77,14 @@ class DiagnoseData:
     joints: Mapping[str, np.ndarray] = field(default_factory=dict)
     shaft_rates: Mapping[str, float] = field(default_factory=dict)
     notes: Mapping[str, object] = field(default_factory=dict)
+    torques: Mapping[str, np.ndarray] = field(default_factory=dict)
+    _derived: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def derived(self, key: object, make: Callable[[], np.ndarray]) -> np.ndarray:
+        """A signal derived from this record, computed once (``make()``) and kept under ``key``."""
+        if key not in self._derived:
+            self._derived[key] = make()
+        return self._derived[key]
 
     def __post_init__(self) -> None:
         u = np.asarray(self.u, dtype=float).ravel()
@@ -107,6 +117,10 @@ class DiagnoseData:
             object.__setattr__(self, "velocity", self._aux(self.velocity, "velocity"))
         object.__setattr__(self, "joints", {n: self._aux(x, f"twist of joint {n}")
                                             for n, x in dict(self.joints).items()})
+        unknown = [n for n in self.torques if n not in speeds]
+        if unknown:
+            raise InputDataError(f"{self.source}: a torque is given on shaft {unknown[0]!r}, which has no speed")
+        object.__setattr__(self, "torques", {n: self._aux(x, f"torque on {n}") for n, x in dict(self.torques).items()})
 
     def _aux(self, x: np.ndarray, name: str) -> np.ndarray:
         x = np.asarray(x, dtype=float).ravel()

@@ -30,7 +30,7 @@ the simulation over the held-out part, started from the measured output.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -129,14 +129,64 @@ class Diagnosis:
     modes: list[dict] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     split: Split | None = None
+    channels: list["Channel"] = field(default_factory=list)
 
     @property
     def val_index(self) -> np.ndarray:
         """Held-out sample indices."""
         return (self.split or Split(len(self.data), self.n_est / len(self.data))).val_index
 
+    def summary(self, main: ErrorFigures | None = None, moved: dict[str, ErrorFigures] | None = None) -> float:
+        """The one summary over every channel: the mean of each channel's held-out one-step RMS relative to
+        its baseline's, the output's at ``main`` (default: after) and each shaft channel's at ``moved``
+        (default: before its own steps)."""
+        main = main or self.error_after
+        moved = moved or {}
+        rel = [main.rms / self.error_before.rms if self.error_before.rms > 0 else 1.0]
+        for c in self.channels:
+            f = moved.get(c.shaft, c.error_before)
+            rel.append(f.rms / c.error_before.rms if c.error_before.rms > 0 else 1.0)
+        return float(np.mean(rel))
+
+    def support(self, e: "EffectStep") -> float:
+        """What a shaft channel's step explains; for a joint's friction or dead zone, which act on both of the
+        joint's sides, the sum of what the same kind in the same joint explains (held out, first step) on every
+        channel that borders the joint (the output's included)."""
+        joint = e.params.get("joint")
+        if not joint:
+            return e.explained_variance
+        cands = list(self.candidates) + [k for c in self.channels for k in c.candidates]
+        return float(sum(max(k.explained_variance, 0.0) for k in cands
+                         if k.step == 1 and k.kind == e.kind and k.params.get("joint") == joint))
+
+    def ordered_effects(self) -> list[tuple[str, "EffectStep", float, float]]:
+        """Every accepted step as ``(channel, step, summary before, summary after)``: the output's steps in
+        order, then the shaft channels' by their :meth:`support` (largest first)."""
+        out, moved = [], {}
+        for e in self.effects:
+            out.append(("", e, self.summary(e.error_before), self.summary(e.error_after)))
+        rest = sorted(((c, e) for c in self.channels for e in c.effects), key=lambda ce: -self.support(ce[1]))
+        for c, e in rest:
+            before = self.summary(moved=moved)
+            moved[c.shaft] = e.error_after
+            out.append((c.shaft, e, before, self.summary(moved=moved)))
+        return out
+
     def as_dict(self) -> dict:
         s = self.baseline
+        effects = []
+        for channel, e, before, after in self.ordered_effects():
+            base = next((c.error_before for c in self.channels if c.shaft == channel), self.error_before)
+            doc = e.as_dict(base)
+            if channel:
+                doc["channel"] = channel
+                doc["accepted_on"]["channels"] = [f"{channel} speed (one-step)"]
+            if self.channels:
+                doc["summary_before"], doc["summary_after"] = before, after
+                doc["error_before"]["rms"], doc["error_after"]["rms"] = before, after
+            effects.append(doc)
+        after = self.summary(moved={c.shaft: c.error_after for c in self.channels})
+        summary = {"rms": after, "summary": CHANNEL_SUMMARY} if self.channels else {}
         return {
             "source": self.data.source,
             "input": self.data.input_name, "output": self.data.output_name,
@@ -147,14 +197,49 @@ class Diagnosis:
             "recording": dict(self.data.notes),
             "shaft_rates": dict(self.data.shaft_rates),
             "warnings": list(self.warnings),
-            "effects": [e.as_dict(self.error_before) for e in self.effects],
-            "error_before": error_doc(self.error_before, self.error_before),
-            "error_after": error_doc(self.error_after, self.error_before),
+            "effects": effects,
+            "error_before": {**error_doc(self.error_before, self.error_before),
+                             **({"summary": CHANNEL_SUMMARY} if self.channels else {})},
+            "error_after": {**error_doc(self.error_after, self.error_before), **summary},
+            "channels": [c.as_dict() for c in self.channels],
             "tests_before": [_test_dict(t) for t in self.tests_before],
             "tests_after": [_test_dict(t) for t in self.tests_after],
             "candidates": [c.__dict__ for c in self.candidates],
             "stop_reason": self.stop_reason,
         }
+
+
+CHANNEL_SUMMARY = ("mean over the channels (the output and each angle-measured shaft's speed) of the held-out "
+                   "one-step RMS relative to the channel's baseline")
+
+
+@dataclass
+class Channel:
+    """The diagnosis of one angle-measured shaft's speed: its own baseline (the torques acting on the shaft:
+    the input and the linear twist and twist rate of its neighbouring joints), its own held-out error and
+    the effects found on it."""
+
+    shaft: str
+    output: str
+    baseline: Structure
+    joints: tuple[str, ...]
+    effects: list[EffectStep]
+    error_before: ErrorFigures
+    error_after: ErrorFigures
+    candidates: list[Candidate]
+    stop_reason: str
+    torque: bool = False
+
+    def as_dict(self) -> dict:
+        s = self.baseline
+        terms = ["input"] + ([f"torque on {self.shaft}"] if self.torque else []) + \
+            [f"twist and twist rate of {j}" for j in self.joints]
+        return {"shaft": self.shaft, "output": self.output, "joints": list(self.joints),
+                "baseline": {"na": s.na, "nb": s.nb + s.delay, "nc": s.nc, "nk": s.nk, "terms": ", ".join(terms)},
+                "effects": [e.kind for e in self.effects],
+                "error_before": error_doc(self.error_before, self.error_before),
+                "error_after": error_doc(self.error_after, self.error_before),
+                "candidates": [c.__dict__ for c in self.candidates], "stop_reason": self.stop_reason}
 
 
 def _test_dict(t: ResidualTest) -> dict:
@@ -183,12 +268,13 @@ def _sim(model: Model, data: DiagnoseData, split: Split, horizon: int | None) ->
     return ysim
 
 
-def _guard(cur: ErrorFigures, rms_new: float, fit_new: float) -> str:
-    """Why a significant step is refused: it must lower the held-out one-step RMS *and* raise the sim fit."""
+def _guard(cur: ErrorFigures, rms_new: float, fit_new: float, sim: bool = True) -> str:
+    """Why a significant step is refused: it must lower the held-out one-step RMS *and* (``sim``) raise the
+    sim fit."""
     why = []
     if not rms_new < cur.rms:
         why.append(f"one-step RMS {cur.rms:.4g} -> {rms_new:.4g}")
-    if not fit_new > cur.fit_pct:
+    if sim and not fit_new > cur.fit_pct:
         why.append(f"simulation fit {cur.fit_pct:.1f} % -> {fit_new:.1f} %")
     return ("worsens " + "; ".join(why)) if why else ""
 
@@ -240,7 +326,7 @@ def _build(kind: str, hint: dict, data: DiagnoseData, cur: AugmentedFit, split: 
         joint = hint.get("joint", "")
         if (data.torsion is None and not joint) or any(t.kind == kind for t in s.terms):
             return None
-        ref = fit_structure(data, s.with_term(fx.LinearTorsion(joint=joint)), split)
+        ref = fit_structure(data, _with(s, fx.LinearTorsion(joint=joint)), split)
         new = fx.search_backlash(data, ref.structure, split, ref.C, joint)
         model = fit_structure(data, new, split)
         return model, _params(kind, model, cur, data), ref.errors(data)
@@ -249,8 +335,8 @@ def _build(kind: str, hint: dict, data: DiagnoseData, cur: AugmentedFit, split: 
             return None
         joint = hint.get("joint", "")
         if joint:  # judged on what it adds to the joint's linear twist and relative speed
-            ref = fit_structure(data, s.with_term(fx.LinearTorsion(joint=joint))
-                                .with_term(fx.LinearSlip(joint, fx.friction_lags(s))), split)
+            ref = fit_structure(data, _with(_with(s, fx.LinearTorsion(joint=joint)),
+                                            fx.LinearSlip(joint, fx.friction_lags(s))), split)
             model = fit_structure(data, fx.coulomb_structure(data, ref.structure, joint), split)
             return model, _params(kind, model, cur, data), ref.errors(data)
         new = fx.coulomb_structure(data, s)
@@ -261,6 +347,11 @@ def _build(kind: str, hint: dict, data: DiagnoseData, cur: AugmentedFit, split: 
         return None
     model = fit_structure(data, new, split)
     return model, _params(kind, model, cur, data, hint), None
+
+
+def _with(s: Structure, term: object) -> Structure:
+    """``s`` with ``term`` unless it has it (a shaft channel's baseline holds its joints' linear terms)."""
+    return s if term in s.terms else s.with_term(term)
 
 
 def _params(kind: str, model: AugmentedFit, cur: AugmentedFit, data: DiagnoseData,
@@ -447,82 +538,15 @@ def _smallest_sufficient(candidates, cost: Callable[[int], float], tol: float) -
     return prev[0]
 
 
-def diagnose(data: DiagnoseData, *, na: int | None, nb: int | None, nc: int, nk: int = 1, input_lead: int | None = None,
-             estimation_fraction: float = 0.6, min_explained: float = 0.1,
-             max_effects: int = 3, max_delay_samples: int = 25,
-             sim_horizon_s: float | None = None, blocks: int | None = None,
-             progress: Callable[[float, str], None] | None = None) -> Diagnosis:
-    """Find, in order, the effects the baseline model lacks (see module notes).
-
-    Parameters
-    ----------
-    data
-        The record.
-    na, nb, nc, nk
-        Orders of the baseline ARMAX model (with a constant term).  ``na=None``
-        selects ``na = nb`` from the estimation part (:func:`select_na`);
-        ``nb=None`` means ``nb = na``.
-    input_lead
-        Samples by which the baseline lets the output anticipate the input
-        (the input part covers lags ``nk - input_lead .. nk + nb - 1``).
-        ``None``: what the data path implies (``data.notes["data_path"]``:
-        2 on decimated data, whose band-limited response reaches back about a
-        sample before the input moves; else 0).
-    estimation_fraction
-        Share of the samples used for estimation; the rest is held out.
-    blocks
-        Validation blocks (:class:`~online_id.diagnose.data.Split`): the record
-        is cut into ``blocks`` equal blocks, each estimated on its first
-        ``estimation_fraction`` and held out on the rest.  ``None``:
-        :data:`RIG_BLOCKS` for a rig (two or more shafts with rates) whose
-        speed spans several operating points (the first shaft's 5-95 % range
-        over 10 % of its mean), else 1 (the held-out part is the tail).
-    min_explained
-        Smallest fraction of held-out residual variance an effect must remove.
-    max_effects
-        Most effects added.
-    max_delay_samples
-        Widest sensor-delay search.
-    sim_horizon_s
-        ``None``: the simulation runs over the whole held-out part.  A number:
-        it restarts from the measured output every ``sim_horizon_s`` seconds
-        (for integrating plants such as a speed-controlled bench, whose
-        open-loop simulation from the measured torque drifts).
-    progress
-        Called as ``progress(fraction, message)``.
-
-    Returns
-    -------
-    Diagnosis
-        Effects in order, the error before and after, the tests and residuals.
-    """
-    if not 0.2 <= estimation_fraction <= 0.9:
-        raise EstimationError(f"estimation_fraction must be in [0.2, 0.9], got {estimation_fraction}")
-    n_blocks = _blocks(data, blocks)
-    split = Split(len(data), estimation_fraction, n_blocks, steady_mask(data) if n_blocks > 1 else None)
+def _search(data: DiagnoseData, cur: Model, split: Split, horizon: int | None, tests: list[ResidualTest],
+            fig: ErrorFigures, e_cur: np.ndarray, held_lines: list[tuple[str, dict]], *, max_effects: int,
+            min_explained: float, max_delay: int, report: Callable[[float, str], None],
+            kinds: tuple[str, ...] | None = None, sim_guard: bool = True) -> tuple:
+    """The steps of a diagnosis on one output from model ``cur`` (see module notes); ``kinds``: the candidate
+    kinds looked at (``None``: all); ``sim_guard``: a step must also raise the held-out simulation fit.  Returns ``(steps, model, errors, figures, tests, candidates, stop)``."""
     val = split.val_index
-    report = progress or (lambda f, m: None)
-    horizon = None if sim_horizon_s is None else max(1, int(round(sim_horizon_s * data.fs_hz)))
-    report(0.0, "baseline")
-    if input_lead is None:
-        input_lead = int(dict(data.notes.get("data_path", {})).get("input_lead", 0))
-    lead = int(input_lead)
-    if na is None:
-        report(0.0, "baseline order")
-        lead = select_lead(data, split, nk, lead)
-        na = select_na(data, split, nk, lead)
-    nb = na if nb is None else nb
-    cur: Model = fit_structure(data, Structure(na, nb + lead, nc, nk, delay=-lead), split)
-    baseline = cur.structure
-    fig0, e_cur = _figures(cur, data, split, horizon)
-    e0 = e_cur
-    lags = baseline.input_lags
-    tests0 = run_tests(data, e_cur, val, lags)
-    modes = modes_of(cur.A, data.fs_hz, shaft_rates_hz(data))
-    warnings = fit_warnings(cur, data, split, modes) + line_warnings(modes)
-    held_lines = [("rotation_order_disturbance", {"shaft": m["line"]["shaft"], "order": m["line"]["order"],
-                                                  "held": True}) for m in modes if "line" in m]
-    tests, fig, steps, evaluated = tests0, fig0, [], []
+    lags = cur.structure.input_lags
+    steps, evaluated = [], []
     stop = f"max_effects={max_effects} reached"
     for step in range(max_effects):
         if step > 0 and all(t.passed for t in tests):
@@ -533,6 +557,8 @@ def diagnose(data: DiagnoseData, *, na: int | None, nb: int | None, nc: int, nk:
             break
         cands = [c for t in tests for c in t.candidates] + (held_lines if step == 0 else [])
         cands.append(("sensor_delay", {"lag_samples": 0}))
+        if kinds is not None:
+            cands = [c for c in cands if c[0] in kinds]
         cands = _dedupe([c if c[0] != "additional_mode" else ("additional_mode", {}) for c in cands])
         r_cur = (data.y - _sim(cur, data, split, horizon))[val]
         # an order term is fitted with A, B, C held; a candidate that refits the whole structure (delay,
@@ -546,7 +572,7 @@ def diagnose(data: DiagnoseData, *, na: int | None, nb: int | None, nc: int, nk:
         for i, (kind, hint) in enumerate(cands):
             report((step + i / len(cands)) / max_effects, f"step {step + 1}: {kind}")
             try:
-                built = _build(kind, hint, data, cur, split, max_delay_samples)
+                built = _build(kind, hint, data, cur, split, max_delay)
             except EstimationError:
                 continue
             if built is None:
@@ -588,7 +614,7 @@ def diagnose(data: DiagnoseData, *, na: int | None, nb: int | None, nc: int, nk:
             ok = explained >= need and (t >= T_CRIT or hint.get("held_out_ratio", 0.0) >= RIG_SPLIT_RATIO)
             rms_new = float(np.sqrt(np.mean(e_new[val] ** 2)))
             fit_new = fit_percent(data.y[val], ysim_new[val])
-            refused = _guard(fig, rms_new, fit_new) if ok else ""
+            refused = _guard(fig, rms_new, fit_new, sim_guard) if ok else ""
             if ok and params.get("unresolved"):
                 refused = ("the added poles are no pole pair below the Nyquist frequency (real or alternating "
                            "poles of the equation error): not a mode")
@@ -617,6 +643,175 @@ def diagnose(data: DiagnoseData, *, na: int | None, nb: int | None, nc: int, nk:
     else:
         if all(t.passed for t in tests):
             stop = "the residual passes every test"
+    return steps, cur, e_cur, fig, tests, evaluated, stop
+
+
+CHANNEL_GRID = (2, 4, 8, 12)
+CHANNEL_NC = 4
+CHANNEL_KINDS = ("rotation_order_disturbance", "fixed_frequency_disturbance", "additional_mode", "backlash",
+                 "coulomb_friction")
+"""What a shaft channel looks for: lines, modes and its joints' dead zone and friction (a sensor's delay is
+judged on the output, whose input it shifts)."""
+
+
+def output_shaft(data: DiagnoseData) -> str | None:
+    """The shaft whose speed the output is (within 1 % of its spread), if any."""
+    for name, w in data.shaft_speeds_rad_s.items():
+        if np.sqrt(np.mean((data.y - w) ** 2)) <= 0.01 * max(float(np.std(w)), 1e-12):
+            return name
+    return None
+
+
+def neighbour_joints(data: DiagnoseData, shaft: str) -> tuple[str, ...]:
+    """The joints (``a-b``) with ``shaft`` on one side."""
+    return tuple(j for j in data.joints if j.startswith(f"{shaft}-") or j.endswith(f"-{shaft}"))
+
+
+def shaft_channels(data: DiagnoseData) -> list[tuple[str, DiagnoseData]]:
+    """A channel per shaft at a joint of the rig (measured by angle) other than the output's: the record with
+    that shaft's speed as the output and its neighbouring joints only."""
+    if len(data.shaft_rates) < 2 or not data.joints:
+        return []
+    own = output_shaft(data)
+    out = []
+    for name, w in data.shaft_speeds_rad_s.items():
+        near = neighbour_joints(data, name)
+        if name == own or not near:
+            continue
+        out.append((name, replace(data, y=w, output_name=f"{name} speed", velocity=None, output_is_velocity=True,
+                                  torsion=None, joints={j: data.joints[j] for j in near})))
+    return out
+
+
+def diagnose_channel(shaft: str, data: DiagnoseData, split: Split, *, nc: int, horizon: int | None,
+                     min_explained: float, max_effects: int = 1) -> Channel:
+    """One shaft's channel: its baseline (ARMAX of its speed from the input and its joints' linear twist and
+    twist rate, ``na`` from :data:`CHANNEL_GRID`) and the steps of :func:`_search` on it (kinds
+    :data:`CHANNEL_KINDS`).
+
+    A step must lower the channel's held-out one-step RMS; its simulation fit is reported, not required: the
+    shaft's speed is driven by its joints' measured twists, so its simulation hardly depends on the shaft's own
+    terms (a true line on the load left it at 93.5 %, a true joint friction sent it below zero where the
+    simulation integrates the friction's mean without the measured output's correction).
+    """
+    joints = tuple(data.joints)
+    na = _smallest_sufficient(CHANNEL_GRID, lambda n: fit_structure(data, _channel_structure(data, shaft, n, 0, joints),
+                                                                     split).V_est, NA_TOL)
+    cur = fit_structure(data, _channel_structure(data, shaft, na, nc, joints), split)
+    fig0, e0 = _figures(cur, data, split, horizon)
+    tests0 = run_tests(data, e0, split.val_index, cur.structure.input_lags)
+    # friction in a joint acts only where it slips: its feature is always tried on the joint's two shafts
+    always = [("coulomb_friction", {"joint": j}) for j in joints]
+    steps, cur, e_cur, fig, tests, evaluated, stop = _search(
+        data, cur, split, horizon, tests0, fig0, e0, always, max_effects=max_effects, min_explained=min_explained,
+        max_delay=0, report=lambda f, m: None, kinds=CHANNEL_KINDS, sim_guard=False)
+    return Channel(shaft, data.output_name, _channel_structure(data, shaft, na, nc, joints), joints, steps, fig0,
+                   fig, evaluated, stop, shaft in data.torques)
+
+
+def _channel_structure(data: DiagnoseData, shaft: str, na: int, nc: int, joints: tuple[str, ...]) -> Structure:
+    s = Structure(na, na, nc, 1)
+    if shaft in data.torques:
+        s = s.with_term(fx.ShaftTorque(shaft))
+    for j in joints:
+        s = s.with_term(fx.LinearTorsion(joint=j)).with_term(fx.LinearSlip(j, fx.friction_lags(s)))
+    return s
+
+
+def diagnose(data: DiagnoseData, *, na: int | None, nb: int | None, nc: int, nk: int = 1, input_lead: int | None = None,
+             estimation_fraction: float = 0.6, min_explained: float = 0.1,
+             max_effects: int = 3, max_delay_samples: int = 25,
+             sim_horizon_s: float | None = None, blocks: int | None = None, channels: bool = False,
+             progress: Callable[[float, str], None] | None = None) -> Diagnosis:
+    """Find, in order, the effects the baseline model lacks (see module notes).
+
+    Parameters
+    ----------
+    data
+        The record.
+    na, nb, nc, nk
+        Orders of the baseline ARMAX model (with a constant term).  ``na=None``
+        selects ``na = nb`` from the estimation part (:func:`select_na`);
+        ``nb=None`` means ``nb = na``.
+    input_lead
+        Samples by which the baseline lets the output anticipate the input
+        (the input part covers lags ``nk - input_lead .. nk + nb - 1``).
+        ``None``: what the data path implies (``data.notes["data_path"]``:
+        2 on decimated data, whose band-limited response reaches back about a
+        sample before the input moves; else 0).
+    estimation_fraction
+        Share of the samples used for estimation; the rest is held out.
+    blocks
+        Validation blocks (:class:`~online_id.diagnose.data.Split`): the record
+        is cut into ``blocks`` equal blocks, each estimated on its first
+        ``estimation_fraction`` and held out on the rest.  ``None``:
+        :data:`RIG_BLOCKS` for a rig (two or more shafts with rates) whose
+        speed spans several operating points (the first shaft's 5-95 % range
+        over 10 % of its mean), else 1 (the held-out part is the tail).
+    min_explained
+        Smallest fraction of held-out residual variance an effect must remove.
+    max_effects
+        Most effects added.
+    max_delay_samples
+        Widest sensor-delay search.
+    sim_horizon_s
+        ``None``: the simulation runs over the whole held-out part.  A number:
+        it restarts from the measured output every ``sim_horizon_s`` seconds
+        (for integrating plants such as a speed-controlled bench, whose
+        open-loop simulation from the measured torque drifts).
+    channels
+        Also diagnose a channel per angle-measured shaft other than the output's
+        (:func:`diagnose_channel`): effects far from the output (a joint's
+        friction next to the load).  Off by default: on the chain family's
+        development rigs it named one more effect right in six, added a false
+        joint friction on one and took about three times as long
+        (docs/diagnose.md).
+    progress
+        Called as ``progress(fraction, message)``.
+
+    Returns
+    -------
+    Diagnosis
+        Effects in order, the error before and after, the tests and residuals.
+    """
+    if not 0.2 <= estimation_fraction <= 0.9:
+        raise EstimationError(f"estimation_fraction must be in [0.2, 0.9], got {estimation_fraction}")
+    n_blocks = _blocks(data, blocks)
+    split = Split(len(data), estimation_fraction, n_blocks, steady_mask(data) if n_blocks > 1 else None)
+    val = split.val_index
+    report = progress or (lambda f, m: None)
+    horizon = None if sim_horizon_s is None else max(1, int(round(sim_horizon_s * data.fs_hz)))
+    report(0.0, "baseline")
+    if input_lead is None:
+        input_lead = int(dict(data.notes.get("data_path", {})).get("input_lead", 0))
+    lead = int(input_lead)
+    if na is None:
+        report(0.0, "baseline order")
+        lead = select_lead(data, split, nk, lead)
+        na = select_na(data, split, nk, lead)
+    nb = na if nb is None else nb
+    cur: Model = fit_structure(data, Structure(na, nb + lead, nc, nk, delay=-lead), split)
+    baseline = cur.structure
+    fig0, e_cur = _figures(cur, data, split, horizon)
+    e0 = e_cur
+    lags = baseline.input_lags
+    tests0 = run_tests(data, e_cur, val, lags)
+    modes = modes_of(cur.A, data.fs_hz, shaft_rates_hz(data))
+    warnings = fit_warnings(cur, data, split, modes) + line_warnings(modes)
+    held_lines = [("rotation_order_disturbance", {"shaft": m["line"]["shaft"], "order": m["line"]["order"],
+                                                  "held": True}) for m in modes if "line" in m]
+    steps, cur, e_cur, fig, tests, evaluated, stop = _search(
+        data, cur, split, horizon, tests0, fig0, e_cur, held_lines, max_effects=max_effects,
+        min_explained=min_explained, max_delay=max_delay_samples, report=report)
+    diagnosed = []
+    shafts = shaft_channels(data) if channels else []
+    for i, (shaft, cdata) in enumerate(shafts):
+        report(1.0, f"channel {shaft} ({i + 1}/{len(shafts)})")
+        try:
+            diagnosed.append(diagnose_channel(shaft, cdata, split, nc=min(nc, CHANNEL_NC), horizon=horizon,
+                                              min_explained=min_explained))
+        except EstimationError as exc:
+            warnings.append(f"channel {shaft!r}: not diagnosed ({exc})")
     report(1.0, "done")
     return Diagnosis(data, split.n_est, baseline, steps, fig0, fig, tests0, tests,
-                     e0, e_cur, evaluated, stop, modes, warnings, split)
+                     e0, e_cur, evaluated, stop, modes, warnings, split, diagnosed)

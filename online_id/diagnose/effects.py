@@ -171,6 +171,24 @@ class LinearTorsion:
 
 
 @dataclass(frozen=True)
+class ShaftTorque:
+    """A measured torque acting on ``shaft`` (``data.torques``) at the lags of ``B``: an input of the shaft's
+    channel besides the record's input."""
+
+    shaft: str
+    kind: str = "shaft_torque"
+
+    def columns(self, data: DiagnoseData, lags: np.ndarray) -> np.ndarray:
+        return lag_matrix(data.torques[self.shaft], lags)
+
+    def output_static(self) -> None:
+        return None
+
+    def params(self) -> dict:
+        return {}
+
+
+@dataclass(frozen=True)
 class CoulombTerm:
     """Friction force :math:`F_c\\,\\mathrm{sign}(v)` entering like the input."""
 
@@ -202,8 +220,21 @@ def slip_sign(phi: np.ndarray, fs_hz: float) -> np.ndarray:
     noise, white there) scaled to the low-pass's band.  Where the joint really slips the speed is many
     :math:`v_0` and the feature is its sign; noise alone does not flip it.
     """
-    v = slip_rate(phi, fs_hz)
+    return _sign_of(slip_rate(phi, fs_hz))
+
+
+def _sign_of(v: np.ndarray) -> np.ndarray:
     return np.tanh(v) if np.all(np.isfinite(v)) else np.sign(v)
+
+
+def joint_slip_sign_of(data: DiagnoseData, joint: str) -> np.ndarray:
+    """:func:`slip_sign` of ``joint``'s twist, computed once per record and joint."""
+    return data.derived(("slip_sign", joint), lambda: _sign_of(joint_slip_rate(data, joint)))
+
+
+def joint_slip_rate(data: DiagnoseData, joint: str) -> np.ndarray:
+    """:func:`slip_rate` of ``joint``'s twist, computed once per record and joint."""
+    return data.derived(("slip_rate", joint), lambda: slip_rate(twist(data, joint), data.fs_hz))
 
 
 def slip_rate(phi: np.ndarray, fs_hz: float) -> np.ndarray:
@@ -228,7 +259,7 @@ class LinearSlip:
     kind: str = "linear_slip"
 
     def columns(self, data: DiagnoseData, lags: np.ndarray) -> np.ndarray:
-        v = slip_rate(twist(data, self.joint), data.fs_hz)
+        v = joint_slip_rate(data, self.joint)
         return lag_matrix(np.where(np.isfinite(v), v, 0.0), np.asarray(self.lags))
 
     def output_static(self) -> None:
@@ -253,7 +284,7 @@ class JointCoulomb:
     kind: str = "coulomb_friction"
 
     def columns(self, data: DiagnoseData, lags: np.ndarray) -> np.ndarray:
-        return lag_matrix(slip_sign(twist(data, self.joint), data.fs_hz), np.asarray(self.lags))
+        return lag_matrix(joint_slip_sign_of(data, self.joint), np.asarray(self.lags))
 
     def output_static(self) -> None:
         return None

@@ -89,6 +89,8 @@ class Layout:
     torsion: tuple[str, str] | None = None
     shaft_torque: Column | None = None
     sample_rate_hz: float | None = None
+    torques: tuple[tuple[str, Column], ...] = ()
+    """``(shaft, column)``: a torque acting on that shaft (an input of its channel)."""
 
     def __post_init__(self) -> None:
         if self.clock not in ("auto", "same", "estimate"):
@@ -131,6 +133,9 @@ def _record_signals(rec: Resampled, index: int, layout: Layout, source: str, war
         out[names["output"]] = np.gradient(y) * fs if layout.differentiate_output else y
     if layout.shaft_torque is not None and layout.shaft_torque.record == index:
         out["shaft_torque"] = rec.columns[layout.shaft_torque.name]
+    for shaft, col in layout.torques:
+        if col.record == index:
+            out[f"tq:{shaft}"] = rec.columns[col.name]
     return out
 
 
@@ -158,7 +163,7 @@ def _names(layout: Layout, sources: list[str]) -> dict[str, str]:
     if layout.differentiate_output:
         oname = f"d{oname}/dt"
     for n in (iname, oname):
-        if n.startswith(("w:", "theta:")) or n == "shaft_torque":
+        if n.startswith(("w:", "theta:", "tq:")) or n == "shaft_torque":
             raise ConfigError(f"{sources[0]}: column name {n!r} is reserved; rename the column")
     return {"input": iname, "output": oname}
 
@@ -203,13 +208,15 @@ def assemble(records: list[Resampled], layout: Layout, sources: list[str],
     data = build_data(rec, None, spec, source, notes)
     torsion, how = _torsion(merged, layout, data, source, warnings)
     joints = _joints(merged, layout, data) if layout.shaft_torque is None else {}
-    if torsion is not None or joints:
+    torques = {k: v for k, v in merged.items() if k.startswith("tq:")}
+    if torsion is not None or joints or torques:
         path = data_path(fs, layout.sample_rate_hz)
-        t = decimate_alike({**joints, **({} if torsion is None else {"torsion": torsion})}, path)
+        t = decimate_alike({**joints, **torques, **({} if torsion is None else {"torsion": torsion})}, path)
         n = next(iter(t.values())).size
         if n != len(data):
             raise InputDataError(f"{source}: the torsion has {n} samples after the data path, the record {len(data)}")
-        data = replace(data, torsion=t.pop("torsion", None), joints=t)
+        acting = {k[3:]: t.pop(k) for k in list(t) if k.startswith("tq:")}
+        data = replace(data, torsion=t.pop("torsion", None), joints=t, torques=acting)
     data.notes["layout"]["torsion"] = how
     if data.joints:
         data.notes["layout"]["joints"] = sorted(data.joints)

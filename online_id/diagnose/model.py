@@ -34,11 +34,11 @@ from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 import numpy as np
-from scipy.optimize import least_squares
 from scipy.signal import lfilter, lfiltic
 
 from online_id.estimation.pem import reflect_unstable_roots
 from online_id.diagnose.data import DiagnoseData, Split
+from online_id.estimation.trust_region import trust_region_lsq
 from online_id.errors import EstimationError
 
 
@@ -271,8 +271,8 @@ def fit_structure(data: DiagnoseData, s: Structure, split: Split | int, *,
         return AugmentedFit(s, eta0, np.ones(1), widths, float(np.mean(eps**2)), split)
     problem = _Pem(phi, y, s.nc, rows, scale)
     x0 = np.concatenate((eta0 * scale, np.zeros(s.nc)))
-    res = least_squares(problem.residuals, x0, jac=problem.jacobian, method="trf",
-                        x_scale="jac", ftol=1e-7, xtol=1e-7, gtol=1e-7, max_nfev=max_iter)
+    res = trust_region_lsq(problem.residuals, problem.jacobian, x0, ftol=1e-7, xtol=1e-7, gtol=1e-7,
+                           max_nfev=max_iter)
     x = problem.stable(res.x)
     eta = x[: phi.shape[1]] / scale
     C = np.concatenate(([1.0], x[phi.shape[1]:]))

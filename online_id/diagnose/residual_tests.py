@@ -28,7 +28,7 @@ from scipy.ndimage import median_filter
 from scipy.signal import welch
 
 from online_id.diagnose.data import DiagnoseData
-from online_id.diagnose.effects import ORDER_STEP, shaft_angle, slip_sign
+from online_id.diagnose.effects import ORDER_STEP, joint_slip_sign_of, shaft_angle
 from online_id.diagnose.model import lag_matrix
 from online_id.diagnose.shafts import assign_order
 
@@ -395,7 +395,7 @@ def run_tests(data: DiagnoseData, e: np.ndarray, start: int | np.ndarray, lags: 
     if data.joints:
         for joint, phi in data.joints.items():
             out.append(torsion_dependence(ev, phi[start], lags, joint))
-            out.append(joint_slip_sign(ev, slip_sign(phi, fs)[start], lags, joint))
+            out.append(joint_slip_sign(ev, joint_slip_sign_of(data, joint)[start], lags, joint))
     elif data.torsion is not None:
         out.append(torsion_dependence(ev, data.torsion[start], lags))
     t = velocity_sign(ev, data.speed_for_sign[start], lags)

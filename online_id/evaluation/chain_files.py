@@ -42,6 +42,8 @@ class RigDescription:
     same_clock: bool = False
     clock_offset_s: float | None = None
     differentiate_output: bool = False
+    torques: tuple[tuple[str, str], ...] = ()
+    """``(column, shaft)``: a torque acting on that shaft (the load motor's measured torque)."""
     settings: tuple[str, ...] = field(default=RIG_SETTINGS)
 
 
@@ -56,6 +58,8 @@ def rig_command(d: RigDescription) -> list[str]:
     argv += ["--input-col", d.input_col, "--output-col", d.output_col]
     for a in d.angles:
         argv += ["--angle-col", f"{a.name}:{a.shaft}:{a.unit}"]
+    for col, shaft in d.torques:
+        argv += ["--torque-col", f"{col}:{shaft}"]
     if d.same_clock:
         argv.append("--same-clock")
         if d.clock_offset_s is not None:
@@ -93,11 +97,13 @@ def describe(spec: dict) -> BenchDescription | RigDescription:
         ppr = spec["engine"]["cylinders"] / 2
         return BenchDescription(f["csv"], f["config"], ppr if f["pulses_per_rev_in"] == "option" else None,
                                 f["demand"])
+    load = next((e["shaft"] for e in f["encoders"] if e["element"] == (spec.get("control") or {}).get("element")), None)
+    torques = ((f["drive_columns"]["load_meas"], load),) if load and "load_meas" in f["drive_columns"] else ()
     return RigDescription(first_file=f["drive"], second_file=f["sensor"], time_col=f["drive_time"],
                           second_time_col=f["sensor_time"], input_col=f["drive_columns"][f["input"]],
                           output_col=f["output_column"],
                           angles=tuple(AngleColumn(e["column"], e["shaft"], e["unit"]) for e in f["encoders"]),
-                          same_clock=True, differentiate_output=True)
+                          same_clock=True, differentiate_output=True, torques=torques)
 
 
 def command(spec: dict) -> list[str]:

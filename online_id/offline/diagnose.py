@@ -132,7 +132,8 @@ def run_diagnosis(args: argparse.Namespace, data: DiagnoseData | None = None) ->
         return diagnose(data, na=na, nb=nb, nc=nc, nk=nk, input_lead=1 if bench else None,
                         estimation_fraction=args.estimation_fraction,
                         min_explained=args.min_explained, max_effects=args.max_effects,
-                        sim_horizon_s=horizon, progress=progress)
+                        sim_horizon_s=horizon, channels=args.channels,
+                        progress=progress)
     finally:
         progress.close()
 
@@ -167,6 +168,7 @@ def text_report(d: Diagnosis) -> str:
              f"error after:  RMS {d.error_after.rms:.4g}, fit {d.error_after.fit_pct:.1f} % "
              f"(summary: {d.error_after.rms / d.error_before.rms:.4g} of the baseline's one-step RMS)",
              f"stopped: {d.stop_reason}"]
+    lines += channel_lines(d)
     lines += recording_lines(d) + ["", "Residual tests (held-out part), before -> after:"]
     after = {t.name: t for t in d.tests_after}
     for t in d.tests_before:
@@ -175,6 +177,23 @@ def text_report(d: Diagnosis) -> str:
         lines.append(f"  {t.name:26s} {state(t)} ({_pct(t.score)})"
                      + (f" -> {state(a)} ({_pct(a.score)})" if a else "") + f"  {t.detail}")
     return "\n".join(lines)
+
+
+def channel_lines(d: Diagnosis) -> list[str]:
+    """Each shaft channel of a rig: its baseline's inputs, its held-out one-step RMS before and after, what it
+    named; then the one summary over the channels."""
+    if not d.channels:
+        return []
+    out = ["", "Shaft channels (each shaft's speed from the input, a torque on it, its joints' twist and twist rate):"]
+    for c in d.channels:
+        doc = c.as_dict()
+        named = ", ".join(f"{e.kind} ({_fmt_params({k: v for k, v in e.params.items() if k != 'reading'})})"
+                          for e in c.effects) or "nothing"
+        out.append(f"  {c.shaft}: ARMAX({c.baseline.na},{c.baseline.nb},{c.baseline.nc}) of {c.output} from "
+                   f"{doc['baseline']['terms']}; one-step RMS {c.error_before.rms:.4g} -> {c.error_after.rms:.4g} "
+                   f"(held out); named {named}")
+    out.append(f"summary over the channels (mean relative one-step RMS): 1 -> {d.as_dict()['error_after']['rms']:.4g}")
+    return out
 
 
 def recording_lines(d: Diagnosis) -> list[str]:

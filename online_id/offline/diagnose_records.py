@@ -165,13 +165,22 @@ def read_records(args: argparse.Namespace) -> DiagnoseData:
         if not (sep and a and b):
             raise ConfigError(f"--torsion {args.torsion!r}: expected SHAFT1:SHAFT2")
         torsion = (a, b)
+    torques = []
+    for item in getattr(args, "torque_col", []) or []:
+        col, sep, shaft = item.rpartition(":")
+        if not (sep and col and shaft):
+            raise ConfigError(f"--torque-col {item!r}: expected COLUMN:SHAFT")
+        if shaft not in [s.shaft for s in shafts]:
+            raise ConfigError(f"--torque-col {item!r}: no shaft {shaft!r} (shafts: "
+                              f"{', '.join(s.shaft for s in shafts) or 'none'})")
+        torques.append((shaft, files.find(col, "--torque-col")))
     layout = Layout(files.find(args.input_col, "--input-col"), files.find(args.output_col, "--output-col"),
                     tuple(shafts), tuple(geared), args.differentiate_output, mode, args.clock_offset_s or 0.0,
                     align, torsion,
                     files.find(args.shaft_torque_col, "--shaft-torque-col") if args.shaft_torque_col else None,
-                    args.sample_rate)
+                    args.sample_rate, tuple(torques))
     used = [layout.input, layout.output, *(s.column for s in shafts), *(align or ()),
-            *([layout.shaft_torque] if layout.shaft_torque else [])]
+            *([layout.shaft_torque] if layout.shaft_torque else []), *(c for _, c in torques)]
     records = [_read(p, n, [c.name for c in used if c.record == k], t, args.fs if k == 0 else None)
                for k, (p, n, t) in enumerate(zip(paths, names, times))]
     notes = {"file": {"path": str(paths[0]), **records[0].as_dict()}}
