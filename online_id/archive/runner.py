@@ -159,8 +159,8 @@ def cluster(scheduler: str | None = None, workers: int = 2, *, quiet: bool = Fal
     env = {k: "1" for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
     # Dask's nannies set MALLOC_TRIM_THRESHOLD_=65536 in their workers (and in this process): glibc then gives
     # freed memory back to the system so eagerly that the fits' linear algebra pays for fresh pages again and
-    # again (measured: 1.5-2x the CPU of the same cases); the default threshold of glibc is kept instead
-    # the nannies also write their workers' pre-spawn variables (PYTHONHASHSEED ...) into this process's
+    # again (measured: 1.5-2x the CPU of the same cases); the default threshold of glibc is kept instead.
+    # The nannies also write their workers' pre-spawn variables (PYTHONHASHSEED ...) into this process's
     # environment: it is put back when the cluster closes, so no process started later inherits them
     environ = dict(os.environ)
     with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):

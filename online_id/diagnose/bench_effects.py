@@ -568,14 +568,8 @@ class Projector:
     def off(self, x: np.ndarray) -> np.ndarray:
         return x - self.q @ (self.q.T @ x)
 
-    def share(self, x: np.ndarray) -> float:
-        """Share of the residual sum of squares that the column ``x`` removes."""
-        xo = self.off(x)
-        den = float(xo @ xo)
-        return float(self.r @ xo) ** 2 / den / self.ssr if den > 0 and self.ssr > 0 else 0.0
-
     def shares(self, X: np.ndarray) -> np.ndarray:
-        """:meth:`share` of each column of ``X`` alone (one product for all of them)."""
+        """Share of the residual sum of squares that each column of ``X`` removes alone (one product for all)."""
         xo = self.off(X)
         den = np.einsum("ij,ij->j", xo, xo)
         if self.ssr <= 0:

@@ -148,6 +148,10 @@ class Diagnosis:
             rel.append(f.rms / c.error_before.rms if c.error_before.rms > 0 else 1.0)
         return float(np.mean(rel))
 
+    def summary_after(self) -> float:
+        """:meth:`summary` after every step of every channel."""
+        return self.summary(moved={c.shaft: c.error_after for c in self.channels})
+
     def support(self, e: "EffectStep") -> float:
         """What a shaft channel's step explains; for a joint's friction or dead zone, which act on both of the
         joint's sides, the sum of what the same kind in the same joint explains (held out, first step) on every
@@ -185,8 +189,7 @@ class Diagnosis:
                 doc["summary_before"], doc["summary_after"] = before, after
                 doc["error_before"]["rms"], doc["error_after"]["rms"] = before, after
             effects.append(doc)
-        after = self.summary(moved={c.shaft: c.error_after for c in self.channels})
-        summary = {"rms": after, "summary": CHANNEL_SUMMARY} if self.channels else {}
+        summary = {"rms": self.summary_after(), "summary": CHANNEL_SUMMARY} if self.channels else {}
         return {
             "source": self.data.source,
             "input": self.data.input_name, "output": self.data.output_name,
@@ -230,12 +233,16 @@ class Channel:
     stop_reason: str
     torque: bool = False
 
+    @property
+    def terms(self) -> str:
+        """What the channel's baseline explains the shaft's speed with."""
+        return ", ".join(["input"] + ([f"torque on {self.shaft}"] if self.torque else [])
+                         + [f"twist and twist rate of {j}" for j in self.joints])
+
     def as_dict(self) -> dict:
         s = self.baseline
-        terms = ["input"] + ([f"torque on {self.shaft}"] if self.torque else []) + \
-            [f"twist and twist rate of {j}" for j in self.joints]
         return {"shaft": self.shaft, "output": self.output, "joints": list(self.joints),
-                "baseline": {"na": s.na, "nb": s.nb + s.delay, "nc": s.nc, "nk": s.nk, "terms": ", ".join(terms)},
+                "baseline": {"na": s.na, "nb": s.nb + s.delay, "nc": s.nc, "nk": s.nk, "terms": self.terms},
                 "effects": [e.kind for e in self.effects],
                 "error_before": error_doc(self.error_before, self.error_before),
                 "error_after": error_doc(self.error_after, self.error_before),
@@ -698,6 +705,7 @@ def diagnose_channel(shaft: str, data: DiagnoseData, split: Split, *, nc: int, h
     na = _smallest_sufficient(CHANNEL_GRID, lambda n: fit_structure(data, _channel_structure(data, shaft, n, 0, joints),
                                                                      split).V_est, NA_TOL)
     cur = fit_structure(data, _channel_structure(data, shaft, na, nc, joints), split)
+    baseline = cur.structure
     fig0, e0 = _figures(cur, data, split, horizon)
     tests0 = run_tests(data, e0, split.val_index, cur.structure.input_lags)
     # friction in a joint acts only where it slips: its feature is always tried on the joint's two shafts
@@ -705,7 +713,7 @@ def diagnose_channel(shaft: str, data: DiagnoseData, split: Split, *, nc: int, h
     steps, cur, e_cur, fig, tests, evaluated, stop = _search(
         data, cur, split, horizon, tests0, fig0, e0, always, max_effects=max_effects, min_explained=min_explained,
         max_delay=0, report=lambda f, m: None, kinds=CHANNEL_KINDS, sim_guard=False)
-    return Channel(shaft, data.output_name, _channel_structure(data, shaft, na, nc, joints), joints, steps, fig0,
+    return Channel(shaft, data.output_name, baseline, joints, steps, fig0,
                    fig, evaluated, stop, shaft in data.torques)
 
 

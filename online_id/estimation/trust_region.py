@@ -77,9 +77,10 @@ def subproblem_data(J_h: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndar
     return s, Vt.T, U_r.T @ qr[:n, n]
 
 
-def _solve_subproblem(n: int, m: int, uf: np.ndarray, s: np.ndarray, V: np.ndarray, Delta: float,
-                      initial_alpha: float, rtol: float = 0.01, max_iter: int = 10) -> tuple[np.ndarray, float]:
-    """Moré's trust-region step from the SVD data (scipy's ``solve_lsq_trust_region``)."""
+def _solve_subproblem(m: int, uf: np.ndarray, s: np.ndarray, V: np.ndarray, Delta: float, initial_alpha: float,
+                      rtol: float = 0.01, max_iter: int = 10) -> tuple[np.ndarray, float]:
+    """Moré's trust-region step from the SVD data (scipy's ``solve_lsq_trust_region``) of an ``m``-row Jacobian
+    with at least as many rows as columns (:func:`trust_region_lsq` refuses fewer)."""
 
     def phi_and_derivative(alpha):
         denom = s**2 + alpha
@@ -87,7 +88,7 @@ def _solve_subproblem(n: int, m: int, uf: np.ndarray, s: np.ndarray, V: np.ndarr
         return p_norm - Delta, -np.sum(suf**2 / denom**3) / p_norm
 
     suf = s * uf
-    full_rank = m >= n and s[-1] > EPS * m * s[0]
+    full_rank = s[-1] > EPS * m * s[0]
     if full_rank:
         p = -V.dot(uf / s)
         if norm(p) <= Delta:
@@ -166,16 +167,15 @@ def trust_region_lsq(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[np.
             status = 1
         if status is not None or nfev == max_nfev:
             break
-        d = scale
-        g_h = d * g
-        J_h = J * d
+        g_h = scale * g
+        J_h = J * scale
         s, V, uf = subproblem_data(J_h, f)
         actual_reduction = -1.0
         while actual_reduction <= 0 and nfev < max_nfev:
-            step_h, alpha = _solve_subproblem(n, m, uf, s, V, Delta, alpha)
+            step_h, alpha = _solve_subproblem(m, uf, s, V, Delta, alpha)
             Js = J_h.dot(step_h)
             predicted_reduction = -(0.5 * np.dot(Js, Js) + np.dot(step_h, g_h))
-            step = d * step_h
+            step = scale * step_h
             x_new = x + step
             f_new = np.asarray(fun(x_new), dtype=float)
             nfev += 1

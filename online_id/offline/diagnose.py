@@ -186,13 +186,12 @@ def channel_lines(d: Diagnosis) -> list[str]:
         return []
     out = ["", "Shaft channels (each shaft's speed from the input, a torque on it, its joints' twist and twist rate):"]
     for c in d.channels:
-        doc = c.as_dict()
         named = ", ".join(f"{e.kind} ({_fmt_params({k: v for k, v in e.params.items() if k != 'reading'})})"
                           for e in c.effects) or "nothing"
         out.append(f"  {c.shaft}: ARMAX({c.baseline.na},{c.baseline.nb},{c.baseline.nc}) of {c.output} from "
-                   f"{doc['baseline']['terms']}; one-step RMS {c.error_before.rms:.4g} -> {c.error_after.rms:.4g} "
+                   f"{c.terms}; one-step RMS {c.error_before.rms:.4g} -> {c.error_after.rms:.4g} "
                    f"(held out); named {named}")
-    out.append(f"summary over the channels (mean relative one-step RMS): 1 -> {d.as_dict()['error_after']['rms']:.4g}")
+    out.append(f"summary over the channels (mean relative one-step RMS): 1 -> {d.summary_after():.4g}")
     return out
 
 
