@@ -132,3 +132,21 @@ def test_a_torque_on_a_shaft_is_an_input_of_its_channel():
     assert "torque on" not in doc["mid"]["baseline"]["terms"]
     with pytest.raises(Exception, match="no speed"):
         replace(d, torques={"nowhere": drag})
+    assert not [w for w in r.warnings if "not used" in w]
+
+
+def test_a_torque_no_channel_takes_in_is_named_unused():
+    from dataclasses import replace
+
+    from online_id.diagnose.diagnosis import _unused_torques, shaft_channels
+
+    d = three_shaft_rig(2, T=4.0)
+    drag = -0.2 * d.shaft_speeds_rad_s["load"]
+    on_load = replace(d, torques={"load": drag})
+    channel_shafts = [name for name, _ in shaft_channels(on_load)]
+    assert "load" in channel_shafts and not _unused_torques(on_load, True, channel_shafts)
+    (off,) = _unused_torques(on_load, False, [])
+    assert "'load'" in off and "--channels" in off
+    on_motor = replace(d, torques={"motor": drag, "load": drag})  # the output's shaft has no channel
+    (unused,) = _unused_torques(on_motor, True, [name for name, _ in shaft_channels(on_motor)])
+    assert "'motor'" in unused and "'load'" not in unused

@@ -717,6 +717,19 @@ def diagnose_channel(shaft: str, data: DiagnoseData, split: Split, *, nc: int, h
                    fig, evaluated, stop, shaft in data.torques)
 
 
+def _unused_torques(data: DiagnoseData, channels: bool, channel_shafts: list[str]) -> list[str]:
+    """A warning per torque on a shaft (``data.torques``) that no channel takes in: they are inputs of the shaft
+    channels only."""
+    unused = [n for n in data.torques if n not in channel_shafts]
+    if not unused:
+        return []
+    why = ("the shaft channels are off (--channels, channels=True)" if not channels else
+           f"only the shaft channels use it, and {'these shafts have' if len(unused) > 1 else 'this shaft has'} none "
+           "(not measured by angle at a joint, or the output's)")
+    return [f"torque on shaft{'s' if len(unused) > 1 else ''} {', '.join(map(repr, unused))} (--torque-col) not used: "
+            + why]
+
+
 def _channel_structure(data: DiagnoseData, shaft: str, na: int, nc: int, joints: tuple[str, ...]) -> Structure:
     s = Structure(na, na, nc, 1)
     if shaft in data.torques:
@@ -813,6 +826,7 @@ def diagnose(data: DiagnoseData, *, na: int | None, nb: int | None, nc: int, nk:
         min_explained=min_explained, max_delay=max_delay_samples, report=report)
     diagnosed = []
     shafts = shaft_channels(data) if channels else []
+    warnings += _unused_torques(data, channels, [name for name, _ in shafts])
     for i, (shaft, cdata) in enumerate(shafts):
         report(1.0, f"channel {shaft} ({i + 1}/{len(shafts)})")
         try:

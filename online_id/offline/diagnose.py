@@ -166,7 +166,8 @@ def text_report(d: Diagnosis) -> str:
              summary_table(d), "",
              f"error before: RMS {d.error_before.rms:.4g}, fit {d.error_before.fit_pct:.1f} % (held out)",
              f"error after:  RMS {d.error_after.rms:.4g}, fit {d.error_after.fit_pct:.1f} % "
-             f"(summary: {d.error_after.rms / d.error_before.rms:.4g} of the baseline's one-step RMS)",
+             f"({d.error_after.rms / d.error_before.rms:.4g} of the baseline's one-step RMS"
+             + (", the output's channel)" if d.channels else ")"),
              f"stopped: {d.stop_reason}"]
     lines += channel_lines(d)
     lines += recording_lines(d) + ["", "Residual tests (held-out part), before -> after:"]
