@@ -77,8 +77,32 @@ def _again(_signum: int, _frame) -> None:
     ``finally`` blocks and ``__exit__`` methods that clean up run with it): then nothing is raised, so
     that the clean-up is never cut.
     """
-    if _received and not isinstance(sys.exc_info()[1], Interrupted):
-        _deliver(_received[0])
+    if _received:
+        if not isinstance(sys.exc_info()[1], Interrupted):
+            _deliver(_received[0])
+    elif callable(_outer_alarm[-1] if _outer_alarm else None):
+        _outer_alarm[-1](_signum, _frame)  # no stop pending: the alarm is the caller's own (see interruptible)
+
+
+_outer_alarm: list = []
+"""The SIGALRM handlers of the callers of :func:`interruptible` (innermost last)."""
+
+
+def worker_signals() -> None:
+    """Initializer of a worker process forked from within :func:`interruptible`: SIGTERM ends it at once (as
+    ``Pool.terminate`` expects), SIGINT is left to the parent (which ends its workers), and nothing of the
+    parent's stop (a pending stop, its repeat timer) goes on in it.
+
+    Without it a forked worker keeps the parent's handlers and their state: a worker that had taken a stop
+    as "the second, ignored while the first one's clean-up runs" never ended, and the parent's
+    ``Pool.terminate`` waited for it forever.
+    """
+    signal.setitimer(signal.ITIMER_REAL, 0.0)
+    _received.clear()
+    _outer_alarm.clear()
+    signal.signal(signal.SIGALRM, signal.SIG_DFL)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 @contextmanager
@@ -94,6 +118,10 @@ def interruptible(process_ends: bool = False) -> Iterator[None]:
         yield
         return
     previous = {s: signal.getsignal(s) for s in (*SIGNALS, signal.SIGALRM)}
+    # a caller's own alarm (pytest-timeout's, for one) still reaches its handler while no stop is pending,
+    # and its timer runs on: the timer is this function's only once a stop has set it (_raise)
+    outer = previous[signal.SIGALRM]
+    _outer_alarm.append((_outer_alarm[-1] if _outer_alarm else None) if outer is _again else outer)
     hook = sys.unraisablehook
 
     def unraisable(info) -> None:
@@ -108,7 +136,9 @@ def interruptible(process_ends: bool = False) -> Iterator[None]:
     try:
         yield
     finally:
-        signal.setitimer(signal.ITIMER_REAL, 0.0)
+        if _received:
+            signal.setitimer(signal.ITIMER_REAL, 0.0)
+        _outer_alarm.pop()
         for s, handler in previous.items():
             stays = s != signal.SIGALRM and (_received or process_ends)
             signal.signal(s, signal.SIG_IGN if stays else handler)

@@ -26,6 +26,7 @@ from online_id.diagnose import DiagnoseData, diagnose
 from online_id.diagnose.align import resample_uniform
 from online_id.diagnose.residual_tests import RIG_LINE_RATIO, RIG_SPLIT_RATIO
 from online_id.diagnose.layouts import Column, Layout, ShaftColumn, assemble
+from online_id.interrupt import worker_signals
 from online_id.io.jsonout import dumps
 
 SAMPLE_RATE_HZ = 200.0
@@ -166,7 +167,7 @@ def _run_all(tasks: list[tuple], jobs: int, progress: Callable[[int, int, dict],
             progress(len(out), len(tasks), r)
 
     if jobs > 1:
-        with ProcessPoolExecutor(jobs) as pool:
+        with ProcessPoolExecutor(jobs, initializer=worker_signals) as pool:
             for r in pool.map(_task, tasks):
                 done(r)
     else:

@@ -16,6 +16,7 @@ import numpy as np
 
 from online_id.bench import evaluate as ev
 from online_id.errors import ConfigError, InputDataError
+from online_id.interrupt import worker_signals
 from online_id.io.outfile import atomic_output, check_output
 from online_id.offline.bench_feed import run_spec
 from online_id.report.figures import fmt, pyplot, save_figure
@@ -281,7 +282,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
             map_tasks(client, run_spec, specs, label="evaluate", on_done=done, quiet=True)
     else:
         ctx = multiprocessing.get_context("fork")
-        with ctx.Pool(args.jobs) as pool:
+        with ctx.Pool(args.jobs, initializer=worker_signals) as pool:
             for r in pool.imap_unordered(run_spec, specs):
                 record(r)
     elapsed = time.monotonic() - t0
