@@ -90,7 +90,8 @@ _outer_alarm: list = []
 
 def worker_signals() -> None:
     """Initializer of a worker process forked from within :func:`interruptible`: SIGTERM ends it at once (as
-    ``Pool.terminate`` expects), SIGINT is left to the parent (which ends its workers), and nothing of the
+    ``Pool.terminate`` expects), so does SIGINT (Ctrl-C reaches the whole process group: the parent stops and
+    ends its pool, the children a worker runs get the signal as any program does), and nothing of the
     parent's stop (a pending stop, its repeat timer) goes on in it.
 
     Without it a forked worker keeps the parent's handlers and their state: a worker that had taken a stop
@@ -102,7 +103,7 @@ def worker_signals() -> None:
     _outer_alarm.clear()
     signal.signal(signal.SIGALRM, signal.SIG_DFL)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 @contextmanager

@@ -84,11 +84,12 @@ def _fork_within(initializer) -> int:
     return pid
 
 
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 @pytest.mark.parametrize("initializer, ends", [(None, False), (worker_signals, True)])
-def test_a_worker_forked_within_ends_on_sigterm_only_with_worker_signals(initializer, ends):
+def test_a_worker_forked_within_ends_on_a_stop_only_with_worker_signals(initializer, ends, sig):
     pid = _fork_within(initializer)
     try:
-        os.kill(pid, signal.SIGTERM)
+        os.kill(pid, sig)
         assert _stays_alive(pid, 1.5) is not ends
     finally:
         try:
