@@ -88,24 +88,6 @@ _outer_alarm: list = []
 """The SIGALRM handlers of the callers of :func:`interruptible` (innermost last)."""
 
 
-def worker_signals() -> None:
-    """Initializer of a worker process forked from within :func:`interruptible`: SIGTERM ends it at once (as
-    ``Pool.terminate`` expects), so does SIGINT (Ctrl-C reaches the whole process group: the parent stops and
-    ends its pool, the children a worker runs get the signal as any program does), and nothing of the
-    parent's stop (a pending stop, its repeat timer) goes on in it.
-
-    Without it a forked worker keeps the parent's handlers and their state: a worker that had taken a stop
-    as "the second, ignored while the first one's clean-up runs" never ended, and the parent's
-    ``Pool.terminate`` waited for it forever.
-    """
-    signal.setitimer(signal.ITIMER_REAL, 0.0)
-    _received.clear()
-    _outer_alarm.clear()
-    signal.signal(signal.SIGALRM, signal.SIG_DFL)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-
-
 @contextmanager
 def interruptible(process_ends: bool = False) -> Iterator[None]:
     """Within: SIGINT and SIGTERM raise :class:`Interrupted` (see module notes), and again if some code

@@ -14,7 +14,8 @@ import time
 import pytest
 
 from online_id import interrupt
-from online_id.interrupt import interruptible, worker_signals
+from online_id.interrupt import interruptible
+from online_id.workers import worker_signals
 
 
 class CallersAlarm(Exception):

@@ -21,7 +21,7 @@ from typing import Callable
 from online_id.evaluation.chain_cases import draw_case
 from online_id.evaluation.chain_files import strict_json as dumps, write_case
 from online_id.evaluation.chain_score import confusion_png, score_case, summarise, table_markdown
-from online_id.interrupt import worker_signals
+from online_id.workers import worker_signals
 
 DEFAULT_TIMEOUT_S = 1800.0
 

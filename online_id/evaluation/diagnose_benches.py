@@ -37,8 +37,8 @@ import numpy as np
 
 from online_id.bench.diagnose_cases import KINDS, make_case, twist_passages
 from online_id.bench.simulate import simulate_bench
-from online_id.interrupt import worker_signals
 from online_id.io.jsonout import dumps, plain
+from online_id.workers import worker_signals
 
 PATHS = ("no_demand", "demand")
 MARGIN = 1.1

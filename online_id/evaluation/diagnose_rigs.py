@@ -26,8 +26,8 @@ from online_id.diagnose import DiagnoseData, diagnose
 from online_id.diagnose.align import resample_uniform
 from online_id.diagnose.residual_tests import RIG_LINE_RATIO, RIG_SPLIT_RATIO
 from online_id.diagnose.layouts import Column, Layout, ShaftColumn, assemble
-from online_id.interrupt import worker_signals
 from online_id.io.jsonout import dumps
+from online_id.workers import worker_signals
 
 SAMPLE_RATE_HZ = 200.0
 SIM_HORIZON_S = 0.1  # the load loop's set point is unmeasured: longer simulations judge it, not the model

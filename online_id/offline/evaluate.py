@@ -16,10 +16,10 @@ import numpy as np
 
 from online_id.bench import evaluate as ev
 from online_id.errors import ConfigError, InputDataError
-from online_id.interrupt import worker_signals
 from online_id.io.outfile import atomic_output, check_output
 from online_id.offline.bench_feed import run_spec
 from online_id.report.figures import fmt, pyplot, save_figure
+from online_id.workers import worker_signals
 
 
 def table(summary: dict) -> str:
