@@ -23,6 +23,7 @@ start-up code.
 
 from __future__ import annotations
 
+import os
 import signal
 import sys
 import threading
@@ -86,6 +87,26 @@ def _again(_signum: int, _frame) -> None:
 
 _outer_alarm: list = []
 """The SIGALRM handlers of the callers of :func:`interruptible` (innermost last)."""
+
+
+def _forked_child() -> None:
+    """In a process forked within :func:`interruptible` (a pool's worker): the signals' default actions.
+
+    The child would otherwise inherit the stop handlers and their state: ``Pool.terminate`` ends its workers
+    with SIGTERM and waits for them, and a worker that took that SIGTERM as a second stop, ignored while the
+    first one's clean-up runs, never ended (docs/history/ci-hang.md). SIGINT ends it too: Ctrl-C reaches the
+    whole process group, the parent stops and ends its pool, and the programs a worker runs get it as any
+    program does. (A fork's child has no timer of its parent's.)
+    """
+    if signal.getsignal(signal.SIGTERM) is not _raise:
+        return
+    _received.clear()
+    _outer_alarm.clear()
+    for s in (*SIGNALS, signal.SIGALRM):
+        signal.signal(s, signal.SIG_DFL)
+
+
+os.register_at_fork(after_in_child=_forked_child)
 
 
 @contextmanager

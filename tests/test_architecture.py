@@ -10,7 +10,7 @@ PACKAGE = Path(__file__).resolve().parent.parent / "online_id"
 # What each room may import of the project (besides itself), from the bottom up; imports under
 # `if TYPE_CHECKING:` do not count.  A room is a package under online_id/ or a module at its top level; the
 # top level holds only what serves all of it.  Every room is listed (test_every_room_has_a_rule).
-BASE = {"errors", "records", "units", "progress", "config", "workers"}
+BASE = {"errors", "records", "units", "progress", "config"}
 CORE = {"analysis", "estimation", "monitoring", "diagnose"}
 ALLOWED = {
     # the base: serves every room
@@ -18,7 +18,6 @@ ALLOWED = {
     "records": set(),
     "units": {"errors"},
     "progress": set(),
-    "workers": set(),  # what a pool's worker process starts with
     "config": {"errors", "estimation", "monitoring"},  # the identification's settings, detection's defaults
     # the numerical core: no I/O, no clocks
     "analysis": {"errors", "records"},
@@ -46,7 +45,7 @@ ALLOWED = {
     "cli": None,  # may import every room
     "__main__": {"cli"},
 }
-CHAIN = {"errors", "records", "bench", "evaluation", "workers"}
+CHAIN = {"errors", "records", "bench", "evaluation"}
 """What the chain family's modules (online_id.evaluation.chain*) may import: they judge the diagnosis from outside,
 through its command line only, so that nothing of the diagnosis shapes the benches it is judged on."""
 

@@ -136,7 +136,7 @@ def test_chain_family_results_are_strict_with_an_undefined_figure(tmp_path, monk
 class _InProcessPool:
     """A ``ProcessPoolExecutor`` stand-in that runs each call at once in this process."""
 
-    def __init__(self, max_workers=None, initializer=None):
+    def __init__(self, max_workers=None):
         pass
 
     def __enter__(self):

@@ -15,7 +15,6 @@ import pytest
 
 from online_id import interrupt
 from online_id.interrupt import interruptible
-from online_id.workers import worker_signals
 
 
 class CallersAlarm(Exception):
@@ -66,38 +65,51 @@ def _stays_alive(pid: int, seconds: float) -> bool:
     return True
 
 
-def _fork_within(initializer) -> int:
-    """A child forked inside interruptible with a stop already taken (``_received``), waiting; its pid."""
-    with interruptible():
-        interrupt._received.append(signal.SIGTERM)
+def _fork_waiting() -> int:
+    """A child that waits (as a pool's worker waits for work); its pid."""
+    pid = os.fork()
+    if pid == 0:
         try:
-            pid = os.fork()
-            if pid == 0:  # the child: as a pool worker, the initializer first, then wait for work
-                try:
-                    if initializer is not None:
-                        initializer()
-                    time.sleep(30.0)
-                finally:
-                    os._exit(0)
+            time.sleep(30.0)
         finally:
-            interrupt._received.clear()
-    time.sleep(0.3)  # the child has run its initializer
+            os._exit(0)
+    time.sleep(0.3)
     return pid
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
-@pytest.mark.parametrize("initializer, ends", [(None, False), (worker_signals, True)])
-def test_a_worker_forked_within_ends_on_a_stop_only_with_worker_signals(initializer, ends, sig):
-    pid = _fork_within(initializer)
+def _ends_on(pid: int, sig: int) -> bool:
     try:
         os.kill(pid, sig)
-        assert _stays_alive(pid, 1.5) is not ends
+        return not _stays_alive(pid, 1.5)
     finally:
         try:
             os.kill(pid, signal.SIGKILL)
             os.waitpid(pid, 0)
         except (ProcessLookupError, ChildProcessError):
             pass
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_a_child_forked_within_with_a_stop_taken_ends_on_a_stop(sig):
+    """Forked while the parent's handler had taken a stop (the state the hung worker may have held)."""
+    with interruptible():
+        interrupt._received.append(signal.SIGTERM)
+        try:
+            pid = _fork_waiting()
+        finally:
+            interrupt._received.clear()
+    assert _ends_on(pid, sig)
+
+
+def test_a_child_forked_outside_keeps_its_parents_own_handler():
+    """Only interruptible's own handling is dropped in a child: a handler the caller set stays (here one that
+    ignores SIGTERM, so the child lives on)."""
+    previous = signal.signal(signal.SIGTERM, lambda *_: None)
+    try:
+        pid = _fork_waiting()
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert not _ends_on(pid, signal.SIGTERM)
 
 
 def _square(x: int) -> int:
@@ -110,7 +122,7 @@ def test_a_pool_made_within_ends_at_its_exit():
     with interruptible():
         interrupt._received.append(signal.SIGTERM)
         try:
-            with multiprocessing.get_context("fork").Pool(2, initializer=worker_signals) as pool:
+            with multiprocessing.get_context("fork").Pool(2) as pool:
                 assert pool.map(_square, range(6)) == [0, 1, 4, 9, 16, 25]
                 workers = [p.pid for p in pool._pool]
         finally:

@@ -21,7 +21,6 @@ from typing import Callable
 from online_id.evaluation.chain_cases import draw_case
 from online_id.evaluation.chain_files import strict_json as dumps, write_case
 from online_id.evaluation.chain_score import confusion_png, score_case, summarise, table_markdown
-from online_id.workers import worker_signals
 
 DEFAULT_TIMEOUT_S = 1800.0
 
@@ -102,7 +101,7 @@ def run_family(seeds: list[int], out: Path, quick: bool = False, jobs: int = 2, 
     sink.write_text("", encoding="utf-8")
     records: list[dict] = []
     t0 = time.monotonic()
-    with ProcessPoolExecutor(max_workers=jobs, initializer=worker_signals) as pool:
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
         futures = {pool.submit(run_case, s, quick, out, timeout_s, keep_data, program): s for s in seeds}
         for fut in as_completed(futures):
             seed = futures[fut]

@@ -38,7 +38,6 @@ import numpy as np
 from online_id.bench.diagnose_cases import KINDS, make_case, twist_passages
 from online_id.bench.simulate import simulate_bench
 from online_id.io.jsonout import dumps, plain
-from online_id.workers import worker_signals
 
 PATHS = ("no_demand", "demand")
 MARGIN = 1.1
@@ -139,7 +138,7 @@ def run_cases(jobs: list[tuple[str, int]], workers: int,
             if progress:
                 progress(i + 1, len(jobs), out[-1])
         return out
-    with ProcessPoolExecutor(max_workers=workers, initializer=worker_signals) as pool:
+    with ProcessPoolExecutor(max_workers=workers) as pool:
         for i, r in enumerate(pool.map(run_case, jobs)):
             out.append(r)
             if progress:

@@ -27,7 +27,6 @@ from online_id.diagnose.align import resample_uniform
 from online_id.diagnose.residual_tests import RIG_LINE_RATIO, RIG_SPLIT_RATIO
 from online_id.diagnose.layouts import Column, Layout, ShaftColumn, assemble
 from online_id.io.jsonout import dumps
-from online_id.workers import worker_signals
 
 SAMPLE_RATE_HZ = 200.0
 SIM_HORIZON_S = 0.1  # the load loop's set point is unmeasured: longer simulations judge it, not the model
@@ -167,7 +166,7 @@ def _run_all(tasks: list[tuple], jobs: int, progress: Callable[[int, int, dict],
             progress(len(out), len(tasks), r)
 
     if jobs > 1:
-        with ProcessPoolExecutor(jobs, initializer=worker_signals) as pool:
+        with ProcessPoolExecutor(jobs) as pool:
             for r in pool.map(_task, tasks):
                 done(r)
     else:

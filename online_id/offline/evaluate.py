@@ -19,7 +19,6 @@ from online_id.errors import ConfigError, InputDataError
 from online_id.io.outfile import atomic_output, check_output
 from online_id.offline.bench_feed import run_spec
 from online_id.report.figures import fmt, pyplot, save_figure
-from online_id.workers import worker_signals
 
 
 def table(summary: dict) -> str:
@@ -282,7 +281,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
             map_tasks(client, run_spec, specs, label="evaluate", on_done=done, quiet=True)
     else:
         ctx = multiprocessing.get_context("fork")
-        with ctx.Pool(args.jobs, initializer=worker_signals) as pool:
+        with ctx.Pool(args.jobs) as pool:
             for r in pool.imap_unordered(run_spec, specs):
                 record(r)
     elapsed = time.monotonic() - t0
