@@ -155,6 +155,21 @@ def test_a_seed_draws_the_same_case_and_kinds_cycle():
 
 
 @pytest.mark.slow
+def test_every_seed_draws_a_case_and_a_line_on_shafts_turning_together_names_both():
+    """Gear ratios that make every line of a shaft an integer order of another (2, 2, 4, 1: the last two
+    shafts turn together) still give a rotation-order case, on a shaft that turns with another, and
+    either shaft is right."""
+    for seed in range(60000, 60400):
+        draw_case(seed)
+    spec = draw_case(60265)
+    eff = spec["effect"]
+    assert spec["kind"] == "rotation_order" and eff["turns_with"]
+    for shaft in [eff["shaft"]] + eff["turns_with"]:
+        assert shaft in spec["expected"]["shaft"]
+    ratios = [j["ratio"] for j in spec["joints"]]
+    assert ratios[-1] == 1.0
+
+
 def test_the_runner_end_to_end_on_one_bench(tmp_path):
     """One quick clean bench through the whole runner: files, the CLI as a child process, strict scoring; the
     outcome is the diagnosis's, the structure is the runner's."""

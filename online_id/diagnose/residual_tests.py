@@ -252,7 +252,17 @@ def rig_orders(e: np.ndarray, speeds: dict[str, np.ndarray], rates: dict[str, fl
                         "lines: " + (text or "none") + f" (threshold {RIG_LINE_RATIO:g}x the local floor, or "
                         f"{RIG_SPLIT_RATIO:g}x in both parts; grid of {len(rates)} shafts)",
                         tuple(cands), {"order": order, "psd": p, "shaft": slow, "max_ratio": largest,
-                                       "max_split_ratio": largest_split})
+                                       "max_split_ratio": largest_split,
+                                       "psd_held_out": parts[1] if parts else None, "rates": dict(rates)})
+
+
+def line_ratios(test: ResidualTest, shaft: str, k: float) -> tuple[float, float | None]:
+    """The power of order ``k`` of ``shaft`` over its local floor in a :func:`rig_orders` test: in the whole
+    record and in the held-out part alone (``None`` if the test did not look at it apart)."""
+    c = test.curve
+    o = k * abs(c["rates"][shaft]) / abs(c["rates"][c["shaft"]])
+    held = c.get("psd_held_out")
+    return line_ratio(c["order"], c["psd"], o), (None if held is None else line_ratio(c["order"], held, o))
 
 
 def _without_order_lines(spec: ResidualTest, orders: ResidualTest, speeds: dict[str, np.ndarray]) -> ResidualTest:

@@ -186,7 +186,8 @@ def trust_region_lsq(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[np.
             cost_new = 0.5 * np.dot(f_new, f_new)
             actual_reduction = cost - cost_new
             if predicted_reduction > 0:
-                ratio = actual_reduction / predicted_reduction
+                with np.errstate(over="ignore"):  # a vanishing predicted reduction: the ratio is +-inf
+                    ratio = actual_reduction / predicted_reduction
             elif predicted_reduction == actual_reduction == 0:
                 ratio = 1
             else:

@@ -66,27 +66,38 @@ def _rotation_order(rng: np.random.Generator, spec: dict) -> None:
     rpm = spec["plateaus"]["speeds_rpm"]
     rates = _rates(spec)
     measured = [i for i, e in enumerate(spec["elements"]) if e["measured"]]
-    choices = []
-    for i in measured:
-        if spec["layout"] == "bench":
-            ppr = spec["engine"]["cylinders"] / 2
-            grid = np.arange(1, 25) / 2 if spec["elements"][i]["role"] == "engine" else np.arange(1, 13, dtype=float)
-            grid = [k for k in grid if abs(k / ppr - round(k / ppr)) > 1e-9]
-        else:
-            others = [rates[j] for j in measured if j != i]
-            if any(abs(r - rates[i]) < 1e-9 for r in others):
-                continue  # a shaft turning with another: its lines cannot be told apart by frequency
-            grid = [float(k) for k in range(1, 13)
-                    if all(abs(k * rates[i] / r - round(k * rates[i] / r)) > 1e-6 for r in others)]
-        for k in grid:
-            lo, hi = k * rates[i] * min(rpm) / 60, k * rates[i] * max(rpm) / 60
-            if lo >= 3.0 and hi <= 0.42 * spec["fs_hz"]:
-                choices.append((i, float(k)))
+
+    def twins(i: int) -> list[int]:
+        return [j for j in measured if j != i and abs(rates[j] - rates[i]) < 1e-9]
+
+    def draw_choices(allow_twins: bool) -> list[tuple[int, float]]:
+        choices = []
+        for i in measured:
+            if spec["layout"] == "bench":
+                ppr = spec["engine"]["cylinders"] / 2
+                grid = np.arange(1, 25) / 2 if spec["elements"][i]["role"] == "engine" else np.arange(1, 13, dtype=float)
+                grid = [k for k in grid if abs(k / ppr - round(k / ppr)) > 1e-9]
+            else:
+                if twins(i) and not allow_twins:
+                    continue  # a shaft turning with another: its lines cannot be told apart by frequency
+                others = [rates[j] for j in measured if j != i and j not in twins(i)]
+                grid = [float(k) for k in range(1, 13)
+                        if all(abs(k * rates[i] / r - round(k * rates[i] / r)) > 1e-6 for r in others)]
+            for k in grid:
+                lo, hi = k * rates[i] * min(rpm) / 60, k * rates[i] * max(rpm) / 60
+                if lo >= 3.0 and hi <= 0.42 * spec["fs_hz"]:
+                    choices.append((i, float(k)))
+        return choices
+
+    # where the gear ratios make every line of a shaft an integer order of another, a line is drawn on a
+    # shaft that turns with another one and either shaft is right (nothing tells them apart)
+    choices = draw_choices(False) or draw_choices(True)
     el, order = choices[int(rng.integers(len(choices)))]
     spec["orders"].append({"element": el, "order": order, "amplitude_nm": amp,
                            "phase_rad": float(rng.uniform(0, 2 * math.pi))})
     spec["effect"] = {"shaft": spec["elements"][el]["name"], "element": el, "order": order, "amplitude_nm": amp,
-                      "line_hz": [order * rates[el] * r / 60 for r in rpm]}
+                      "line_hz": [order * rates[el] * r / 60 for r in rpm],
+                      "turns_with": [spec["elements"][j]["name"] for j in twins(el)]}
 
 
 def _cylinder_family(rng: np.random.Generator, spec: dict) -> None:
@@ -263,8 +274,9 @@ def expected(spec: dict) -> dict:
     if kind == "clean":
         return {"kinds": []}
     if kind == "rotation_order":
+        shafts = [eff["shaft"]] + eff.get("turns_with", [])
         return {"kinds": ["rotation_order_disturbance"], "order": eff["order"],
-                "shaft": [eff["shaft"]] + files["shaft_columns"].get(eff["shaft"], [])}
+                "shaft": shafts + [c for s in shafts for c in files["shaft_columns"].get(s, [])]}
     if kind == "cylinder_family":
         return {"kinds": ["rotation_order_disturbance"], "kinds_containing": "order", "order": 0.5,
                 "shaft": ["engine"] + files["shaft_columns"].get("engine", [])}

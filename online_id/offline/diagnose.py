@@ -138,8 +138,21 @@ def run_diagnosis(args: argparse.Namespace, data: DiagnoseData | None = None) ->
         progress.close()
 
 
+_LINE_KEYS = ("line_ratio", "held_out_ratio", "line_ratio_after", "held_out_ratio_after")
+
+
 def _fmt_params(params: dict) -> str:
-    return ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in params.items())
+    shown = {k: v for k, v in params.items() if not ("line_ratio_after" in params and k in _LINE_KEYS)}
+    return ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in shown.items()) + _line_clause(params)
+
+
+def _line_clause(params: dict) -> str:
+    """An order line's power over its local floor before and after its step (what it was accepted on)."""
+    if "line_ratio_after" not in params:
+        return ""
+    held = (f", held out {params['held_out_ratio']:.0f}x -> {params['held_out_ratio_after']:.1f}x"
+            if "held_out_ratio_after" in params and np.isfinite(params.get("held_out_ratio", np.nan)) else "")
+    return f"; line over its floor {params['line_ratio']:.0f}x -> {params['line_ratio_after']:.1f}x{held}"
 
 
 def summary_table(d: Diagnosis) -> str:
