@@ -158,15 +158,14 @@ class Runtime:
             if pipeline.split_pending:
                 self._rest = res[k + 1:]
                 break
-        if not pubs:
-            ahead = pipeline.estimate_ahead
-            if ahead is not None:
-                if ahead is not self._prepared:  # the next sample publishes this estimate: its OidEstimate now
-                    self._prepared = ahead
-                    self.encoder.prepare_estimate(EstimateOut(math.nan, ahead.f0_hz, ahead.zeta, math.nan, math.nan,
-                                                              ahead.valid))
-            elif pipeline.publishes_next:
-                self.encoder.rehearse()  # the next sample publishes: its OidEstimate's encoding into the caches now
+        ahead = pipeline.estimate_ahead
+        if ahead is not None:
+            if ahead is not self._prepared:  # the next sample publishes this estimate: its OidEstimate now
+                self._prepared = ahead
+                self.encoder.prepare_estimate(EstimateOut(math.nan, ahead.f0_hz, ahead.zeta, math.nan, math.nan,
+                                                          ahead.valid))
+        elif not pubs and pipeline.publishes_next:
+            self.encoder.rehearse()  # the next sample publishes: its OidEstimate's encoding into the caches now
         return pubs
 
     def finish(self) -> list[Publication]:
