@@ -175,14 +175,17 @@ def _not_ahead(rt: Runtime) -> None:
     est.estimate_ahead = lambda: est.prepare_estimate()
 
 
-@pytest.mark.parametrize("seed, ticks", [(4, False), (9, False), (4, True)])
-def test_the_estimate_and_its_frame_made_ahead_change_nothing(seed: int, ticks: bool) -> None:
+@pytest.mark.parametrize("seed, ticks, rate_hz", [(4, False, 50.0), (9, False, 50.0), (4, True, 50.0),
+                                                   (5, False, 10.0), (6, False, 7.0)])
+def test_the_estimate_and_its_frame_made_ahead_change_nothing(seed: int, ticks: bool, rate_hz: float) -> None:
     """With a worker process, the sample before a publication makes its estimate and the live loop encodes its
     OidEstimate (the publication then takes both): every frame is the one made without it.  With a tick after
     every frame (what the live loop does on a silent bus), each estimate made ahead is undone before its
-    publication, which makes it afresh: the frames are again the same (fails where the undo is not exact)."""
-    truth, frames = _frames(seed, 8.0)
-    settings = _settings(truth)
+    publication, which makes it afresh: the frames are again the same (fails where the undo is not exact).
+    At publish rates whose schedule the sample grid meets only up to rounding, every publication but the first
+    still finds its estimate made (fails where the sample before it misjudges whether the next one publishes)."""
+    truth, frames = _frames(seed, 8.0 if rate_hz > 20 else 30.0)
+    settings = _settings(truth, publish=PublishSettings(rate_hz=rate_hz))
     runs = []
     for ahead in (True, False):
         rt = Runtime(settings, worker=_AsyncInline())
@@ -203,7 +206,7 @@ def test_the_estimate_and_its_frame_made_ahead_change_nothing(seed: int, ticks: 
     (out, used, made, prepared), (plain, plain_used, _, plain_prepared) = runs
     assert out == plain
     publishing = sorted({i for i, fid, _ in out if fid == 0x300})
-    assert len(publishing) > 300 and len(used) == len(publishing) == len(plain_used)
+    assert len(publishing) > 200 and len(used) == len(publishing) == len(plain_used)
     assert not any(plain_used) and not plain_prepared and len(made) >= len(publishing) - 1
     if ticks:  # every one undone before its publication
         assert not any(used)

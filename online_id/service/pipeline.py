@@ -414,8 +414,10 @@ class Pipeline:
             # process worker it runs beside the stream and is adopted when it is back (``worker.poll``), and
             # it waits while a publication is near
             elif self.publication_near(a.t_s):
-                if a.t_s + self.assembler.dt >= self._next_publish:
-                    self._ahead = self.estimator.estimate_ahead()  # the next sample publishes (see estimate_ahead)
+                # the next sample publishes (see estimate_ahead); half a sample's margin, as the schedule's sum and the
+                # sample grid may round the publication's time either way
+                if a.t_s + 1.5 * self.assembler.dt >= self._next_publish:
+                    self._ahead = self.estimator.estimate_ahead()
             elif self.estimator.refit_due and not self.worker.busy(WINDOW):
                 self._submit_refit()
             elif self._refit_pending and not self.worker.busy(PHYSICAL):
