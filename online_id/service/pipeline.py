@@ -425,6 +425,7 @@ class Pipeline:
 
     def poll_worker(self) -> int:
         """Adopt the results of finished slow work (also done before every sample)."""
+        self._drop_ahead()
         return self.worker.poll()
 
     @property
