@@ -54,6 +54,7 @@ resonance).
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -343,6 +344,25 @@ class OnlineDriveline:
         """
         a, _b, _c, _cov, _V, source = self.polynomials()
         self._poles_for(a, source)
+
+    def estimate_ahead(self) -> tuple[OnlineEstimate, Callable[[], None]] | None:
+        """The next estimate (:meth:`estimate` with ``defer_std``), made now, and the undo that puts the estimator
+        back as if it had not been made; None where no undo is possible (a fit of the newest seconds, whose
+        estimate settles the window), after :meth:`prepare_estimate`.
+
+        The live service makes a publication's estimate on the sample before it, after that sample's update:
+        the model the publication's sample finds.  The publication then takes it, if nothing touched the
+        estimator since, or calls the undo and :meth:`estimate` afresh: the estimate is the same either way.
+        """
+        if self.window.fit_newest:
+            self.prepare_estimate()
+            return None
+        kept = (self._pick, self._pick_std, self._valid, self._good, self._std_due)  # what estimate() changes
+
+        def undo() -> None:
+            self._pick, self._pick_std, self._valid, self._good, self._std_due = kept
+
+        return self.estimate(defer_std=True), undo
 
     def _cached(self, what: str, z: complex, source: str, compute):
         """``compute()`` once per window fit and pole (``what``: residue, std); every time for the recursive model.

@@ -115,6 +115,17 @@ class _OutSpec:
     frame_id: int = 0
 
 
+def _estimate_values(pub: EstimateOut) -> dict[str, float]:
+    """The OidEstimate's signal values of ``pub`` (not valid where a value is not finite)."""
+    ok = bool(pub.valid) and math.isfinite(pub.f0_hz) and math.isfinite(pub.zeta)
+    return {"ResonanceFreq": pub.f0_hz, "DampingRatio": pub.zeta, "Valid": ok}
+
+
+def _same(values: Mapping[str, float]) -> tuple:
+    """``values`` as a key that equal values (NaN included) give alike."""
+    return tuple(v if v == v else None for v in values.values())
+
+
 def _encodable_range(sig: Any) -> tuple[float, float]:
     """The physical values ``sig`` can carry: its DBC minimum and maximum within what its raw bits hold."""
     lo = float(sig.minimum) if sig.minimum is not None else -math.inf
@@ -162,6 +173,7 @@ class OutputEncoder:
             self._specs[key] = spec
             self._by_id[int(msg.frame_id)] = spec
             self._count[key] = 0
+        self._ready: tuple | None = None  # (values, alive counter, frame) of an OidEstimate encoded ahead
         self.command_answer: dict[str, int] = {}
         """The status frame's answer to the last command frame (signals LastCommand, CommandResult,
         CommandCounterEcho; a DBC without them leaves them out), set by :meth:`answer_command`."""
@@ -181,8 +193,28 @@ class OutputEncoder:
         return [] if first is None else [first]
 
     def _estimate(self, pub: EstimateOut) -> tuple[int, bytes]:
-        ok = bool(pub.valid) and math.isfinite(pub.f0_hz) and math.isfinite(pub.zeta)
-        return self._encode("estimate", {"ResonanceFreq": pub.f0_hz, "DampingRatio": pub.zeta, "Valid": ok})
+        values = _estimate_values(pub)
+        ready, self._ready = self._ready, None
+        count = self._count["estimate"]
+        if ready is not None and ready[1] == count and ready[0] == _same(values):
+            self._count["estimate"] = (count + 1) % self._specs["estimate"].wrap
+            return ready[2]
+        return self._encode("estimate", values)
+
+    def prepare_estimate(self, pub: EstimateOut) -> None:
+        """Encode the OidEstimate of ``pub`` now, as the next frame of that message, without counting it.
+
+        The live loop calls this on the sample before a publication, with the estimate the pipeline made
+        ahead for it (:attr:`~online_id.service.pipeline.Pipeline.estimate_ahead`): the publication's
+        OidEstimate is then this frame when its values and the alive counter are still the same (else it is
+        encoded afresh), so the frame the bus is owed at once is ready.  The bytes are the same either way.
+        """
+        values = _estimate_values(pub)
+        count = self._count["estimate"]
+        try:
+            self._ready = (_same(values), count, self._pack("estimate", values, count))
+        except DbcError:
+            self._ready = None  # the publication encodes it, and reports what is wrong
 
     def _shaft(self, pub: EstimateOut) -> tuple[int, bytes]:
         ok = bool(pub.valid) and math.isfinite(pub.c_s) and math.isfinite(pub.d_s)
@@ -227,9 +259,13 @@ class OutputEncoder:
                         f"but got {type(pub).__name__}.")
 
     def _encode(self, key: str, values: Mapping[str, float]) -> tuple[int, bytes]:
-        spec = self._specs[key]
         count = self._count[key]
-        self._count[key] = (count + 1) % spec.wrap
+        self._count[key] = (count + 1) % self._specs[key].wrap
+        return self._pack(key, values, count)
+
+    def _pack(self, key: str, values: Mapping[str, float], count: int) -> tuple[int, bytes]:
+        """The frame of output ``key`` with ``values`` and alive counter ``count`` (nothing counted)."""
+        spec = self._specs[key]
         word = spec.packer.pack(values, count) if spec.packer is not None else None
         if word is not None:
             data = bytearray(word.to_bytes(8, "little"))

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Callable
 
 import numpy as np
 
@@ -90,6 +91,7 @@ class Pipeline:
         self._next_publish: float | None = None
         self._poll_deferred = False  # the worker was not polled on the last sample (it published)
         self._rest: tuple[OnlineEstimate, list[AssembledSample]] | None = None  # see on_signal(split=True)
+        self._ahead: tuple[OnlineEstimate, Callable[[], None]] | None = None  # see estimate_ahead
         self._quiet_s = min(QUIET_S, 0.25 / s.publish.rate_hz)  # see publication_near
         self._window_since: float | None = None  # stream time the last window job was submitted
         self._next_physical: float | None = None
@@ -246,6 +248,7 @@ class Pipeline:
                 # (adopting a window fit takes up to a millisecond): its estimate goes out first, the result
                 # is adopted on the next sample (an inline worker, as replay's, has nothing to adopt here);
                 # with a worker process, not within QUIET_S before it either
+                self._drop_ahead()
                 self.worker.poll()
                 self._poll_deferred = False
             else:
@@ -268,6 +271,27 @@ class Pipeline:
         return self._rest is not None
 
     @property
+    def estimate_ahead(self) -> OnlineEstimate | None:
+        """With a worker process, on the sample before a publication: that publication's estimate, made already
+        (None: none made, or dropped since).
+
+        A publication's estimate is of the model as its sample finds it: after the update of the sample before,
+        which makes it then (:meth:`OnlineDriveline.estimate_ahead`), so that the publication's frame, which the
+        live loop owes the bus at once, waits for no estimate (and the live loop encodes its OidEstimate ahead
+        too).  Anything that may touch the estimator before the publication's sample (a worker's result
+        adopted, a tick, a command, the state saved or loaded, a sample that does not publish) first undoes it
+        (:meth:`_drop_ahead`), and the publication makes its estimate afresh: the estimate is the same either
+        way.
+        """
+        return self._ahead[0] if self._ahead is not None else None
+
+    def _drop_ahead(self) -> None:
+        """Undo the estimate made ahead, if any (see estimate_ahead)."""
+        if self._ahead is not None:
+            self._ahead[1]()
+            self._ahead = None
+
+    @property
     def publishes_next(self) -> bool:
         """With a worker process: the next sample publishes (the live loop readies the publication's encoding)."""
         return (self.worker.asynchronous and self._next_publish is not None
@@ -283,6 +307,7 @@ class Pipeline:
 
     def tick(self, now_s: float) -> list[Publication]:
         """The stream clock moved without a frame (silence on the bus, the end of a log)."""
+        self._drop_ahead()
         self.worker.poll()  # adopt finished slow work (also before the samples this may complete)
         out = self._consume(self.assembler.poll(now_s), self.assembler.now_s)
         if self._detect_pending is not None:  # the last publication's detection, when no sample followed it
@@ -304,6 +329,7 @@ class Pipeline:
     def on_command(self, command: int, t_s: float) -> list[Publication]:
         """A command frame: acknowledge alerts, re-learn, reset the estimator."""
         self.commands += 1
+        self._drop_ahead()
         out: list[Publication] = []
         if command == COMMAND_RESET:
             self.estimator = self._new_estimator()
@@ -323,6 +349,7 @@ class Pipeline:
 
     def process(self, a: AssembledSample) -> None:
         """Feed one assembled sample to the estimator (also used by offline runs)."""
+        self._drop_ahead()
         restart = a.discontinuity and self.counters.samples > 1
         if restart:
             self.estimator.restart_history()
@@ -354,16 +381,19 @@ class Pipeline:
                 self._next_physical = a.t_s
                 self._set_state(ServiceState.LEARNING, a.t_s, out)
             est = made if i == 0 else None
+            ahead, self._ahead = self._ahead, None  # made on the sample before (see estimate_ahead)
             if est is None and a.t_s >= self._next_publish:
                 # a publication: the estimate is the model's as this sample finds it (its update comes after,
                 # with the rest of the publication): the live loop sends it before the sample's work
                 self._next_publish += 1.0 / self.settings.publish.rate_hz
                 if self._next_publish <= a.t_s:  # after a gap: no burst of publications
                     self._next_publish = a.t_s + 1.0 / self.settings.publish.rate_hz
-                est = self._publish_estimate(a.t_s, out)
+                est = self._publish_estimate(a.t_s, out, ahead[0] if ahead is not None else None)
                 if split:
                     self._rest = (est, samples[i:])
                     return
+            elif ahead is not None:  # this sample does not publish: the estimate is made when one does
+                ahead[1]()
             self.process(a)
             self.t_s = a.t_s
             rels = self.estimator.rels
@@ -384,8 +414,10 @@ class Pipeline:
             # process worker it runs beside the stream and is adopted when it is back (``worker.poll``), and
             # it waits while a publication is near
             elif self.publication_near(a.t_s):
-                if a.t_s + self.assembler.dt >= self._next_publish:
-                    self.estimator.prepare_estimate()  # the next sample publishes (see prepare_estimate)
+                # the next sample publishes (see estimate_ahead); half a sample's margin, as the schedule's sum and the
+                # sample grid may round the publication's time either way
+                if a.t_s + 1.5 * self.assembler.dt >= self._next_publish:
+                    self._ahead = self.estimator.estimate_ahead()
             elif self.estimator.refit_due and not self.worker.busy(WINDOW):
                 self._submit_refit()
             elif self._refit_pending and not self.worker.busy(PHYSICAL):
@@ -393,6 +425,7 @@ class Pipeline:
 
     def poll_worker(self) -> int:
         """Adopt the results of finished slow work (also done before every sample)."""
+        self._drop_ahead()
         return self.worker.poll()
 
     @property
@@ -476,9 +509,11 @@ class Pipeline:
             return ServiceState.NO_EXCITATION
         return ServiceState.TRACKING if est.valid else ServiceState.LEARNING
 
-    def _publish_estimate(self, t_s: float, out: list[Publication]) -> OnlineEstimate:
-        """The estimate of a publication into ``out``, first of its publications (the rest: _publish_rest)."""
-        est = self.estimator.estimate(defer_std=True)  # completed by _publish_rest
+    def _publish_estimate(self, t_s: float, out: list[Publication], made: OnlineEstimate | None = None
+                          ) -> OnlineEstimate:
+        """The estimate of a publication into ``out``, first of its publications (the rest: _publish_rest);
+        ``made``: the estimate made ahead on the sample before (see estimate_ahead)."""
+        est = made if made is not None else self.estimator.estimate(defer_std=True)  # completed by _publish_rest
         self._estimate = est
         phys = self._physical
         nan = float("nan")
@@ -514,11 +549,13 @@ class Pipeline:
     # -- state -----------------------------------------------------------------------------------
     def get_state(self) -> dict:
         """Everything a restart must keep (:func:`~online_id.service.persistence.state_document`)."""
+        self._drop_ahead()
         return state_document(self.estimator, self.policy, self.alerts)
 
     def load_state(self, state: dict, new_run: bool = False) -> None:
         """Restore a state saved by :meth:`get_state` (``new_run``: see
         :func:`~online_id.service.persistence.restore_state`)."""
+        self._drop_ahead()
         self.alerts = restore_state(state, self.estimator, self.policy, new_run)
 
     # -- results ---------------------------------------------------------------------------------

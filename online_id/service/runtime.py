@@ -7,6 +7,7 @@ byte of a published frame.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -17,7 +18,7 @@ from online_id.io.auth import read_key
 from online_id.io.dbc import CommandSample, CommandSignal, InputDecoder, RoleMapping, RoleSignal, load_dbc
 from online_id.io.dbc_output import OutputEncoder
 from online_id.service.pipeline import Pipeline
-from online_id.records import FrameFault, FreshnessOut, Publication
+from online_id.records import EstimateOut, FrameFault, FreshnessOut, Publication
 
 OutFrame = tuple[int, bytes]
 ACCEPTED, AWAITING_CONFIRMATION, REFUSED = 1, 2, 3
@@ -79,6 +80,7 @@ class Runtime:
         self.frames_in = 0
         self.frames_out = 0
         self._rest: list = []  # the values of a frame after the one whose publication publications() split
+        self._prepared: Any = None  # the estimate made ahead whose OidEstimate the encoder holds (publications())
         self.on_publish: Any = None  # also hand every list of publications here (the service's telemetry)
 
     def frames(self, pubs: list[Publication], skip_first: bool = False) -> list[OutFrame]:
@@ -156,7 +158,13 @@ class Runtime:
             if pipeline.split_pending:
                 self._rest = res[k + 1:]
                 break
-        if not pubs and pipeline.publishes_next:
+        ahead = pipeline.estimate_ahead
+        if ahead is not None:
+            if ahead is not self._prepared:  # the next sample publishes this estimate: its OidEstimate now
+                self._prepared = ahead
+                self.encoder.prepare_estimate(EstimateOut(math.nan, ahead.f0_hz, ahead.zeta, math.nan, math.nan,
+                                                          ahead.valid))
+        elif not pubs and pipeline.publishes_next:
             self.encoder.rehearse()  # the next sample publishes: its OidEstimate's encoding into the caches now
         return pubs
 
