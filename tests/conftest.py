@@ -38,11 +38,12 @@ def cli_error(capsys):
 
 # Modules whose tests take longest in all (CPU seconds per module of the native tier, docs/testing.md), longest
 # first. Only the order of the run depends on this list: a module missing from it runs in its usual place.
-HEAVY_FIRST = ("test_detection_learning", "test_reference", "test_archive_evaluate", "test_engaged_flank",
-               "test_diagnose_bench", "test_linearity", "test_detection_e2e", "test_detection_damping_learning",
-               "test_identification", "test_sysid_uncertainty", "test_window", "test_archive", "test_cli",
-               "test_hardening_time", "test_hardening_soak", "test_engaged_resonance", "test_diagnose",
-               "test_hardening_signals")
+HEAVY_FIRST = ("test_detection_learning", "test_diagnose_bench", "test_linearity", "test_reference",
+               "test_archive_evaluate", "test_detection_e2e", "test_window", "test_detection_damping_learning",
+               "test_archive", "test_engaged_flank", "test_rig", "test_diagnose_channels", "test_cli",
+               "test_identification", "test_service", "test_hardening_signals", "test_diagnose_joints",
+               "test_hardening_time", "test_sysid_uncertainty", "test_engaged_resonance", "test_offload",
+               "test_hardening_soak", "test_diagnose")
 
 
 def pytest_collection_modifyitems(config, items):

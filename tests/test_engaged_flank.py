@@ -23,6 +23,8 @@ from online_id.monitoring.engaged import EngagedFlank, EngagedReading
 from online_id.service.pipeline import COMMAND_ACK, Pipeline, run_bench_data
 from online_id.records import AlertKind
 
+from forked_replay import replay_runs
+
 SEEDS = (3, 17, 29, 41)
 
 
@@ -163,19 +165,58 @@ def _bench(seed: int) -> tuple[dict, list[float]]:
         seed += 1
 
 
-@functools.lru_cache(maxsize=None)
-def _run(seed: int, factor: float | None, declared: bool = True) -> tuple[Pipeline, float]:
-    """The pipeline after the run, and the time of the fault; ``declared``: the config declares the engine's
-    compression pulses per revolution (else it leaves ``model.pulses_per_rev`` unset)."""
+FACTOR = 0.9  # the stiffness loss of the faulty runs
+
+
+def _scenario(seed: int) -> tuple[BenchScenario, float]:
+    """The healthy bench of ``seed`` through its three plateaus, and the time of the faulty runs' loss."""
     plant, speeds = _bench(seed)
     sc = dataclasses.replace(BenchScenario(), seed=seed, **plant,
                              operating_points=tuple(OperatingPoint(s, DWELL_S) for s in speeds))
-    t_fault = 2 * DWELL_S + 1.5 * sc.ramp_s  # in the ramp to the top plateau, the highest load
-    if factor is not None:
-        sc = dataclasses.replace(sc, faults=(Fault(t_fault, stiffness_factor=factor),))
-    data = simulate_bench(sc).to_data(f"engaged flank seed {seed}")
-    settings = Settings(model=ModelSettings(pulses_per_rev=sc.n_cyl / 2.0)) if declared else Settings()
-    return run_bench_data(data, settings, run_label=f"run {seed}"), t_fault
+    return sc, 2 * DWELL_S + 1.5 * sc.ramp_s  # in the ramp to the top plateau, the highest load
+
+
+@functools.lru_cache(maxsize=None)
+def _healthy_data(seed: int):
+    sc, _ = _scenario(seed)
+    return simulate_bench(sc).to_data(f"engaged flank seed {seed}")
+
+
+def _settings(seed: int, declared: bool = True) -> Settings:
+    """``declared``: the config declares the engine's compression pulses per revolution (else it leaves
+    ``model.pulses_per_rev`` unset)."""
+    sc, _ = _scenario(seed)
+    return Settings(model=ModelSettings(pulses_per_rev=sc.n_cyl / 2.0)) if declared else Settings()
+
+
+def _stepped(data, ramp_s: float):
+    """``data`` with the PC's clock set back 2 h in the middle of the top plateau."""
+    t_step = 2 * (DWELL_S + ramp_s) + 20.0
+    return dataclasses.replace(data, time_s=np.where(data.time_s >= t_step, data.time_s - 7200.0, data.time_s))
+
+
+@functools.lru_cache(maxsize=None)
+def _runs(seed: int) -> tuple[Pipeline, ...]:
+    """The pipeline after the healthy run, after the run with the loss, and on ``PLANTS[0]`` after the healthy
+    run whose clock steps back (:func:`_stepped`): each the same as the healthy one until its loss or step, so
+    replayed once to there (``tests/forked_replay.py``)."""
+    sc, t_fault = _scenario(seed)
+    healthy = _healthy_data(seed)
+    faulty = simulate_bench(dataclasses.replace(sc, faults=(Fault(t_fault, stiffness_factor=FACTOR),)))
+    runs = [healthy, faulty.to_data(f"engaged flank seed {seed}")] + ([_stepped(healthy, sc.ramp_s)] if seed == PLANTS[0] else [])
+    return tuple(replay_runs(runs, _settings(seed), run_label=f"run {seed}"))
+
+
+@functools.lru_cache(maxsize=None)
+def _run(seed: int, factor: float | None, declared: bool = True) -> tuple[Pipeline, float]:
+    """The pipeline after the run (healthy, or with a loss of stiffness to ``factor``), and the time of the
+    fault; ``declared``: see :func:`_settings`."""
+    sc, t_fault = _scenario(seed)
+    if declared and factor in (None, FACTOR):
+        return _runs(seed)[factor is not None], t_fault
+    data = _healthy_data(seed) if factor is None else simulate_bench(
+        dataclasses.replace(sc, faults=(Fault(t_fault, stiffness_factor=factor),))).to_data(f"engaged flank seed {seed}")
+    return run_bench_data(data, _settings(seed, declared), run_label=f"run {seed}"), t_fault
 
 
 def _drift(pipe: Pipeline) -> list:
@@ -188,7 +229,7 @@ def test_a_stiffness_loss_at_a_point_above_every_learned_load_is_read_on_the_eng
     assert healthy.baseline.nonlinear, "the plant shows backlash"
     assert _drift(healthy) == [] and healthy.engaged.confirmed == 0
     assert healthy.engaged.usable and healthy.engaged.reference()["std_k"] < 0.015
-    faulty, t_fault = _run(seed, 0.9)
+    faulty, t_fault = _run(seed, FACTOR)
     change = faulty.engaged.changes[0] if faulty.engaged.changes else None
     assert change is not None and change.kind == FREQUENCY and change.stiffness_change < -0.05
     assert change.detected_t_s - t_fault <= 30.0
@@ -211,7 +252,7 @@ def test_the_engaged_reference_is_carried_to_the_next_run_and_forgotten_on_relea
 
 
 def test_an_engaged_alarm_is_acknowledged_with_the_others():
-    faulty, _ = _run(PLANTS[0], 0.9)
+    faulty, _ = _run(PLANTS[0], FACTOR)
     pipe = Pipeline(Settings())
     pipe.load_state(faulty.get_state(), new_run=True)
     if pipe.detector.active is None:  # the operator of the faulty run acknowledged nothing: it is latched
@@ -244,15 +285,8 @@ def test_the_report_of_a_saved_state_shows_the_engaged_reference(tmp_path):
 def test_readings_go_on_after_the_stream_clock_steps_back_mid_visit():
     # the PC's clock set back 2 h in the middle of the top plateau: the assembler re-anchors, and the engaged
     # flank's schedule with it (its next reading was due 2 h later in the old time base)
-    plant, speeds = _bench(PLANTS[0])
-    sc = dataclasses.replace(BenchScenario(), seed=PLANTS[0], **plant,
-                             operating_points=tuple(OperatingPoint(s, DWELL_S) for s in speeds))
-    data = simulate_bench(sc).to_data("clock step")
-    t_step = 2 * (DWELL_S + sc.ramp_s) + 20.0
-    stepped = dataclasses.replace(data, time_s=np.where(data.time_s >= t_step, data.time_s - 7200.0, data.time_s))
-    settings = Settings(model=ModelSettings(pulses_per_rev=sc.n_cyl / 2.0))
-    pipe = run_bench_data(stepped, settings)
+    # (with the healthy run's settings and label: the two are the same until the step)
+    healthy, _, pipe = _runs(PLANTS[0])
     assert pipe.counters.time_jumps == 1 and pipe.engaged.usable
-    healthy, _ = _run(PLANTS[0], None)
     assert pipe.engaged.last.t_s < 0.0  # a reading in the new time base
     assert pipe.engaged.readings >= healthy.engaged.readings - 2, (pipe.engaged.readings, healthy.engaged.readings)

@@ -6,6 +6,7 @@ speed-dependent at every operating point.
 """
 
 import dataclasses
+import functools
 
 import numpy as np
 import pytest
@@ -46,13 +47,20 @@ def random_truth(seed):
             return (J1, J2, c, d, n_cyl, speeds)
 
 
-def run_case(case, seed, duration_s=30.0, inertias=None, **identify_kwargs):
+@functools.lru_cache(maxsize=4)
+def _simulated(case, seed, duration_s):
+    """The bench run of ``case`` (several tests identify the same run in other ways)."""
     J1, J2, c, d, n_cyl, speeds = case
     scenario = dataclasses.replace(
         BenchScenario(), J1=J1, J2=J2, c_s=c, d_s=d, n_cyl=n_cyl, seed=seed,
         operating_points=tuple(OperatingPoint(float(s), duration_s) for s in speeds),
     )
-    record = simulate_bench(scenario)
+    return simulate_bench(scenario)
+
+
+def run_case(case, seed, duration_s=30.0, inertias=None, **identify_kwargs):
+    J1 = case[0]
+    record = _simulated(tuple(case), seed, duration_s)
     inert = InertiaSettings(J1=J1) if inertias is None else inertias
     result = identify(record.to_data("sim"), IdentificationSettings(), inert, **identify_kwargs)
     return record.truth, result

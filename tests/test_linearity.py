@@ -13,6 +13,7 @@
 """
 
 import dataclasses
+import functools
 import re
 
 import numpy as np
@@ -28,6 +29,8 @@ from online_id.monitoring.baseline import Baseline
 from online_id.config import Settings
 from online_id.service.pipeline import Pipeline, run_bench_data
 from online_id.records import AlertKind
+
+from forked_replay import replay_runs
 
 RPM = np.pi / 30.0
 
@@ -75,21 +78,35 @@ def test_the_backlash_test_tells_shafts_with_backlash_from_linear_ones(backlash,
         assert any(shown) == backlash, (seed, plant["effects"], shown)
 
 
-def _tour(plant_seed, plant, speeds, fault_at=None):
+def _tour_scenario(plant_seed, plant, speeds, fault_at=None):
     """Point A for 55 s, B (a first visit) for 40 s, A again for 45 s; a 15 % stiffness loss at ``fault_at``."""
     faults = () if fault_at is None else (Fault(fault_at, stiffness_factor=0.85),)
     a, b = speeds
-    sc, rec = _run(plant_seed, plant, [OperatingPoint(a, 55.0), OperatingPoint(b, 40.0), OperatingPoint(a, 45.0)],
-                   faults)
+    return _run(plant_seed, plant, [OperatingPoint(a, 55.0), OperatingPoint(b, 40.0), OperatingPoint(a, 45.0)],
+                faults)
+
+
+def _tour(plant_seed, plant, speeds, fault_at=None):
+    """The tour of :func:`_tour_scenario` through the pipeline."""
+    sc, rec = _tour_scenario(plant_seed, plant, speeds, fault_at)
     settings = ev.settings_for(ev.RunSpec("x", plant_seed, sc))
     return sc, run_bench_data(rec.to_data("tour"), settings, run_label="tour")
+
+
+@functools.lru_cache(maxsize=None)
+def _backlash_tours(seed):
+    """The first plant with backlash from ``seed`` on, its speeds, and its tour healthy and with the loss at 56 s
+    (the same until the loss: replayed once to there, ``tests/forked_replay.py``)."""
+    (seed, plant, speeds), = _plants(True, 1, seed)
+    (sc, healthy), (_, faulty) = (_tour_scenario(seed, plant, speeds, at) for at in (None, 56.0))
+    return speeds, replay_runs([healthy.to_data("tour"), faulty.to_data("tour")],
+                               ev.settings_for(ev.RunSpec("x", seed, sc)), run_label="tour")
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [24, 43])
 def test_a_shaft_with_backlash_raises_nothing_at_the_first_visit_of_another_point(seed):
-    (seed, plant, speeds), = _plants(True, 1, seed)
-    sc, pipe = _tour(seed, plant, speeds)
+    _, (pipe, _) = _backlash_tours(seed)
     kinds = [e.kind for e in pipe.events]
     assert pipe.baseline.nonlinear and "backlash" in kinds, (seed, kinds[-10:])
     first = next(e for e in pipe.events if e.kind == "backlash")
@@ -106,8 +123,7 @@ def test_a_fault_on_a_shaft_with_backlash_is_alarmed_against_bounds_or_at_an_est
     # the fault comes on the way to B (55-58 s): B's first estimates are all after it. Where B's load is larger
     # (in magnitude) than A's, A's cell bounds B's resonance from below and the loss is alarmed at B against
     # that bound; else nothing bounds it from below, B's cell learns, and the fault is alarmed at A again
-    (seed, plant, speeds), = _plants(True, 1, seed)
-    sc, pipe = _tour(seed, plant, speeds, fault_at=56.0)
+    speeds, (_, pipe) = _backlash_tours(seed)
     drift = [x for x in pipe.alerts if x.kind == AlertKind.FREQ_DRIFT]
     assert drift, [e.message for e in list(pipe.events)[-10:]]
     t = drift[0].t_s - pipe.t_first
@@ -123,18 +139,32 @@ def test_a_fault_on_a_shaft_with_backlash_is_alarmed_against_bounds_or_at_an_est
         assert t < 135.0 and "learned baseline" in drift[0].message, (t, drift[0].message)  # back at A
 
 
-def _fault_in_first_visit(seed, kind, **fault):
-    """A for 55 s, B (a first visit) for 55 s, A for 30 s on the first plant with backlash from ``seed`` on, a fault
-    14 s into B, cells that wait 25 s to settle before they learn: the speeds, the pipeline and its alerts of
-    ``kind``, the first raised during B's visit (asserted)."""
+FIRST_VISIT = ((24, 0.5), (43, 1.5), (61, 0.5))  # plant seeds, and the damping change of each
+
+
+@functools.lru_cache(maxsize=None)
+def _first_visit_runs(seed, damping_factor):
+    """A for 55 s, B (a first visit) for 55 s, A for 30 s on the first plant with backlash from ``seed`` on, a
+    15 % stiffness loss or a damping change to ``damping_factor`` 14 s into B, cells that wait 25 s to settle
+    before they learn: the speeds, the fault's time and the pipeline after each run by the kind of alert
+    expected (the two runs are the same until the fault: replayed once to there, ``tests/forked_replay.py``)."""
     (seed, plant, speeds), = _plants(True, 1, seed)
     a, b = speeds
     fault_at = 55.0 + 3.0 + 14.0
-    sc, rec = _run(seed, plant, [OperatingPoint(a, 55.0), OperatingPoint(b, 55.0), OperatingPoint(a, 30.0)],
-                   (Fault(fault_at, **fault),))
-    settings = ev.settings_for(ev.RunSpec("x", seed, sc))
+    points = [OperatingPoint(a, 55.0), OperatingPoint(b, 55.0), OperatingPoint(a, 30.0)]
+    runs = [_run(seed, plant, points, (Fault(fault_at, **f),))
+            for f in ({"stiffness_factor": 0.85}, {"damping_factor": damping_factor})]
+    settings = ev.settings_for(ev.RunSpec("x", seed, runs[0][0]))
     settings = dataclasses.replace(settings, detection=dataclasses.replace(settings.detection, settle_s=25.0))
-    pipe = run_bench_data(rec.to_data("tour"), settings, run_label="tour")
+    pipes = replay_runs([rec.to_data("tour") for _, rec in runs], settings, run_label="tour")
+    return a, b, fault_at, dict(zip((AlertKind.FREQ_DRIFT, AlertKind.DAMPING_DRIFT), pipes))
+
+
+def _fault_in_first_visit(seed, kind):
+    """The speeds, the pipeline of :func:`_first_visit_runs` whose fault raises ``kind`` and its alerts of
+    ``kind``, the first raised during B's visit (asserted)."""
+    a, b, fault_at, pipes = _first_visit_runs(seed, dict(FIRST_VISIT)[seed])
+    pipe = pipes[kind]
     assert pipe.baseline.nonlinear
     drift = [x for x in pipe.alerts if x.kind == kind]
     assert drift, [e.message for e in list(pipe.events)[-10:]]
@@ -144,13 +174,13 @@ def _fault_in_first_visit(seed, kind, **fault):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", [24, 43, 61])
+@pytest.mark.parametrize("seed", [seed for seed, _ in FIRST_VISIT])
 def test_a_fault_during_the_first_visit_of_a_point_is_alarmed_during_that_visit(seed):
     # A for 55 s, B (a first visit) for 55 s, a 15 % stiffness loss 14 s into B, on a bench whose cells wait 25 s
     # to settle before they learn (detection.settle_s): against the first estimates of B's visit (where B's load
     # is the larger, A's cell bounds them from below, and the bound serves until they hold three) -- during the
     # visit, not only once the bench is back at A -- and the changed resonance does not become B's baseline
-    a, b, pipe, drift = _fault_in_first_visit(seed, AlertKind.FREQ_DRIFT, stiffness_factor=0.85)
+    a, b, pipe, drift = _fault_in_first_visit(seed, AlertKind.FREQ_DRIFT)
     assert "lower" in drift[0].message
     (a_load,) = [abs(c.load_nm) for c in pipe.baseline.bands if c.band[0] <= a < c.band[1]]
     b_load = abs(float(re.search(r"cell \d+ rpm, (-?\d+) Nm", drift[0].message).group(1)))
@@ -162,13 +192,13 @@ def test_a_fault_during_the_first_visit_of_a_point_is_alarmed_during_that_visit(
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed,factor", [(24, 0.5), (43, 1.5), (61, 0.5)])
+@pytest.mark.parametrize("seed,factor", FIRST_VISIT)
 def test_a_damping_change_during_the_first_visit_of_a_point_is_alarmed_during_that_visit(seed, factor):
     # as above, a +-50 % damping change 14 s into B: the learned cells' damping is other points' (it moves 3-57 %
     # between points with backlash), so B's damping is compared with the first estimates of B's visit, or with
     # the engaged flank's (which does not move with the load), and the changed damping does not become B's
     # baseline
-    a, b, pipe, drift = _fault_in_first_visit(seed, AlertKind.DAMPING_DRIFT, damping_factor=factor)
+    a, b, pipe, drift = _fault_in_first_visit(seed, AlertKind.DAMPING_DRIFT)
     assert ("lower" if factor < 1.0 else "higher") in drift[0].message
     assert ("first estimates of this visit" in drift[0].message
             or "engaged-flank reference" in drift[0].message), drift[0].message

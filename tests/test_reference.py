@@ -26,6 +26,8 @@ from online_id.service.pipeline import Pipeline, run_bench_data
 from online_id.service.restore import restore_pipeline
 from online_id.records import AlertKind
 
+from forked_replay import replay_runs
+
 DT = 1.0 / 500.0
 ORDERS = ArmaxOrders(na=4, nb=4, nc=2)
 
@@ -167,8 +169,10 @@ def test_a_baseline_learned_in_another_minimum_is_not_alarmed_against_but_a_chan
                                                                                        50.0),))
     data = simulate_bench(later).to_data("day 2")
     shifted = _shift_cells(first.get_state(), shift)
-
-    healthy = run_bench_data(data, settings, state=shifted, run_label="day 2")
+    changed = dataclasses.replace(later, faults=(Fault(15.0, stiffness_factor=0.9),))  # a real change that day
+    # (the same as the healthy day until the change: replayed once to there)
+    healthy, faulty = replay_runs([data, simulate_bench(changed).to_data("day 2")], settings, state=shifted,
+                                  run_label="day 2")
     assert not [a for a in healthy.alerts if a.kind == AlertKind.FREQ_DRIFT], healthy.alerts
     withheld = [e for e in healthy.events if e.kind == "withheld" and "another minimum" in e.message]
     assert withheld, list(healthy.events)[-6:]
@@ -180,10 +184,6 @@ def test_a_baseline_learned_in_another_minimum_is_not_alarmed_against_but_a_chan
     assert [a for a in alarmed.alerts if a.kind == AlertKind.FREQ_DRIFT]
 
     # a real change on the same day is alarmed through the recheck
-    changed = dataclasses.replace(later, faults=(Fault(15.0, stiffness_factor=0.9),))
-    faulty = run_bench_data(simulate_bench(changed).to_data("day 2"), settings, state=_shift_cells(first.get_state(),
-                                                                                                  shift),
-                            run_label="day 2")
     drift = [a for a in faulty.alerts if a.kind == AlertKind.FREQ_DRIFT]
     assert drift and "lower" in drift[0].message, list(faulty.events)[-6:]
 
@@ -256,8 +256,11 @@ def test_a_withheld_frequency_alarm_stays_withheld_only_within_the_spread_of_min
     first = run_bench_data(simulate_bench(sc).to_data("day 1"), settings, run_label="day 1")
     later = dataclasses.replace(sc, seed=seed + 100,
                                 operating_points=(OperatingPoint(sc.operating_points[0].speed_rpm, 150.0),))
-    healthy = run_bench_data(simulate_bench(later).to_data("day 2"), settings,
-                             state=_shift_cells(first.get_state(), shift), run_label="day 2")
+    t_fault = 90.0
+    changed = dataclasses.replace(later, faults=(Fault(t_fault, stiffness_factor=0.9),))
+    # (the same as the healthy day until the change: replayed once to there)
+    healthy, faulty = replay_runs([simulate_bench(later).to_data("day 2"), simulate_bench(changed).to_data("day 2")],
+                                  settings, state=_shift_cells(first.get_state(), shift), run_label="day 2")
     withheld = [e for e in healthy.events if e.kind == "withheld" and e.data.get("kind") == "frequency"]
     rechecked = [e for e in withheld if "another minimum" in e.message]
     stands = [e for e in withheld if "recheck_t_s" in e.data]
@@ -268,9 +271,5 @@ def test_a_withheld_frequency_alarm_stays_withheld_only_within_the_spread_of_min
         assert [e.t_s for e in withheld][-len(stands):] == [e.t_s for e in stands]  # the finding stood to the end
     else:
         assert len(rechecked) >= 2 and not stands, [e.message[:90] for e in withheld]  # (and may end in an alarm)
-    t_fault = 90.0
-    changed = dataclasses.replace(later, faults=(Fault(t_fault, stiffness_factor=0.9),))
-    faulty = run_bench_data(simulate_bench(changed).to_data("day 2"), settings,
-                            state=_shift_cells(first.get_state(), shift), run_label="day 2")
     drift = [a for a in faulty.alerts if a.kind == AlertKind.FREQ_DRIFT]
     assert drift and "lower" in drift[0].message and drift[0].t_s - t_fault <= 30.0, list(faulty.events)[-6:]

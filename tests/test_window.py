@@ -1,6 +1,8 @@
 """The sliding-window prediction-error refit inside the streaming estimator."""
 
+import copy
 import dataclasses
+import functools
 
 import numpy as np
 import pytest
@@ -22,17 +24,37 @@ def _estimator(**kw) -> OnlineDriveline:
 
 def _run(scenario: BenchScenario, est: OnlineDriveline, every_s: float = 1.0):
     """Feed a simulated run; return (t, f0, zeta, valid, why) once per ``every_s``."""
-    r = simulate_bench(scenario)
+    return _runs([scenario], est, every_s)[0]
+
+
+def _runs(scenarios: list[BenchScenario], est: OnlineDriveline, every_s: float = 1.0):
+    """:func:`_run` of each of ``scenarios`` (from ``est`` as it is): (truth, outputs) of each. Runs simulated
+    the same until a moment (a step from the same seed) are fed once to there, and each goes on from a copy of
+    the estimator (it is deterministic and causal, so each ends as fed whole)."""
     w = np.pi / 30.0
-    y, n, u = r.dyno_speed_rpm * w, r.engine_speed_rpm * w, r.dyno_torque_nm
-    out = []
-    step = int(round(every_s * scenario.fs_hz))
-    for k in range(len(r.time_s)):
-        est.update(y[k], n[k], u[k])
-        if k % step == step - 1:
-            e = est.estimate()
-            out.append((r.time_s[k], e.f0_hz, e.zeta, e.valid, e.why))
-    return r.truth, out
+    runs = []
+    for sc in scenarios:
+        r = simulate_bench(sc)
+        runs.append((r, np.column_stack((r.time_s, r.dyno_speed_rpm * w, r.engine_speed_rpm * w, r.dyno_torque_nm))))
+    step = int(round(every_s * scenarios[0].fs_hz))
+
+    def feed(e, cols, k0, k1, out):
+        for k in range(k0, k1):
+            e.update(cols[k, 1], cols[k, 2], cols[k, 3])
+            if k % step == step - 1:
+                x = e.estimate()
+                out.append((cols[k, 0], x.f0_hz, x.zeta, x.valid, x.why))
+        return out
+
+    first = runs[0][1]
+    common = len(first)
+    for _r, cols in runs[1:]:
+        n = min(len(first), len(cols))
+        differ = np.flatnonzero(np.any(first[:n] != cols[:n], axis=1))
+        common = min(common, int(differ[0]) if differ.size else n)
+    start = feed(est, first, 0, common, [])
+    return [(r.truth, feed(copy.deepcopy(est) if i < len(runs) - 1 else est, cols, common, len(cols), list(start)))
+            for i, (r, cols) in enumerate(runs)]
 
 
 PLANTS = [  # (J2, c_s, d_s, speed, seed): f0 from about 19 to 36 Hz, several damping ratios
@@ -59,11 +81,20 @@ def test_valid_within_20_s_and_accurate(J2, c_s, d_s, rpm, seed):
     assert abs(np.median(z) / truth["zeta"] - 1) < 0.08
 
 
-@pytest.mark.parametrize("factor", [0.8, 0.95])
+STEPS = (0.8, 0.95)
+
+
+@functools.lru_cache(maxsize=None)
+def _stepped_runs():
+    """The runs of :func:`test_follows_a_stiffness_step_within_one_window`, by factor (the same until the step)."""
+    scs = [dataclasses.replace(BenchScenario(), seed=21, operating_points=(OperatingPoint(1800.0, 55.0),),
+                               faults=(Fault(30.0, stiffness_factor=factor),)) for factor in STEPS]
+    return dict(zip(STEPS, _runs(scs, _estimator())))
+
+
+@pytest.mark.parametrize("factor", STEPS)
 def test_follows_a_stiffness_step_within_one_window(factor):
-    sc = dataclasses.replace(BenchScenario(), seed=21, operating_points=(OperatingPoint(1800.0, 55.0),),
-                             faults=(Fault(30.0, stiffness_factor=factor),))
-    truth, out = _run(sc, _estimator())
+    truth, out = _stepped_runs()[factor]
     f_new = truth["f0_hz"] * np.sqrt(factor)
     after = [(t, f) for t, f, _z, v, _w in out if t >= 30.0 + 12.0]
     assert after and all(abs(f / f_new - 1) < 0.005 for _t, f in after)
@@ -71,8 +102,20 @@ def test_follows_a_stiffness_step_within_one_window(factor):
     assert before and all(abs(f / truth["f0_hz"] - 1) < 0.005 for f in before)
 
 
+LONG_STEPS = (0.85, 0.9)
+
+
+@functools.lru_cache(maxsize=None)
+def _long_stretch_runs(J2, c_s, d_s, rpm, seed, t_step):
+    """The runs of the test below on one plant, by factor (the same until the step)."""
+    scs = [dataclasses.replace(BenchScenario(), J2=J2, c_s=c_s, d_s=d_s, seed=seed,
+                               operating_points=(OperatingPoint(rpm, 70.0),),
+                               faults=(Fault(t_step, stiffness_factor=factor),)) for factor in LONG_STEPS]
+    return dict(zip(LONG_STEPS, _runs(scs, _estimator(), every_s=0.5)))
+
+
 @pytest.mark.parametrize("J2, c_s, d_s, rpm, seed", PLANTS)
-@pytest.mark.parametrize("factor", [0.85, 0.9])
+@pytest.mark.parametrize("factor", LONG_STEPS)
 def test_after_a_step_in_a_long_steady_stretch_the_fit_drops_the_older_system(J2, c_s, d_s, rpm, seed, factor):
     """A stiffness step of 10-15 % 40 s into a steady stretch: once the estimate moves by more than 0.5 % between
     refits or is no longer valid (the window holds two systems), the refit takes the newest min_window_s (5 s);
@@ -80,10 +123,7 @@ def test_after_a_step_in_a_long_steady_stretch_the_fit_drops_the_older_system(J2
     of the step (5-6 s on these plants; 8-10 s while the 10 s window had to pass the step), none beyond either
     resonance before, and all within 1 % of the new one from 12 s on."""
     t_step = 40.0
-    sc = dataclasses.replace(BenchScenario(), J2=J2, c_s=c_s, d_s=d_s, seed=seed,
-                             operating_points=(OperatingPoint(rpm, 70.0),),
-                             faults=(Fault(t_step, stiffness_factor=factor),))
-    truth, out = _run(sc, _estimator(), every_s=0.5)
+    truth, out = _long_stretch_runs(J2, c_s, d_s, rpm, seed, t_step)[factor]
     f_old, f_new = truth["f0_hz"], truth["f0_hz"] * np.sqrt(factor)
     valid = [(t, f) for t, f, _z, v, _w in out if v and t > t_step]
     new = [t for t, f in valid if abs(f / f_new - 1) < 0.01]
@@ -259,17 +299,27 @@ def test_the_dc_blockers_transient_is_taken_out_of_the_fit():
     assert kept is not None and offsets(kept.y)[1] > 7.0  # without the decay the transient stays in
 
 
+SPEED_STEPS = (0.75, 1.4)
+
+
+@functools.lru_cache(maxsize=None)
+def _speed_step_runs(J2, c_s, d_s, rpm, seed, first_s):
+    """The runs of the test below on one plant, by factor (the same until the ramp)."""
+    scs = [dataclasses.replace(BenchScenario(), J2=J2, c_s=c_s, d_s=d_s, seed=seed,
+                               operating_points=(OperatingPoint(rpm, first_s), OperatingPoint(rpm * factor, 25.0)))
+           for factor in SPEED_STEPS]
+    return dict(zip(SPEED_STEPS, _runs(scs, _estimator(), every_s=0.5)))
+
+
 @pytest.mark.parametrize("J2, c_s, d_s, rpm, seed", PLANTS)
-@pytest.mark.parametrize("factor", [0.75, 1.4])
+@pytest.mark.parametrize("factor", SPEED_STEPS)
 def test_valid_again_soon_after_a_change_of_operating_point(J2, c_s, d_s, rpm, seed, factor):
     """A ramp of 25-40 % of the speed in 3 s: the first fit at the new point takes the steady samples from
     5 s on (less a 1 s guard and the DC blocker's transient), valid within 8 s of the ramp's end (the whole
     10 s window before, and up to 20 s more where the transient put the first fits in another minimum), and
     accurate from the first valid estimate on."""
     first_s, ramp_s = 30.0, BenchScenario().ramp_s
-    sc = dataclasses.replace(BenchScenario(), J2=J2, c_s=c_s, d_s=d_s, seed=seed,
-                             operating_points=(OperatingPoint(rpm, first_s), OperatingPoint(rpm * factor, 25.0)))
-    truth, out = _run(sc, _estimator(), every_s=0.5)
+    truth, out = _speed_step_runs(J2, c_s, d_s, rpm, seed, first_s)[factor]
     end = first_s + ramp_s
     again = [(t, f) for t, f, _z, v, _w in out if v and t > end]
     assert again and again[0][0] - end <= 8.0, [(t, v, why) for t, _f, _z, v, why in out if t > end][:20]
