@@ -9,11 +9,10 @@ import dataclasses
 
 import numpy as np
 
-from online_id.records import BenchData, SignalSample
-from online_id.service.pipeline import Pipeline, run_bench_data
+from online_id.records import BenchData
+from online_id.service.pipeline import Pipeline, feed_bench_data as feed, run_bench_data
 
 _COLUMNS = ("dyno_speed_rad_s", "engine_speed_rad_s", "dyno_torque_nm")
-_ROLES = ("dyno_speed", "engine_speed", "dyno_torque")
 
 
 def common_start(a: BenchData, b: BenchData) -> int:
@@ -27,18 +26,6 @@ def common_start(a: BenchData, b: BenchData) -> int:
 
 def _head(data: BenchData, k: int) -> BenchData:
     return dataclasses.replace(data, **{name: getattr(data, name)[:k] for name in ("time_s",) + _COLUMNS})
-
-
-def feed(pipe: Pipeline, data: BenchData, start: int, stop: int | None = None) -> Pipeline:
-    """Feed samples ``start`` to ``stop`` of ``data`` as :func:`~online_id.service.pipeline.run_bench_data`
-    feeds them."""
-    cols = [(role, getattr(data, name)) for role, name in zip(_ROLES, _COLUMNS)]
-    t = data.time_s
-    for k in range(start, len(data) if stop is None else stop):
-        tk = float(t[k])
-        for role, arr in cols:
-            pipe.on_signal(SignalSample(role, float(arr[k]), tk))
-    return pipe
 
 
 def replay_runs(runs: list[BenchData], settings, **kwargs) -> list[Pipeline]:

@@ -32,7 +32,6 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
-
 import numpy as np
 
 from online_id.analysis.plateaus import find_plateaus
@@ -395,7 +394,8 @@ def _params(kind: str, model: AugmentedFit, cur: AugmentedFit, data: DiagnoseDat
         params["aliases"] = list(hint["aliases"])
     if kind == "rotation_order_disturbance" and "line_ratio" in hint:
         params["line_ratio"] = float(hint["line_ratio"])
-        params["held_out_ratio"] = float(hint.get("held_out_ratio", float("nan")))
+        if "held_out_ratio" in hint:
+            params["held_out_ratio"] = float(hint["held_out_ratio"])
     return params
 
 

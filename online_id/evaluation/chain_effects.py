@@ -78,9 +78,10 @@ def _rotation_order(rng: np.random.Generator, spec: dict) -> None:
                 grid = np.arange(1, 25) / 2 if spec["elements"][i]["role"] == "engine" else np.arange(1, 13, dtype=float)
                 grid = [k for k in grid if abs(k / ppr - round(k / ppr)) > 1e-9]
             else:
-                if twins(i) and not allow_twins:
+                same = twins(i)
+                if same and not allow_twins:
                     continue  # a shaft turning with another: its lines cannot be told apart by frequency
-                others = [rates[j] for j in measured if j != i and j not in twins(i)]
+                others = [rates[j] for j in measured if j != i and j not in same]
                 grid = [float(k) for k in range(1, 13)
                         if all(abs(k * rates[i] / r - round(k * rates[i] / r)) > 1e-6 for r in others)]
             for k in grid:

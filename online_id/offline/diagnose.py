@@ -151,7 +151,7 @@ def _line_clause(params: dict) -> str:
     if "line_ratio_after" not in params:
         return ""
     held = (f", held out {params['held_out_ratio']:.0f}x -> {params['held_out_ratio_after']:.1f}x"
-            if "held_out_ratio_after" in params and np.isfinite(params.get("held_out_ratio", np.nan)) else "")
+            if "held_out_ratio_after" in params and "held_out_ratio" in params else "")
     return f"; line over its floor {params['line_ratio']:.0f}x -> {params['line_ratio_after']:.1f}x{held}"
 
 

@@ -588,12 +588,19 @@ def run_bench_data(data, settings: Settings, progress=None, on_output=None, stat
         pipe.load_state(state, new_run=True)
     pipe.run_label = run_label
     pipe.reference_run = reference
+    return feed_bench_data(pipe, data, progress=progress, on_output=on_output)
+
+
+def feed_bench_data(pipe: Pipeline, data, start: int = 0, stop: int | None = None, progress=None,
+                    on_output=None) -> Pipeline:
+    """Feed samples ``start`` to ``stop`` (default: the end) of bench data to ``pipe`` as
+    :func:`run_bench_data` does (``progress``, ``on_output``: as there)."""
     t = data.time_s
     cols = (("dyno_speed", data.dyno_speed_rad_s), ("engine_speed", data.engine_speed_rad_s),
             ("dyno_torque", data.dyno_torque_nm))
-    n = len(data)
+    n = len(data) if stop is None else stop
     step = max(1, n // 200)
-    for k in range(n):
+    for k in range(start, n):
         tk = float(t[k])
         for role, arr in cols:
             out = pipe.on_signal(SignalSample(role, float(arr[k]), tk))
