@@ -39,18 +39,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.ndimage import median_filter, uniform_filter1d
-from scipy.signal import bilinear, butter, csd, find_peaks, iirpeak, lfilter, sosfilt, welch
+from scipy.signal import bilinear, butter, csd, find_peaks, lfilter, sosfilt, welch
 
 from online_id.diagnose.bench_model import (BALANCE, BALANCE_LAGS, EQS, BenchFit, PlateauSignals, Spec, design,
                                             order_columns, output, plateau_signals)
 from online_id.diagnose.bench_data import BenchSeries
+from online_id.diagnose.effects import BAND_Q, band_past
 
 ORDER_GRID_STEP = 0.5
 MAX_ORDER = 16.0
 WELCH_S = 2.0
 PEAK_MIN = 4.0      # average normalised PSD a line must reach to be screened
 N_LINES = 3         # lines of each type screened per equation
-BAND_Q = 8.0
 BALANCE_BP_LAG = 5  # first lag of the band-passed torque-balance residual (past its speed-noise window)
 COH_SMOOTH_BINS = 5  # +-2 Hz at 1 Hz resolution
 LOCAL_BINS = {"hz": 121, "order": 41}  # running median over +-15 Hz, or +-0.2 orders
@@ -159,11 +159,8 @@ class FixedTerm:
         # the band-passed residual belongs to the record the line was found in (not to the same record at
         # another rate: there the line is the sinusoid alone)
         if self.residuals and len(self.residuals[p.index]) == p.rows.size:
-            b, a = iirpeak(self.freq_hz, self.q, fs=p.fs_hz)
-            bp = lfilter(b, a, self.residuals[p.index])
-            k0 = BALANCE_BP_LAG if eq == BALANCE else 1
-            quarter = max(1, int(round(p.fs_hz / (4.0 * self.freq_hz))))
-            cols += [np.concatenate((np.zeros(k), bp[:-k])) for k in (k0, k0 + quarter)]
+            cols += band_past(self.residuals[p.index], self.freq_hz, p.fs_hz,
+                              BALANCE_BP_LAG if eq == BALANCE else 1, self.q)
         return np.column_stack(cols)
 
     def params(self) -> dict:

@@ -42,7 +42,7 @@ from online_id.diagnose.bench_effects import family_reading
 from online_id.diagnose.data import DiagnoseData, Split
 from online_id.diagnose.model import AugmentedFit, Structure, fit_extension, fit_structure, regressors, windows
 from online_id.diagnose.residual_tests import (N_BATCH, RIG_SPLIT_RATIO, ResidualTest, line_ratios, materiality,
-                                               run_tests)
+                                               run_tests, spectrum, spectrum_ratio)
 from online_id.diagnose.wiener import WienerAbsFit, fit_wiener_abs
 from online_id.errors import EstimationError
 
@@ -51,6 +51,14 @@ RIG_BLOCKS = 6
 NA_GRID = (4, 8, 12, 16, 20)
 NA_TOL = 0.05
 SIM_BASIS_KINDS = ("coulomb_friction", "absolute_value_sensor")
+PREDICTED_SIM_TOL = 0.05
+"""Points of simulation fit a line fixed in Hz may leave unchanged: its band-pass past predicts it one step
+ahead, which a simulation cannot use (below the report's resolution of 0.1 point)."""
+LINE_LEFT = 0.5
+"""Most of a line fixed in Hz its step may leave (its power over the floor in the held-out residual after,
+over before): a step that gains elsewhere is no finding of the line."""
+EXTENSION_KINDS = ("rotation_order_disturbance", "fixed_frequency_disturbance")
+"""Disturbance terms fitted with the model held (:func:`~online_id.diagnose.model.fit_extension`)."""
 
 
 @dataclass(frozen=True)
@@ -276,13 +284,14 @@ def _sim(model: Model, data: DiagnoseData, split: Split, horizon: int | None) ->
     return ysim
 
 
-def _guard(cur: ErrorFigures, rms_new: float, fit_new: float, sim: bool = True) -> str:
+def _guard(cur: ErrorFigures, rms_new: float, fit_new: float, sim: bool = True, sim_tol: float = 0.0) -> str:
     """Why a significant step is refused: it must lower the held-out one-step RMS *and* (``sim``) raise the
-    sim fit."""
+    sim fit (or, a line predicted from its own past, which a simulation cannot hold, leave it within
+    ``sim_tol`` points)."""
     why = []
     if not rms_new < cur.rms:
         why.append(f"one-step RMS {cur.rms:.4g} -> {rms_new:.4g}")
-    if sim and not fit_new > cur.fit_pct:
+    if sim and not fit_new > cur.fit_pct - sim_tol:
         why.append(f"simulation fit {cur.fit_pct:.1f} % -> {fit_new:.1f} %")
     return ("worsens " + "; ".join(why)) if why else ""
 
@@ -323,7 +332,18 @@ def _build(kind: str, hint: dict, data: DiagnoseData, cur: AugmentedFit, split: 
             fit_extension(data, cur, term, split)
         return model, _params(kind, model, cur, data, hint), None
     elif kind == "fixed_frequency_disturbance":
-        new = fx.search_frequency(data, s, split, C, hint["freq_hz"], hint["half_width_hz"])
+        if any(t.kind == kind and abs(t.freq_hz - hint["freq_hz"]) <= 2.0 * hint["half_width_hz"] for t in s.terms):
+            return None  # the line is in the model: what is left of it is its prediction's error
+        f = fx.search_frequency(data, s, split, C, hint["freq_hz"], hint["half_width_hz"]).terms[-1].freq_hz
+        # the line's own past in the residual it was found in follows its wandering phase; fitted with the
+        # model held, as an order line is (a refit of A for a disturbance moves the simulation more than
+        # the disturbance does); the band's width is the one that predicts the estimation part best
+        e = cur.errors(data)
+        model = min((fit_extension(data, cur, fx.FixedFrequency(f, residual=e, q=q), split) for q in fx.BAND_QS),
+                    key=lambda m: m.V_est)
+        if hint.get("refit"):  # a line strong enough to have bent the baseline: the whole model refitted with it
+            model = fit_structure(data, model.structure, split)
+        return model, _params(kind, model, cur, data, hint), None
     elif kind == "additional_mode":
         new = fx.mode_structure(s)
     elif kind == "sensor_delay":
@@ -392,6 +412,10 @@ def _params(kind: str, model: AugmentedFit, cur: AugmentedFit, data: DiagnoseDat
         params["reading"] = family_reading(params["shaft"], [params["order"]], 0.0)
     if kind == "rotation_order_disturbance" and hint.get("aliases"):
         params["aliases"] = list(hint["aliases"])
+    if kind == "fixed_frequency_disturbance" and "held_out_ratio" in hint:
+        params["held_out_ratio"] = float(hint["held_out_ratio"])
+    if kind == "fixed_frequency_disturbance":
+        params["model_refitted"] = bool(hint.get("refit"))
     if kind == "rotation_order_disturbance" and "line_ratio" in hint:
         params["line_ratio"] = float(hint["line_ratio"])
         if "held_out_ratio" in hint:
@@ -567,6 +591,8 @@ def _search(data: DiagnoseData, cur: Model, split: Split, horizon: int | None, t
             break
         cands = [c for t in tests for c in t.candidates] + (held_lines if step == 0 else [])
         cands.append(("sensor_delay", {"lag_samples": 0}))
+        # a line fixed in Hz is tried on the model held and on the whole model refitted with it
+        cands += [(k, {**h, "refit": True}) for k, h in cands if k == "fixed_frequency_disturbance"]
         if kinds is not None:
             cands = [c for c in cands if c[0] in kinds]
         cands = _dedupe([c if c[0] != "additional_mode" else ("additional_mode", {}) for c in cands])
@@ -575,7 +601,7 @@ def _search(data: DiagnoseData, cur: Model, split: Split, horizon: int | None, t
         # mode, line, friction) is judged against the same refit without its change, so that it is not
         # credited with what the refit of the order term alone gains (a "sensor delay" took 34 % so)
         refit = None
-        if isinstance(cur, AugmentedFit) and any(t.kind == "rotation_order_disturbance" for t in cur.structure.terms):
+        if isinstance(cur, AugmentedFit) and any(t.kind in EXTENSION_KINDS for t in cur.structure.terms):
             refit = fit_structure(data, cur.structure, split).errors(data)
         best = None
         seen: set[tuple[str, str]] = set()
@@ -596,7 +622,7 @@ def _search(data: DiagnoseData, cur: Model, split: Split, horizon: int | None, t
             if not np.all(np.isfinite(e_new[val])):
                 continue
             e_base = e_cur if e_ref is None else e_ref
-            if e_ref is None and refit is not None and kind != "rotation_order_disturbance":
+            if e_ref is None and refit is not None and (kind not in EXTENSION_KINDS or hint.get("refit")):
                 e_base = refit
             explained = 1.0 - float(np.mean(e_new[val] ** 2)) / float(np.mean(e_base[val] ** 2))
             t = _t_stat(e_base[val], e_new[val])
@@ -621,7 +647,7 @@ def _search(data: DiagnoseData, cur: Model, split: Split, horizon: int | None, t
             # or slipping at the joint's reversals only), screened by its own test.  Every candidate must
             # remove more than the held-out error's own uncertainty (materiality)
             need = max(materiality(e_base[val]), 0.0 if "line_ratio" in hint or hint.get("joint") else min_explained)
-            seen_held_out = hint.get("held_out_ratio", 0.0) >= RIG_SPLIT_RATIO
+            seen_held_out = "line_ratio" in hint and hint.get("held_out_ratio", 0.0) >= RIG_SPLIT_RATIO
             ok = explained >= need and (t >= T_CRIT or seen_held_out)
             if "line_ratio" in hint and not ok:
                 # a narrow line's evidence is its power over the local floor, which a broadband error figure
@@ -631,7 +657,13 @@ def _search(data: DiagnoseData, cur: Model, split: Split, horizon: int | None, t
                 ok = explained > 0.0 and t >= T_CRIT and seen_held_out
             rms_new = float(np.sqrt(np.mean(e_new[val] ** 2)))
             fit_new = fit_percent(data.y[val], ysim_new[val])
-            refused = _guard(fig, rms_new, fit_new, sim_guard) if ok else ""
+            refused = _guard(fig, rms_new, fit_new, sim_guard,
+                             PREDICTED_SIM_TOL if kind == "fixed_frequency_disturbance" else 0.0) if ok else ""
+            if ok and not refused and kind == "fixed_frequency_disturbance" and "held_out_ratio" in params:
+                after = spectrum_ratio(spectrum(e_new[val], data.fs_hz), params["freq_hz"])
+                if after > LINE_LEFT * params["held_out_ratio"]:
+                    refused = (f"the line is not removed: over its floor (held out) {params['held_out_ratio']:.0f}x "
+                               f"-> {after:.0f}x")
             if ok and params.get("unresolved"):
                 refused = ("the added poles are no pole pair below the Nyquist frequency (real or alternating "
                            "poles of the equation error): not a mode")
@@ -657,7 +689,7 @@ def _search(data: DiagnoseData, cur: Model, split: Split, horizon: int | None, t
         steps.append(EffectStep(kind, params, explained, t, fig, fig_new, basis))
         cur, e_cur, fig = model, e_new, fig_new
         tests = run_tests(data, e_cur, val, lags, isinstance(cur, WienerAbsFit))
-        if "line_ratio" in params:
+        if "line_ratio" in params or "held_out_ratio" in params:
             _line_after(params, tests)
     else:
         if all(t.passed for t in tests):
@@ -668,6 +700,11 @@ def _search(data: DiagnoseData, cur: Model, split: Split, horizon: int | None, t
 def _line_after(params: dict, tests: list[ResidualTest]) -> None:
     """The accepted line's power over its local floor on the residual after its step, beside the figures
     before (``line_ratio``: whole record, ``held_out_ratio``: held-out part)."""
+    if "line_ratio" not in params:  # a line fixed in Hz, seen in the held-out residual's spectrum
+        spec = next((t for t in tests if t.name == "spectrum peaks"), None)
+        if spec is not None and "freq_hz" in params:
+            params["held_out_ratio_after"] = spectrum_ratio(spec, float(params["freq_hz"]))
+        return
     orders = next((t for t in tests if t.name == "rotation orders (rig)"), None)
     if orders is None or params.get("shaft") not in orders.curve.get("rates", {}):
         return

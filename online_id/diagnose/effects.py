@@ -8,7 +8,10 @@ kind                            extension
 rotation_order_disturbance      :math:`\\sin, \\cos(o\\,\\theta_s(t - l))`
                                 regressors at the first two lags of B,
                                 :math:`\\theta_s = \\int \\omega_s dt`
-fixed_frequency_disturbance     :math:`\\sin, \\cos(2\\pi f t)`, ``f`` refined
+fixed_frequency_disturbance     :math:`\\sin, \\cos(2\\pi f t)`, ``f`` refined, and
+                                the causal band-pass at ``f`` of the residual
+                                the line was found in, at two lags a quarter
+                                period apart (:func:`band_past`)
 additional_mode                 ``na`` and ``nb`` raised by 2 (one pole pair)
 backlash                        dead-zone feature :math:`\\mathrm{clip}(\\varphi
                                 - \\varphi_0, \\pm g/2)` of the torsion, width
@@ -27,17 +30,22 @@ that each trial is one linear least-squares problem.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.ndimage import uniform_filter1d
-from scipy.signal import butter, lfilter
+from scipy.signal import butter, iirpeak, lfilter
 from scipy.optimize import linear_sum_assignment, minimize_scalar
 
 from online_id.diagnose.data import DiagnoseData, Split
 from online_id.diagnose.model import Structure, fit_structure, lag_matrix
 
 ORDER_STEP = 0.5
+BAND_Q = 8.0
+"""Quality factor of the band-pass that follows a narrow-band line (:func:`band_past`)."""
+BAND_QS = (8.0, 16.0, 32.0, 64.0)
+"""Quality factors tried for a line fixed in Hz: the narrower its wander, the narrower the band that follows
+it with the least noise."""
 SCHEDULE_QUANTILES = (5.0, 50.0, 95.0)
 
 
@@ -105,16 +113,40 @@ class RotationOrder:
         return {"shaft": self.shaft, "order": float(self.order)}
 
 
+def band_past(residual: np.ndarray, freq_hz: float, fs_hz: float, first_lag: int = 1,
+              q: float = BAND_Q) -> list[np.ndarray]:
+    """The causal band-pass (quality ``q``) of ``residual`` at ``freq_hz``, at lags ``first_lag`` and a
+    quarter period later: two regressors that predict a narrow-band disturbance from its own past."""
+    b, a = iirpeak(freq_hz, q, fs=fs_hz)
+    bp = lfilter(b, a, np.nan_to_num(np.asarray(residual, dtype=float)))
+    quarter = max(1, int(round(fs_hz / (4.0 * freq_hz))))
+    return [np.concatenate((np.zeros(k), bp[:-k])) for k in (first_lag, first_lag + quarter)]
+
+
 @dataclass(frozen=True)
 class FixedFrequency:
-    """Sinusoidal disturbance at ``freq_hz``."""
+    """Disturbance at ``freq_hz``: a sinusoid, and with ``residual`` (the one-step residual of the model the
+    line was found in, full length) its band-pass past (:func:`band_past`, quality ``q``), which follows a
+    line whose amplitude and phase wander (a narrow-band torque: a fan, a pump, a supply's ripple) where one
+    sinusoid of constant phase over the record would not."""
 
     freq_hz: float
     kind: str = "fixed_frequency_disturbance"
+    residual: np.ndarray | None = field(default=None, compare=False, repr=False)
+    q: float = field(default=BAND_Q, compare=False)
 
     def columns(self, data: DiagnoseData, lags: np.ndarray) -> np.ndarray:
         w = 2.0 * np.pi * self.freq_hz * data.time_s
-        return np.column_stack((np.sin(w), np.cos(w)))
+        cols = [np.sin(w), np.cos(w)]
+        if self.predictor_cols:  # the residual belongs to its record: on another, the sinusoid alone
+            cols += (band_past(self.residual, self.freq_hz, data.fs_hz, q=self.q)
+                     if self.residual.size == data.y.size else [np.zeros(data.y.size)] * 2)
+        return np.column_stack(cols)
+
+    @property
+    def predictor_cols(self) -> int:
+        """Trailing columns that predict from the measured residual (left out of a simulation)."""
+        return 2 if self.residual is not None else 0
 
     def output_static(self) -> None:
         return None

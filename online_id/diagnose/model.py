@@ -154,6 +154,8 @@ class AugmentedFit:
             if stat is not None:
                 mask[col:col + m] = False
                 dependent.append((stat[0], np.asarray(stat[1], dtype=int), self.eta[col:col + m]))
+            # columns that predict a disturbance from the measured residual's past: no part of a simulation
+            mask[col + m - getattr(term, "predictor_cols", 0):col + m] = False
             col += m
         w = phi[:, mask] @ self.eta[mask]
         out = y.astype(float).copy()

@@ -124,7 +124,8 @@ def spectrum(e: np.ndarray, fs_hz: float) -> ResidualTest:
     half = 1.5 * (freq[1] - freq[0])
     cands = []
     for f, _ in peaks:
-        cands.append(("fixed_frequency_disturbance", {"freq_hz": f, "half_width_hz": half}))
+        cands.append(("fixed_frequency_disturbance", {"freq_hz": f, "half_width_hz": half,
+                                                      "held_out_ratio": line_ratio(freq, psd, f)}))
         cands.append(("additional_mode", {"freq_hz": f}))
     text = ", ".join(f"{f:.2f} Hz ({100 * s:.1f} %)" for f, s in peaks) or "none"
     return ResidualTest("spectrum peaks", not peaks, score, f"peaks: {text}", tuple(cands),
@@ -198,7 +199,7 @@ def angle_periodogram(e: np.ndarray, speed_rad_s: np.ndarray, fs_hz: float) -> t
 
 
 def line_ratio(order: np.ndarray, p: np.ndarray, o: float) -> float:
-    """Power at order ``o`` (largest of the nearest bin and its neighbours) over the median power of the
+    """Power at order (or frequency) ``o`` (largest of the nearest bin and its neighbours) over the median power of the
     bins from ``GUARD_BINS`` to ``FLOOR_BINS`` away on either side (the local floor of a coloured residual)."""
     d = order[1] - order[0]
     i = int(round(o / d))
@@ -254,6 +255,11 @@ def rig_orders(e: np.ndarray, speeds: dict[str, np.ndarray], rates: dict[str, fl
                         tuple(cands), {"order": order, "psd": p, "shaft": slow, "max_ratio": largest,
                                        "max_split_ratio": largest_split,
                                        "psd_held_out": parts[1] if parts else None, "rates": dict(rates)})
+
+
+def spectrum_ratio(test: ResidualTest, f_hz: float) -> float:
+    """The power at ``f_hz`` over its local floor in a :func:`spectrum` test (the held-out residual's)."""
+    return line_ratio(test.curve["freq_hz"], test.curve["psd"], f_hz)
 
 
 def line_ratios(test: ResidualTest, shaft: str, k: float) -> tuple[float, float | None]:

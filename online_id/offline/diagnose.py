@@ -142,13 +142,17 @@ _LINE_KEYS = ("line_ratio", "held_out_ratio", "line_ratio_after", "held_out_rati
 
 
 def _fmt_params(params: dict) -> str:
-    shown = {k: v for k, v in params.items() if not ("line_ratio_after" in params and k in _LINE_KEYS)}
+    shown = {k: v for k, v in params.items()
+             if not (("line_ratio_after" in params or "held_out_ratio_after" in params) and k in _LINE_KEYS)}
     return ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in shown.items()) + _line_clause(params)
 
 
 def _line_clause(params: dict) -> str:
-    """An order line's power over its local floor before and after its step (what it was accepted on)."""
+    """A line's power over its local floor before and after its step (what it was accepted on)."""
     if "line_ratio_after" not in params:
+        if "held_out_ratio_after" in params and "held_out_ratio" in params:  # a line fixed in Hz
+            return (f"; line over its floor (held out) {params['held_out_ratio']:.0f}x -> "
+                    f"{params['held_out_ratio_after']:.1f}x")
         return ""
     held = (f", held out {params['held_out_ratio']:.0f}x -> {params['held_out_ratio_after']:.1f}x"
             if "held_out_ratio_after" in params and "held_out_ratio" in params else "")
