@@ -356,7 +356,8 @@ class Pipeline:
 
     def process(self, a: AssembledSample) -> None:
         """Feed one assembled sample to the estimator (also used by offline runs)."""
-        self._drop_ahead()
+        if self._ahead is not None:
+            self._drop_ahead()
         restart = a.discontinuity and self.counters.samples > 1
         if restart:
             self.estimator.restart_history()
@@ -410,10 +411,11 @@ class Pipeline:
                 self._reset_times.append(a.t_s)
                 self._alert(out, a.t_s, AlertKind.ESTIMATOR_RESET, 2, 0.0,
                             f"estimator reset after a numerical failure (resets: {rels.n_resets})")
-            healthy = self.state in (ServiceState.LEARNING, ServiceState.TRACKING)
-            exc = self.excitation.step(a.t_s, healthy, self.estimator.speed_rpm)
-            if exc:
-                out.append(exc)
+            if self.excitation.enabled:  # (step() does nothing else when it is not)
+                healthy = self.state in (ServiceState.LEARNING, ServiceState.TRACKING)
+                exc = self.excitation.step(a.t_s, healthy, self.estimator.speed_rpm)
+                if exc:
+                    out.append(exc)
             if est is not None:
                 out.extend(self._publish_rest(est, a.t_s))
             elif self._detect_pending is not None:
