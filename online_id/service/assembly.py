@@ -347,16 +347,10 @@ class SampleAssembler:
         self._pending_discontinuity = True
 
     def _update_timeout(self) -> bool:
+        """The roles silent for longer than the timeout, after the first frame (``_drain`` calls this only while
+        timed out, or where a role looks silent): True while there is one."""
         start = self._start
-        if start is None:
-            return False
         newest, limit = self._newest, self.timeout_s
-        if not self._timed_out:  # the common case, checked without building anything
-            for h in self._hists:
-                if newest - (h[-1][0] if h else start) > limit:
-                    break
-            else:
-                return False
         silent = tuple(
             r for r, h in zip(ROLES, self._hists) if newest - (h[-1][0] if h else start) > limit
         )
@@ -412,7 +406,7 @@ class SampleAssembler:
             if self._timed_out:
                 if self._update_timeout():
                     return []
-            else:  # the common case, checked here as _update_timeout checks it first (its call costs more)
+            else:  # the common case (no role silent), checked without a call or building anything
                 newest, limit = self._newest, self.timeout_s
                 for h in hists:
                     if newest - (h[-1][0] if h else start) > limit:
