@@ -54,6 +54,7 @@ resonance).
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -86,37 +87,82 @@ stiffness loss entering the window differed by 3-10 standard deviations on the s
 
 
 class StreamDecimator:
-    """Causal FIR low-pass and decimation of several channels, sample by sample."""
+    """Causal FIR low-pass and decimation of several channels, sample by sample.
+
+    The channels' samples are written into a long buffer, one column per sample: the filter's input is the view
+    of its newest ``taps`` columns (oldest first), and only every ``_SPAN``-th sample moves the newest columns back
+    to the buffer's start (one copy in place of a shift of the whole filter per sample)."""
+
+    _SPAN = 1024  # samples written between two moves of the buffer
 
     def __init__(self, factor: int, n_channels: int, taps_per_factor: int = 8) -> None:
         self.factor = int(factor)
         if self.factor > 1:
             n = taps_per_factor * self.factor + 1
             self.h = firwin(n, 0.8 / self.factor)[::-1].copy()  # reversed: dot with oldest-first buffer
-            self.buf = np.zeros((n_channels, n))
         else:
+            n = 1
             self.h = np.ones(1)
-            self.buf = np.zeros((n_channels, 1))
+        self.taps = n
+        self._long = np.zeros((n_channels, n + self._SPAN))
+        self._end = n  # the newest ``taps`` samples are columns end - taps .. end - 1
         self.phase = 0
         self._empty = True
 
-    def push(self, values: np.ndarray) -> np.ndarray | None:
+    @property
+    def buf(self) -> np.ndarray:
+        """The filter's input: the newest ``taps`` samples of every channel, oldest first (a view)."""
+        return self._long[:, self._end - self.taps:self._end]
+
+    def push(self, values) -> np.ndarray | None:
         """Add one sample of every channel; every ``factor``-th call returns the filtered sample."""
-        buf = self.buf
+        col = self._column()
         if self._empty:
-            # start as if the signal had been constant before: no start-up transient
-            buf[:] = np.asarray(values)[:, None]
+            self.buf[:] = np.asarray(values, dtype=float)[:, None]  # start as if constant before: no transient
             self._empty = False
-        buf[:, :-1] = buf[:, 1:]
-        buf[:, -1] = values
+        self._long[:, col] = values
+        return self._output()
+
+    def push3(self, a: float, b: float, c: float) -> np.ndarray | None:
+        """:meth:`push` of one sample of three channels, given as floats (the estimator's per-sample call, with
+        :meth:`_column` and :meth:`_output` written out)."""
+        end, n, long = self._end, self.taps, self._long
+        if end == long.shape[1]:
+            long[:, :n - 1] = long[:, end - n + 1:end]
+            end = n - 1
+        self._end = end + 1
+        if self._empty:
+            long[:, end + 1 - n:end + 1] = np.array(((a,), (b,), (c,)), dtype=float)  # (see push)
+            self._empty = False
+        long[0, end] = a
+        long[1, end] = b
+        long[2, end] = c
+        phase = self.phase + 1
+        if phase < self.factor:
+            self.phase = phase
+            return None
+        self.phase = 0
+        return long[:, end + 1 - n:end + 1].dot(self.h)  # (ndarray.dot: the same product as @, called faster)
+
+    def _column(self) -> int:
+        """The column of the next sample, the buffer moved first where it is full."""
+        end, n, long = self._end, self.taps, self._long
+        if end == long.shape[1]:
+            long[:, :n - 1] = long[:, end - n + 1:end]
+            end = n - 1
+        self._end = end + 1
+        return end
+
+    def _output(self) -> np.ndarray | None:
         self.phase += 1
         if self.phase < self.factor:
             return None
         self.phase = 0
-        return buf @ self.h
+        return self.buf.dot(self.h)
 
     def reset(self) -> None:
-        self.buf[:] = 0.0
+        self._long[:] = 0.0
+        self._end = self.taps
         self.phase = 0
         self._empty = True
 
@@ -182,7 +228,7 @@ class OnlineDriveline:
         self.alpha_dc = self.dt / dc_tau_s
         self.alpha_stat = max(1.0 - forgetting, 1e-4)
         self.alpha_e2 = self.dt / 2.0  # the noise level: a 2 s memory is enough and forgets the start-up
-        self._mean = np.zeros(2)
+        self._mean_y = self._mean_u = 0.0  # the DC blocker's means of y and u
         self._mean_ready = False
         self._e2 = 0.0
         self._u2 = 0.0
@@ -207,20 +253,21 @@ class OnlineDriveline:
     # -- per sample ---------------------------------------------------------------------------
     def update(self, dyno_speed: float, engine_speed: float, dyno_torque: float) -> None:
         """One input sample in SI units (rad/s, rad/s, Nm braking positive)."""
-        out = self.decimator.push(np.array((dyno_speed, dyno_torque, engine_speed)))
+        out = self.decimator.push3(dyno_speed, dyno_torque, engine_speed)
         if out is None:
             return
-        y, u, n = float(out[0]), float(out[1]), float(out[2])
+        y, u, n = out.tolist()
         self._speed = n
         if not self._mean_ready:
-            self._mean[:] = (y, u)
+            self._mean_y, self._mean_u = y, u
             self._mean_ready = True
-        m = self._mean
-        m[0] += self.alpha_dc * (y - m[0])  # xbar <- xbar + dt/tau (x - xbar)
-        m[1] += self.alpha_dc * (u - m[1])
-        y_hp, u_hp = y - m[0], u - m[1]
-        e = self.rels.update(y_hp, u_hp)  # a-priori prediction error
-        if np.isfinite(e) and not self.rels.frozen:
+        alpha = self.alpha_dc
+        my = self._mean_y = self._mean_y + alpha * (y - self._mean_y)  # xbar <- xbar + dt/tau (x - xbar)
+        mu = self._mean_u = self._mean_u + alpha * (u - self._mean_u)
+        y_hp, u_hp = y - my, u - mu
+        rels = self.rels
+        e = rels.update(y_hp, u_hp)  # a-priori prediction error
+        if math.isfinite(e) and not rels.frozen:
             self._n_used += 1
             a = max(self.alpha_e2, 1.0 / self._n_used)  # running mean first, then exponential
             self._e2 += a * (e * e - self._e2)
@@ -488,7 +535,7 @@ class OnlineDriveline:
             tuple(poles),
             source,
             "two poles at the resonance (mode split)" if split and not self.window.reason else self.window.reason,
-            self.window.fit_load_nm if source == "window" else float(self._mean[1]),
+            self.window.fit_load_nm if source == "window" else self._mean_u,
         )
 
     def physical_job(self, est: OnlineEstimate, J1: float | None, J2: float | None,

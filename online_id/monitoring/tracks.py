@@ -68,6 +68,18 @@ SPEED_DEPENDENT = "speed_dependent"
 UNKNOWN = "unknown"
 
 
+def small_median(values: list[float]) -> float:
+    """``float(np.median(values))`` of a short list of floats, the same number, without numpy's cost per call (a
+    track's reference is taken at every publication): the mean of the middle value or two, summed from 0.0 as
+    numpy's mean sums (so -0.0 comes out 0.0); NaN where one is NaN."""
+    xs = sorted(values)
+    n = len(xs)
+    if n == 0 or any(x != x for x in xs):
+        return math.nan
+    m = n // 2
+    return 0.0 + xs[m] if n % 2 else (0.0 + xs[m - 1] + xs[m]) / 2.0
+
+
 @dataclass(frozen=True)
 class TrackHistory:
     """Read-only history of one track, oldest first."""
@@ -124,10 +136,14 @@ class Track:
         self._n += 1
         self.n_seen += 1
         self.last_seen_s = t
-        r = self._recent()
-        self._ref = (float(np.median(r[2])), float(np.median(r[3])), float(np.median(r[1])))
+        self._set_ref()
         if not math.isfinite(self.first_seen_s):
             self.first_seen_s = t
+
+    def _set_ref(self) -> None:
+        """The reference: the medians of the last points' frequency, damping and speed (see :meth:`reference`)."""
+        _t, speed, f, zeta = self._recent().tolist()
+        self._ref = (small_median(f), small_median(zeta), small_median(speed))
 
     def _recent(self, k: int = 10) -> np.ndarray:
         """The last ``k`` points (rows t, speed, f, zeta)."""
@@ -174,8 +190,7 @@ class Track:
         for j in range(m):  # place so that index n_total-1 holds the newest point
             tr._buf[:, (n_total - m + j) % size] = rows[:, j]
         tr._n = n_total
-        r = tr._recent()
-        tr._ref = (float(np.median(r[2])), float(np.median(r[3])), float(np.median(r[1])))
+        tr._set_ref()
         tr.cls = str(d["cls"])
         tr.confidence = float(d["confidence"])
         tr.order = None if d["order"] is None else float(d["order"])

@@ -171,39 +171,37 @@ class SampleAssembler:
         """True while at least one role is silent for longer than the timeout."""
         return self._timed_out
 
-    def _check_counter(self, s: SignalSample) -> bool:
+    def _check_counter(self, role: str, counter: int, t_s: float) -> bool:
+        """The alive counter of a frame of ``role`` stamped ``t_s``: False when the frame is refused."""
         self._step = None
-        if s.counter is None:
-            return True
-        role = s.role
         last = self._last_counter[role]
         if last is None:
-            self._last_counter[role], self._last_counter_t[role] = s.counter, s.t_s
+            self._last_counter[role], self._last_counter_t[role] = counter, t_s
             return True
-        step = (s.counter - last) % self.counter_modulo
+        step = (counter - last) % self.counter_modulo
         if step == 0:
             self.counters.count(FrameFault.DUPLICATE)
             return False
         if step > 1:
-            lost = self._lost_by_time(role, s.t_s)
+            lost = self._lost_by_time(role, t_s)
             cand = self._resync[role]
             if lost is not None and step - 1 > lost:
                 # the time since the last frame cannot explain the jump: a corrupt counter, unless the
                 # previous refused frame and this one agree (the sender restarted its counter)
-                if cand is None or (s.counter - cand) % self.counter_modulo != 1:
+                if cand is None or (counter - cand) % self.counter_modulo != 1:
                     if cand is None:
                         self.counters.count(FrameFault.COUNTER_JUMP)
-                    self._resync[role] = s.counter
+                    self._resync[role] = counter
                     # the refused frame took the next slot: the sender's next frame is not a jump
                     self._last_counter[role] = (last + 1) % self.counter_modulo
-                    self._last_counter_t[role] = s.t_s
+                    self._last_counter_t[role] = t_s
                     return False
                 step = 0  # the sender restarted its counter: the periods since its last frame are unknown
             else:
                 self.counters.count(FrameFault.COUNTER_JUMP)
                 self.counters.missing_frames += step - 1
         self._resync[role] = None
-        self._last_counter[role], self._last_counter_t[role] = s.counter, s.t_s
+        self._last_counter[role], self._last_counter_t[role] = counter, t_s
         self._step = step or None
         return True
 
@@ -236,17 +234,22 @@ class SampleAssembler:
 
     def push(self, s: SignalSample) -> list[AssembledSample]:
         """Add one decoded value; returns the samples that became complete."""
-        t = s.t_s
+        return self.push_value(s.role, s.value, s.t_s, s.counter)
+
+    def push_value(self, role: str, value: float, t: float, counter: int | None = None) -> list[AssembledSample]:
+        """:meth:`push` of the value of a :class:`SignalSample` given by its fields (no sample object to make: the
+        replay of bench data takes this, three values per sample)."""
         if not -MAX_TIME_S <= t <= MAX_TIME_S:  # NaN too
             self.counters.count(FrameFault.BAD_TIME)
             return []
-        if self._clock is not None:
-            if t > self._clock + self.max_jump_s:
-                return self._hold_ahead(s)
+        clock = self._clock
+        if clock is not None:
+            if t > clock + self.max_jump_s:
+                return self._hold_ahead(SignalSample(role, value, t, counter))
             if self._ahead:  # back in the old time base: the held frames were outliers
                 self.counters.count(FrameFault.BAD_TIME, len(self._ahead))
                 self._ahead.clear()
-            if t < self._clock - self.timeout_s:
+            if t < clock - self.timeout_s:
                 self.counters.count(FrameFault.TIME_BACKWARDS)
                 # a single stale frame is dropped; a stream that keeps arriving far in the past
                 # (a log that restarted, a clock that was set back) re-anchors the grid
@@ -255,7 +258,7 @@ class SampleAssembler:
                     return []
                 self._reanchor(t)
         self._back_run = 0
-        return self._accept(s)
+        return self._accept(role, value, t, counter)
 
     def _hold_ahead(self, s: SignalSample) -> list[AssembledSample]:
         """A frame far ahead of the stream clock: an outlier, or the first of a clock that jumped."""
@@ -291,18 +294,24 @@ class SampleAssembler:
         """The stream clock (NaN before the first accepted frame)."""
         return self._newest if self._newest > -math.inf else math.nan
 
-    def _accept(self, s: SignalSample) -> list[AssembledSample]:
-        hist = self._hist[s.role]
-        if hist and s.t_s < hist[-1][0]:
+    def _accept(self, role: str, value: float, t_s: float, counter: int | None) -> list[AssembledSample]:
+        hist = self._hist[role]
+        if hist and t_s < hist[-1][0]:
             self.counters.count(FrameFault.TIME_BACKWARDS)
             return []
-        if not self._check_counter(s):
-            return []
-        t = self._send_time(s.role, s.t_s)
-        hist.append((t, s.value))
+        if counter is None:  # no alive counter: stamped on arrival (as _check_counter and _send_time take it)
+            self._step = None
+            self._minq[role].clear()
+            t = t_s
+        else:
+            if not self._check_counter(role, counter, t_s):
+                return []
+            t = self._send_time(role, t_s)
+        hist.append((t, value))
         if self._start is None:
             self._start = t
-        if self._clock is None or t > self._clock:
+        clock = self._clock
+        if clock is None or t > clock:
             self._clock = t
         if t > self._newest:
             self._newest = t
@@ -338,16 +347,10 @@ class SampleAssembler:
         self._pending_discontinuity = True
 
     def _update_timeout(self) -> bool:
+        """The roles silent for longer than the timeout, after the first frame (``_drain`` calls this only while
+        timed out, or where a role looks silent): True while there is one."""
         start = self._start
-        if start is None:
-            return False
         newest, limit = self._newest, self.timeout_s
-        if not self._timed_out:  # the common case, checked without building anything
-            for h in self._hists:
-                if newest - (h[-1][0] if h else start) > limit:
-                    break
-            else:
-                return False
         silent = tuple(
             r for r, h in zip(ROLES, self._hists) if newest - (h[-1][0] if h else start) > limit
         )
@@ -397,12 +400,22 @@ class SampleAssembler:
         return best
 
     def _drain(self) -> list[AssembledSample]:
-        if self._update_timeout():
-            return []
         hists = self._hists
-        for h in hists:
-            if not h:
-                return []
+        start = self._start
+        if start is not None:
+            if self._timed_out:
+                if self._update_timeout():
+                    return []
+            else:  # the common case (no role silent), checked without a call or building anything
+                newest, limit = self._newest, self.timeout_s
+                for h in hists:
+                    if newest - (h[-1][0] if h else start) > limit:
+                        if self._update_timeout():
+                            return []
+                        break
+        h0, h1, h2 = hists
+        if not (h0 and h1 and h2):
+            return []
         dt = self.dt
         if self._t0 is None:
             # start the grid at the newest of the roles' first values still held
@@ -411,29 +424,34 @@ class SampleAssembler:
             self._phased = False
         elif not self._phased:
             self._phase_grid()
-        out: list[AssembledSample] = []
         half = 0.5 * dt
-        t0, fast, value_at, counters = self._t0, self._fast_hists, self._value_at, self.counters
-        h0, h1, h2 = hists
+        t0, fast = self._t0, self._fast_hists
+        t = t0 + self._k * dt
+        lim = t - half
+        for h in fast:  # the next grid point is not complete (two of a sample's three values find it so)
+            if h[-1][0] < lim:
+                return []
+        out: list[AssembledSample] = []
+        value_at, counters = self._value_at, self.counters
         while True:
-            t = t0 + self._k * dt
-            lim = t - half
-            for h in fast:
-                if h[-1][0] < lim:
-                    return out
             limit = t + half
             v0, v1, v2 = value_at(h0, limit), value_at(h1, limit), value_at(h2, limit)
             if v0 is None or v1 is None or v2 is None:
                 # a held role has no value old enough yet: skip this grid point
                 self._k += 1
-                continue
-            out.append(AssembledSample(t, v0, v1, v2, self._pending_discontinuity))
-            if self._pending_discontinuity and counters.samples:
-                counters.gaps += 1
-            self._pending_discontinuity = False
-            counters.samples += 1
-            self._k += 1
-            # forget what the next grid point can no longer use (keep one value at or before it)
-            for h in hists:
-                while len(h) > 1 and h[1][0] <= limit:
-                    h.popleft()
+            else:
+                out.append(AssembledSample(t, v0, v1, v2, self._pending_discontinuity))
+                if self._pending_discontinuity and counters.samples:
+                    counters.gaps += 1
+                self._pending_discontinuity = False
+                counters.samples += 1
+                self._k += 1
+                # forget what the next grid point can no longer use (keep one value at or before it)
+                for h in hists:
+                    while len(h) > 1 and h[1][0] <= limit:
+                        h.popleft()
+            t = t0 + self._k * dt
+            lim = t - half
+            for h in fast:
+                if h[-1][0] < lim:
+                    return out

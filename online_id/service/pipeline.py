@@ -236,9 +236,16 @@ class Pipeline:
         which must be called next.  The publications and the state are the same
         as without it.
         """
+        return self.on_value(sample.role, sample.value, sample.t_s, sample.counter, split)
+
+    def on_value(self, role: str, value: float, t_s: float, counter: int | None = None,
+                 split: bool = False) -> list[Publication]:
+        """:meth:`on_signal` of a :class:`SignalSample` given by its fields (no sample object to make: the replay
+        of bench data takes this, three values per sample)."""
         if self._rest is not None:
             raise RuntimeError("Pipeline.on_signal: the split publication before was not finished (call finish())")
-        samples = self.assembler.push(sample)  # checks the timestamp (see online_id.service.assembly)
+        assembler = self.assembler
+        samples = assembler.push_value(role, value, t_s, counter)  # checks the timestamp (see online_id.service.assembly)
         if samples:
             if self.t_first is None:
                 self.t_first = samples[0].t_s
@@ -253,7 +260,7 @@ class Pipeline:
                 self._poll_deferred = False
             else:
                 self._poll_deferred = publishes
-        return self._consume(samples, self.assembler.now_s, split)
+        return self._consume(samples, assembler.now_s, split)
 
     def finish(self) -> list[Publication]:
         """What :meth:`on_signal` with ``split`` left: the rest of its publication, then the samples after it."""
@@ -349,7 +356,8 @@ class Pipeline:
 
     def process(self, a: AssembledSample) -> None:
         """Feed one assembled sample to the estimator (also used by offline runs)."""
-        self._drop_ahead()
+        if self._ahead is not None:
+            self._drop_ahead()
         restart = a.discontinuity and self.counters.samples > 1
         if restart:
             self.estimator.restart_history()
@@ -368,7 +376,8 @@ class Pipeline:
                 out.append(stop)
             self._set_state(ServiceState.INPUT_TIMEOUT, now_s, out,
                             f"input timeout: {', '.join(self.assembler.timed_out_roles)} silent")
-        self._run(samples, out, split)
+        if samples:
+            self._run(samples, out, split)
         return out
 
     def _run(self, samples: list[AssembledSample], out: list[Publication], split: bool = False,
@@ -402,10 +411,11 @@ class Pipeline:
                 self._reset_times.append(a.t_s)
                 self._alert(out, a.t_s, AlertKind.ESTIMATOR_RESET, 2, 0.0,
                             f"estimator reset after a numerical failure (resets: {rels.n_resets})")
-            healthy = self.state in (ServiceState.LEARNING, ServiceState.TRACKING)
-            exc = self.excitation.step(a.t_s, healthy, self.estimator.speed_rpm)
-            if exc:
-                out.append(exc)
+            if self.excitation.enabled:  # (step() does nothing else when it is not)
+                healthy = self.state in (ServiceState.LEARNING, ServiceState.TRACKING)
+                exc = self.excitation.step(a.t_s, healthy, self.estimator.speed_rpm)
+                if exc:
+                    out.append(exc)
             if est is not None:
                 out.extend(self._publish_rest(est, a.t_s))
             elif self._detect_pending is not None:
@@ -591,6 +601,9 @@ def run_bench_data(data, settings: Settings, progress=None, on_output=None, stat
     return feed_bench_data(pipe, data, progress=progress, on_output=on_output)
 
 
+_FEED_CHUNK = 4096
+
+
 def feed_bench_data(pipe: Pipeline, data, start: int = 0, stop: int | None = None, progress=None,
                     on_output=None) -> Pipeline:
     """Feed samples ``start`` to ``stop`` (default: the end) of bench data to ``pipe`` as
@@ -600,12 +613,15 @@ def feed_bench_data(pipe: Pipeline, data, start: int = 0, stop: int | None = Non
             ("dyno_torque", data.dyno_torque_nm))
     n = len(data) if stop is None else stop
     step = max(1, n // 200)
-    for k in range(start, n):
-        tk = float(t[k])
-        for role, arr in cols:
-            out = pipe.on_signal(SignalSample(role, float(arr[k]), tk))
-            if out and on_output is not None:
-                on_output(pipe, tk, out)
-        if progress is not None and k % step == 0:
-            progress(k / n, f"t = {tk:.1f} s")
+    on_value = pipe.on_value
+    for k0 in range(start, n, _FEED_CHUNK):  # (Python floats, converted a chunk at a time)
+        k1 = min(n, k0 + _FEED_CHUNK)
+        chunk = [(role, np.asarray(arr[k0:k1], dtype=float).tolist()) for role, arr in cols]
+        for k, tk in enumerate(np.asarray(t[k0:k1], dtype=float).tolist(), k0):
+            for role, values in chunk:
+                out = on_value(role, values[k - k0], tk)
+                if out and on_output is not None:
+                    on_output(pipe, tk, out)
+            if progress is not None and k % step == 0:
+                progress(k / n, f"t = {tk:.1f} s")
     return pipe
