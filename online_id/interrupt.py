@@ -53,6 +53,41 @@ AGAIN_S = 0.5
 
 _received: list[int] = []
 
+_stopped_by: list[int] = []
+"""The signal that stopped the last :func:`interruptible` block, if one did (see :func:`stopped_by`)."""
+
+
+def stopped_by() -> int | None:
+    """The signal (SIGINT or SIGTERM) that arrived within the last :func:`interruptible` block, else None.
+
+    Set whatever became of its :class:`Interrupted`: an extension module whose import the signal cut
+    short may raise its own error instead (numpy's ``ImportError`` when ``datetime`` did not load), and
+    that error is then the signal's doing, not a fault to report.
+    """
+    return _stopped_by[-1] if _stopped_by else None
+
+
+def end_process(status: int) -> None:
+    """End the console process after a stop, with ``status``, without the interpreter's finalisation.
+
+    The ``finally`` blocks and context managers have run (partial outputs removed, pools ended); what is
+    left is the finalisation of modules and objects the signal may have cut short half-made (an
+    extension module's import, an llvmlite pass builder while numba compiled), which can crash the
+    interpreter on its way out (SIGSEGV instead of the status). So: the ``atexit`` functions run (they
+    remove temporary directories, among others), the standard streams are flushed, and the process ends.
+    """
+    import atexit
+
+    try:
+        atexit._run_exitfuncs()
+    finally:
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):  # a reader gone, a stream closed: nothing more to say
+                pass
+        os._exit(status)
+
 
 def _raise(signum: int, _frame) -> None:
     if _received:  # a second signal while the first one's clean-up runs: the clean-up finishes
@@ -133,6 +168,7 @@ def interruptible(process_ends: bool = False) -> Iterator[None]:
             hook(info)
 
     _received.clear()
+    _stopped_by.clear()
     sys.unraisablehook = unraisable
     signal.signal(signal.SIGALRM, _again)
     for s in SIGNALS:
@@ -142,6 +178,7 @@ def interruptible(process_ends: bool = False) -> Iterator[None]:
     finally:
         if _received:
             signal.setitimer(signal.ITIMER_REAL, 0.0)
+            _stopped_by.append(_received[0])
         _outer_alarm.pop()
         for s, handler in previous.items():
             stays = s != signal.SIGALRM and (_received or process_ends)

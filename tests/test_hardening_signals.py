@@ -134,3 +134,56 @@ def test_the_service_stops_with_status_0_in_its_start_up(tmp_path):
 @pytest.mark.slow
 def test_the_service_stops_with_status_0_in_its_loop(tmp_path):
     assert "online-id: stopped:" in _stop_service(tmp_path, in_loop=True)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_a_stop_that_a_library_turned_into_its_own_error_is_still_a_stop(monkeypatch, capsys, sig):
+    """A signal that cuts an extension module's import short can come out as that module's own error
+    (numpy's ImportError when ``datetime`` did not load): one line and the signal's status, no traceback."""
+    from online_id import cli
+
+    def build_parser(command=None):
+        try:
+            os.kill(os.getpid(), sig)
+            time.sleep(5)
+        except KeyboardInterrupt as err:
+            raise ImportError("numpy: PyCapsule_Import could not import module 'datetime'") from err
+        raise AssertionError("no stop arrived")
+
+    monkeypatch.setattr(cli, "build_parser", build_parser)
+    assert cli.main(["simulate"]) == STATUS[sig]
+    assert capsys.readouterr().err.strip() == f"interrupted by {signal.Signals(sig).name}"
+
+
+def test_an_error_without_a_stop_is_not_taken_for_one(monkeypatch):
+    from online_id import cli
+
+    def build_parser(command=None):
+        raise ImportError("a missing module")
+
+    monkeypatch.setattr(cli, "build_parser", build_parser)
+    with pytest.raises(ImportError, match="a missing module"):
+        cli.main(["simulate"])
+
+
+def test_the_console_process_ends_after_a_stop_without_finalisation_but_with_its_exit_functions(tmp_path):
+    """After a stop the console process skips the interpreter's finalisation (what the signal cut short
+    half-made can crash it there: SIGSEGV instead of the status), yet its atexit functions run and what
+    it printed reaches the reader."""
+    marker = tmp_path / "atexit-ran"
+    code = (
+        "import atexit, sys\n"
+        "from online_id.interrupt import end_process\n"
+        f"atexit.register(lambda: open({str(marker)!r}, 'w').close())\n"
+        "class Crash:\n"
+        "    def __del__(self):\n"
+        "        print('finalised', file=sys.stderr)\n"
+        "keep = Crash()\n"
+        "print('said before the end', end='')\n"
+        "end_process(130)\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 130
+    assert proc.stdout == "said before the end"
+    assert "finalised" not in proc.stderr
+    assert marker.exists()

@@ -90,10 +90,35 @@ def main(argv: list[str] | None = None) -> int:
     nothing left behind and status 130 or 143; the service (``run``) with 0, as from its loop
     (:mod:`online_id.interrupt`).
     """
-    from online_id.interrupt import Interrupted, interruptible
+    from online_id import interrupt
 
     process_ends = argv is None  # the console script: a signal after the work is done changes nothing
     argv = sys.argv[1:] if argv is None else list(argv)
+    try:
+        status = _run(argv, process_ends)
+    except BaseException as err:  # noqa: BLE001 -- only what a stop caused; anything else is raised again
+        signum = interrupt.stopped_by()
+        if signum is None or isinstance(err, SystemExit):
+            raise
+        # the signal cut an extension module's import or a library short and its own error came out
+        status = _stopped(argv, interrupt.Interrupted(signum))
+    if process_ends and interrupt.stopped_by() is not None:
+        interrupt.end_process(status)
+    return status
+
+
+def _stopped(argv: list[str], err) -> int:
+    """One line for a stop by ``err`` (an :class:`~online_id.interrupt.Interrupted`) and the status."""
+    if _command_of(argv) == "run":  # the service: a stop is its normal end, in its start-up too
+        print(f"online-id: stopped by {err.name} during start-up", file=sys.stderr)
+        return 0
+    print(f"interrupted by {err.name}", file=sys.stderr)
+    return err.exit_status
+
+
+def _run(argv: list[str], process_ends: bool) -> int:
+    from online_id.interrupt import Interrupted, interruptible
+
     args = None
     with interruptible(process_ends):
         try:
@@ -106,11 +131,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {printable(str(err))}", file=sys.stderr)
             return 2
         except Interrupted as err:
-            if _command_of(argv) == "run":  # the service: a stop is its normal end, in its start-up too
-                print(f"online-id: stopped by {err.name} during start-up", file=sys.stderr)
-                return 0
-            print(f"interrupted by {err.name}", file=sys.stderr)
-            return err.exit_status
+            return _stopped(argv, err)
         except KeyboardInterrupt:
             print("interrupted", file=sys.stderr)
             return 130
