@@ -237,3 +237,32 @@ def test_a_once_per_revolution_line_is_named_the_order_never_a_mode(seed, amp_nm
     held = [m for m in d.modes if "line" in m]
     assert all(m["line"]["order"] == 1.0 and abs(m["freq_hz"] - line_hz) < 0.03 * line_hz for m in held)
     assert bool(held) == any("rotation-order line" in w for w in d.warnings)
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_a_late_encoder_is_named_by_its_column_not_by_its_derivative(tmp_path, capsys, seed):
+    """A speed from an encoder's angle (--differentiate-output) whose encoder is late: the delay is the
+    encoder's, so the report names the column a user can check, with the derived output beside it."""
+    from scipy.signal import cont2discrete, lfilter
+
+    rng = np.random.default_rng(seed)
+    fs, n, delay = 500.0, 30000, int(rng.integers(4, 8))
+    w = 2 * np.pi * rng.uniform(10.0, 25.0)
+    # torque -> speed of a mass on a damped spring, integrated to the angle the encoder counts; the speed
+    # from its central difference takes one input lag more than the speed itself (nb 4)
+    b, a, _ = cont2discrete(([1.0, 0.0, w * w], np.polymul([1.0, 0.3], [1, 2 * 0.1 * w, w * w])), 1 / fs)
+    u = np.repeat(rng.choice([-1.0, 1.0], n // 5 + 1), 5)[:n]
+    speed = lfilter(b.ravel(), a, u)
+    angle = np.cumsum(speed) / fs
+    angle = np.concatenate((np.full(delay, angle[0]), angle[:-delay])) + 1e-7 * rng.standard_normal(n)
+    f = tmp_path / "rig.csv"
+    np.savetxt(f, np.column_stack((np.arange(n) / fs, u, angle)), delimiter=",", header="t,torque,encoder",
+               comments="", fmt="%.12g")
+    status, out = cli(["diagnose", str(f), "--input-col", "torque", "--output-col", "encoder", "--time-col", "t",
+                       "--differentiate-output", "--na", "3", "--nb", "4", "--nc", "2", "--json"], capsys)
+    doc = json.loads(out)
+    assert status == 0 and doc["effects"], [(c["kind"], c["t_stat"], c["refused"], c["accepted"]) for c in doc["candidates"]]
+    e = doc["effects"][0]
+    assert e["kind"] == "sensor_delay", doc["effects"]
+    assert e["params"]["signal"] == "encoder" and e["params"]["derived"] == "dencoder/dt"
+    assert e["params"]["delay_s"] == pytest.approx(delay / fs, abs=1.5 / fs)

@@ -397,8 +397,12 @@ def _params(kind: str, model: AugmentedFit, cur: AugmentedFit, data: DiagnoseDat
         return out
     if kind == "sensor_delay":
         d = s.delay - cur.structure.delay
-        signal = data.output_name if d > 0 else data.input_name
-        return {"signal": signal, "delay_s": abs(d) / data.fs_hz, "delay_samples": abs(d)}
+        # the sensor that is late: the output's column (the angle whose derivative is the output) or the input's
+        signal = str(data.notes.get("output_sensor", data.output_name)) if d > 0 else data.input_name
+        out = {"signal": signal, "delay_s": abs(d) / data.fs_hz, "delay_samples": abs(d)}
+        if d > 0 and signal != data.output_name:
+            out["derived"] = data.output_name
+        return out
     params = s.terms[-1].params()
     if kind == "fixed_frequency_disturbance" and one_operating_point(data):
         # at one speed a line fixed in Hz and one locked to a shaft look alike: a line at a multiple of a

@@ -205,6 +205,8 @@ def assemble(records: list[Resampled], layout: Layout, sources: list[str],
                       sample_rate_hz=layout.sample_rate_hz)
     rec = Resampled(np.arange(len(merged[names["input"]])) / fs, merged, fs, 0.0, 0.0, False)
     notes["layout"] = _layout_note(layout, sources, base, fs, t0, merged)
+    if layout.differentiate_output:  # the sensor a delay is reported on: the column, not its derivative
+        notes["output_sensor"] = names["output"][1:-3]
     data = build_data(rec, None, spec, source, notes)
     torsion, how = _torsion(merged, layout, data, source, warnings)
     joints = _joints(merged, layout, data) if layout.shaft_torque is None else {}

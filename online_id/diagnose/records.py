@@ -125,6 +125,7 @@ def build_data(rec1: Resampled, rec2: Resampled | None, spec: RecordSpec, source
     out_name = spec.output_col
     if spec.differentiate_output:
         y = np.gradient(y) * fs
+        notes["output_sensor"] = out_name  # the sensor a delay is reported on: the column, not its derivative
         out_name = f"d{out_name}/dt"
     path = data_path(fs, spec.sample_rate_hz)
     notes["data_path"] = path_note(path)
