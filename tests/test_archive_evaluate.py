@@ -23,8 +23,11 @@ def test_the_false_alarm_rate_per_1000_hours_has_the_exact_poisson_interval(even
 
 @pytest.mark.slow
 def test_evaluate_on_a_local_dask_cluster_gives_the_runs_of_the_process_pool(tmp_path, capsys):
+    """One fault-free run of 72 s on each path, its whole record compared as each path hands it back (a fault
+    run too, 228 s of bench with alarms and delays, took 21 CPU s more on each path: both runs are the same
+    ``run_spec`` in a worker process, the paths differ only in how the task gets there and back)."""
     pytest.importorskip("distributed")
-    args = ["evaluate", "--hours", "0.02", "--fault-plants", "1", "--cases", "stiffness -10 %", "--jobs", "2"]
+    args = ["evaluate", "--hours", "0.02", "--fault-plants", "0", "--jobs", "2"]
     assert main(args + ["--out", str(tmp_path / "pool")]) == 0
     assert main(args + ["--dask", "--out", str(tmp_path / "dask")]) == 0
     text = capsys.readouterr().out
@@ -34,7 +37,7 @@ def test_evaluate_on_a_local_dask_cluster_gives_the_runs_of_the_process_pool(tmp
     def runs(doc):
         return [{k: v for k, v in r.items() if k != "elapsed_s"} for r in doc["runs"]]
 
-    assert len(runs(pool)) == 2 and runs(dask) == runs(pool)
+    assert len(runs(pool)) == 1 and runs(dask) == runs(pool)
     f = dask["summary"]["fault_free"]
     assert f["false_alarms_per_1000h"] == pytest.approx(1000.0 * f["false_alarms"] / f["hours"])
     assert dask["summary"]["settings"]["dask"] == "local cluster, 2 workers"
@@ -43,11 +46,12 @@ def test_evaluate_on_a_local_dask_cluster_gives_the_runs_of_the_process_pool(tmp
 @pytest.mark.slow
 def test_evaluate_diagnose_cases_on_a_local_dask_cluster_are_the_process_pools(tmp_path):
     """The diagnosis evaluation's cases as Dask tasks give the cases of the process pool; a task that fails is a
-    failed case on every path, never left out."""
+    failed case on every path, never left out. One case that runs (12-16 CPU s on each path; a second case, of
+    the structures family, compared nothing else) and, on the cluster, one that fails after it."""
     pytest.importorskip("distributed")
     from online_id.evaluation import diagnose_benches as ev
 
-    jobs = [("sensor_delay", 41, "bench", ("no_demand",)), ("clean", 43, "structures", ("no_demand",))]
+    jobs = [("sensor_delay", 41, "bench", ("no_demand",))]
     pool = ev.run_cases(jobs, 2)
     dask = ev.run_cases(jobs + [("no_such_kind", 1, "bench", ("no_demand",))], 2, dask=True)
 
@@ -55,6 +59,6 @@ def test_evaluate_diagnose_cases_on_a_local_dask_cluster_are_the_process_pools(t
         return {k: ({kk: vv for kk, vv in v.items() if kk != "seconds"} if isinstance(v, dict) else v)
                 for k, v in r.items() if k != "seconds"}
 
-    assert [same(r) for r in dask[:2]] == [same(r) for r in pool]
-    failed = dask[2]
+    assert len(dask) == 2 and [same(r) for r in dask[:1]] == [same(r) for r in pool]
+    failed = dask[1]
     assert failed["kind"] == "no_such_kind" and "no_such_kind" in failed["no_demand"]["error"]
