@@ -76,7 +76,11 @@ def test_valid_within_20_s_and_accurate(J2, c_s, d_s, rpm, seed):
     f = np.array([x[0] for x in late])
     z = np.array([x[1] for x in late])
     err = np.abs(f / truth["f0_hz"] - 1)
-    assert np.max(err) < 0.01 and np.quantile(err, 0.9) < 0.003  # all within 1 %, 90 % within 0.3 %
+    # All within 1 %; 90 % within 6 % of the resonance's half-power half-width (zeta f0): how closely a
+    # frequency can be placed scales with its bandwidth. Over seeds 201-206 of each plant (single-threaded BLAS)
+    # the 90 % quantile reached 0.044 zeta, on the most damped plant 0.0011-0.0037 of f0, and the rounding alone
+    # (BLAS with one thread or two) moved seed 12's from 0.0012 to 0.0032.
+    assert np.max(err) < 0.01 and np.quantile(err, 0.9) < 0.06 * truth["zeta"]
     assert abs(np.median(f) / truth["f0_hz"] - 1) < 0.002
     assert abs(np.median(z) / truth["zeta"] - 1) < 0.08
 
