@@ -239,30 +239,55 @@ def test_a_once_per_revolution_line_is_named_the_order_never_a_mode(seed, amp_nm
     assert bool(held) == any("rotation-order line" in w for w in d.warnings)
 
 
-@pytest.mark.parametrize("seed", [3, 4])
-def test_a_late_encoder_is_named_by_its_column_not_by_its_derivative(tmp_path, capsys, seed):
-    """A speed from an encoder's angle (--differentiate-output) whose encoder is late: the delay is the
-    encoder's, so the report names the column a user can check, with the derived output beside it."""
+def _encoder_record(path, seed: int, late: bool) -> tuple[float, int]:
+    """A torque and a cumulative encoder angle (CSV): a mass on a damped spring, its speed integrated to
+    the angle; the encoder late by 4-7 samples when ``late``.  Returns the rate and the delay."""
     from scipy.signal import cont2discrete, lfilter
 
     rng = np.random.default_rng(seed)
-    fs, n, delay = 500.0, 30000, int(rng.integers(4, 8))
+    fs, n = 500.0, 30000
+    delay = int(rng.integers(4, 8)) if late else 0
     w = 2 * np.pi * rng.uniform(10.0, 25.0)
-    # torque -> speed of a mass on a damped spring, integrated to the angle the encoder counts; the speed
-    # from its central difference takes one input lag more than the speed itself (nb 4)
     b, a, _ = cont2discrete(([1.0, 0.0, w * w], np.polymul([1.0, 0.3], [1, 2 * 0.1 * w, w * w])), 1 / fs)
     u = np.repeat(rng.choice([-1.0, 1.0], n // 5 + 1), 5)[:n]
-    speed = lfilter(b.ravel(), a, u)
-    angle = np.cumsum(speed) / fs
-    angle = np.concatenate((np.full(delay, angle[0]), angle[:-delay])) + 1e-7 * rng.standard_normal(n)
-    f = tmp_path / "rig.csv"
-    np.savetxt(f, np.column_stack((np.arange(n) / fs, u, angle)), delimiter=",", header="t,torque,encoder",
+    angle = np.cumsum(lfilter(b.ravel(), a, u)) / fs
+    if delay:
+        angle = np.concatenate((np.full(delay, angle[0]), angle[:-delay]))
+    angle = angle + 1e-7 * rng.standard_normal(n)
+    np.savetxt(path, np.column_stack((np.arange(n) / fs, u, angle)), delimiter=",", header="t,torque,encoder",
                comments="", fmt="%.12g")
-    status, out = cli(["diagnose", str(f), "--input-col", "torque", "--output-col", "encoder", "--time-col", "t",
-                       "--differentiate-output", "--na", "3", "--nb", "4", "--nc", "2", "--json"], capsys)
-    doc = json.loads(out)
-    assert status == 0 and doc["effects"], [(c["kind"], c["t_stat"], c["refused"], c["accepted"]) for c in doc["candidates"]]
+    return fs, delay
+
+
+def _diagnose_encoder(path, capsys) -> dict:
+    """``diagnose --differentiate-output`` on an encoder record with the user's orders (na 3, nb 3: the
+    speed's own; the central difference's extra lag is the data path's input lead, not the user's nb)."""
+    status, out = cli(["diagnose", str(path), "--input-col", "torque", "--output-col", "encoder", "--time-col", "t",
+                       "--differentiate-output", "--na", "3", "--nb", "3", "--nc", "2", "--json"], capsys)
+    assert status == 0
+    return json.loads(out)
+
+
+@pytest.mark.parametrize("seed", [3, 4, 5])
+def test_a_late_encoder_is_named_by_its_column_not_by_its_derivative(tmp_path, capsys, seed):
+    """A speed from an encoder's angle (--differentiate-output) whose encoder is late: the delay is the
+    encoder's, so the report names the column a user can check, with the derived output beside it, and
+    the delay is the encoder's to the sample (the central difference's lead is not counted in it)."""
+    fs, delay = _encoder_record(tmp_path / "rig.csv", seed, late=True)
+    doc = _diagnose_encoder(tmp_path / "rig.csv", capsys)
+    assert doc["effects"], [(c["kind"], c["t_stat"], c["refused"], c["accepted"]) for c in doc["candidates"]]
     e = doc["effects"][0]
     assert e["kind"] == "sensor_delay", doc["effects"]
     assert e["params"]["signal"] == "encoder" and e["params"]["derived"] == "dencoder/dt"
-    assert e["params"]["delay_s"] == pytest.approx(delay / fs, abs=1.5 / fs)
+    assert e["params"]["delay_samples"] == delay
+
+
+@pytest.mark.parametrize("seed", [3, 4, 5])
+def test_an_encoder_read_on_time_has_no_delay(tmp_path, capsys, seed):
+    """The same record with the encoder on time: a central difference holds the input of its own sample,
+    so the data path gives the baseline that lag (input lead 1) and no sensor delay is named (before,
+    every clean encoder record reported a one-sample delay explaining over 90 % of the residual)."""
+    _encoder_record(tmp_path / "rig.csv", seed, late=False)
+    doc = _diagnose_encoder(tmp_path / "rig.csv", capsys)
+    assert doc["recording"]["data_path"]["input_lead"] == 1
+    assert not [e for e in doc["effects"] if e["kind"] == "sensor_delay"], doc["effects"]

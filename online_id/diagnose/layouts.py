@@ -202,7 +202,7 @@ def assemble(records: list[Resampled], layout: Layout, sources: list[str],
         notes["clock"] = clock.as_dict(f"{on1} / {on2}" if clock.mode == "estimated" else "")
     speeds = tuple(ShaftSource(s.shaft, "speed", f"w:{s.shaft}") for s in layout.shafts)
     spec = RecordSpec(names["input"], names["output"], speeds + tuple(layout.geared),
-                      sample_rate_hz=layout.sample_rate_hz)
+                      sample_rate_hz=layout.sample_rate_hz, output_centred=layout.differentiate_output)
     rec = Resampled(np.arange(len(merged[names["input"]])) / fs, merged, fs, 0.0, 0.0, False)
     notes["layout"] = _layout_note(layout, sources, base, fs, t0, merged)
     if layout.differentiate_output:  # the sensor a delay is reported on: the column, not its derivative

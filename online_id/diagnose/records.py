@@ -47,14 +47,27 @@ def decimate_alike(signals: dict[str, np.ndarray], path: CausalPath) -> dict[str
     return {k: filter_decimate(v, path)[skip:] for k, v in signals.items()}
 
 
-def path_note(path: CausalPath) -> dict:
+LEAD_CENTRED = 1
+"""Input lead of the baseline on a full-rate output differentiated by central differences
+(``np.gradient``): ``(y[k+1] - y[k-1]) / 2T`` holds the response to the input of sample ``k`` itself,
+so a baseline without that lag took the missing tap for a one-sample sensor delay on every clean
+encoder record (``tests/test_diagnose.py``)."""
+
+
+def path_note(path: CausalPath, centred: bool = False) -> dict:
     """The data path as reported (JSON ``recording.data_path``), with the input lead it implies."""
-    return {**path.as_dict(), "input_lead": input_lead_for(path)}
+    return {**path.as_dict(), "input_lead": input_lead_for(path, centred)}
 
 
-def input_lead_for(path: CausalPath) -> int:
-    """Baseline input lead the data path implies: :data:`LEAD_DECIMATED` when decimated, else 0."""
-    return LEAD_DECIMATED if path.q > 1 else 0
+def input_lead_for(path: CausalPath, centred: bool = False) -> int:
+    """Baseline input lead the data path implies.
+
+    :data:`LEAD_DECIMATED` when decimated; at full rate :data:`LEAD_CENTRED` when the output is a
+    central difference (``centred``), else 0.
+    """
+    if path.q > 1:
+        return LEAD_DECIMATED
+    return LEAD_CENTRED if centred else 0
 
 
 @dataclass(frozen=True)
@@ -68,6 +81,8 @@ class RecordSpec:
     speed_unit_factor: float = 1.0
     differentiate_output: bool = False
     sample_rate_hz: float | None = None
+    output_centred: bool = False
+    """The output column was already differentiated by central differences (a layout's encoder)."""
 
 
 def _rotation_speed(rec: Resampled, col: str, spec: RecordSpec) -> np.ndarray:
@@ -128,7 +143,7 @@ def build_data(rec1: Resampled, rec2: Resampled | None, spec: RecordSpec, source
         notes["output_sensor"] = out_name  # the sensor a delay is reported on: the column, not its derivative
         out_name = f"d{out_name}/dt"
     path = data_path(fs, spec.sample_rate_hz)
-    notes["data_path"] = path_note(path)
+    notes["data_path"] = path_note(path, spec.differentiate_output or spec.output_centred)
     sig = decimate_alike({"u": u, "y": y, **{f"w:{n}": w for n, w in speeds.items()}}, path)
     return DiagnoseData(sig["u"], sig["y"], path.fs_hz, spec.input_col, out_name,
                         {n: sig[f"w:{n}"] for n in speeds}, source=source,

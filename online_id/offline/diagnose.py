@@ -91,7 +91,7 @@ def load_data(args: argparse.Namespace) -> tuple[DiagnoseData, bool]:
                           **({"torsion": extra["torsion"]} if "torsion" in extra else {})}, path_)
     speeds = {k[2:]: v for k, v in sig.items() if k.startswith("w:")}
     data = DiagnoseData(sig["u"], sig["y"], path_.fs_hz, names[0], names[1], speeds, sig.get("torsion"),
-                        source=str(path), notes={"data_path": path_note(path_)})
+                        source=str(path), notes={"data_path": path_note(path_, bool(args.differentiate_output))})
     return data, bench
 
 
