@@ -152,3 +152,38 @@ def test_save_is_atomic_when_the_write_fails(tmp_path, good_state, monkeypatch):
     with pytest.raises(OSError):
         save_state(path, good_state | {"healthy_rpm": 1.0})
     assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == [STATE_FILE]
+
+
+def _canonical(doc) -> str:
+    return json.dumps(doc, sort_keys=True, default=lambda x: np.asarray(x).tolist())
+
+
+def _spoil(doc) -> None:
+    """Change every list, dict and array in ``doc`` in place, as a caller editing its copy would."""
+    if isinstance(doc, dict):
+        for v in doc.values():
+            _spoil(v)
+        doc["spoiled"] = True
+    elif isinstance(doc, list):
+        for v in doc:
+            _spoil(v)
+        doc.append("spoiled")
+    elif isinstance(doc, np.ndarray) and doc.flags.writeable and doc.dtype.kind in "fiu":
+        doc[...] = 7
+
+
+def test_a_saved_state_is_the_callers_own(good_state):
+    """A state document handed out (to be saved, edited, loaded elsewhere) shares nothing with the running
+    pipeline: changing it in place changes neither the pipeline nor the next document (a frozen reference
+    handed out live was scaled twice by a caller that edited two documents)."""
+    rt = Runtime(Settings())
+    rt.pipeline.load_state(good_state)
+    base = rt.pipeline.policy.baseline
+    for k in range(12):  # learned cells with frozen references, and a backlash finding
+        base.learn(speed_rpm=1200.0, f0_hz=20.0 + 0.01 * k, zeta=0.05, load_nm=0.0)
+    base.backlash = {"speed_rpm": 1200.0, "shift_pct": 3.0}
+    first = rt.pipeline.get_state()
+    before = _canonical(first)
+    assert any(c[10] for cells in first["baseline"]["bands"].values() for c in cells)
+    _spoil(first)
+    assert _canonical(rt.pipeline.get_state()) == before

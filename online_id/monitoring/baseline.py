@@ -531,7 +531,7 @@ class Baseline:
             "pool_tolerance_f": self.pool_tolerance_f,
             "pool_tolerance_zeta": self.pool_tolerance_zeta,
             "freeze_count": self.freeze_count,
-            "backlash": self.backlash,
+            "backlash": None if self.backlash is None else dict(self.backlash),
             "bands": {str(i): [[None if isinstance(x, float) and not math.isfinite(x) else x for x in c.as_list()]
                                for c in cells]
                       for i, cells in sorted(self._bands.items())},

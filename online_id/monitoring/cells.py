@@ -190,8 +190,10 @@ class Cell:
         self.frozen = [self.n, self.mean_f, self.m2_f, self.mean_z, self.m2_z]
 
     def as_list(self) -> list:
+        """The cell as a plain list (:func:`cell_from_list` restores it); nothing in it is the cell's own."""
+        frozen = None if self.frozen is None else list(self.frozen)
         return [self.n, self.mean_f, self.m2_f, self.mean_z, self.m2_z, self.load, self.unc_f, self.source,
-                self.reference, self.rejected, self.frozen, self.unc_z, self.held]
+                self.reference, self.rejected, frozen, self.unc_z, self.held]
 
 
 def cell_from_list(c: list) -> Cell:
