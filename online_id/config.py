@@ -60,6 +60,12 @@ class UnitSettings:
     torque_sign: Literal["braking", "driving"] = "braking"
 
 
+BUS_FIELDS = ("interface", "channel", "bitrate", "receive_own_messages")
+BUS_KEYS = BUS_FIELDS + ("ignore_config", "bustype", "context", "config_context")
+"""``can.Bus`` arguments ``bus.options`` may not give: the bus settings' own, and those that would read
+~/can.conf or CAN_* variables."""
+
+
 @dataclass(frozen=True)
 class BusSettings:
     """The python-can bus: any interface; never read from ~/can.conf or CAN_* variables."""
@@ -69,6 +75,9 @@ class BusSettings:
     bitrate: int | None = None
     receive_own_messages: bool = False
     reopen_max_s: float = 30.0
+    options: dict[str, bool | int | float | str] = field(default_factory=dict)
+    """The interface's own keyword arguments to python-can's ``can.Bus`` (``port`` of ``udp_multicast``,
+    ``fd`` and ``data_bitrate`` of a CAN FD adapter, ...)."""
 
 
 @dataclass(frozen=True)
@@ -469,6 +478,10 @@ def _check_service(s: Settings, file: str) -> None:
             raise ConfigError(f"{file}: publish.frame_ids.{name}: expected a CAN ID 0..0x1FFFFFFF, got {ident!r}")
     positive("state", s.state, "save_interval_s")
     positive("bus", s.bus, "reopen_max_s")
+    for name in s.bus.options:
+        if name in BUS_KEYS:
+            where = f"set it as bus.{name}" if name in BUS_FIELDS else "online-id sets it"
+            raise ConfigError(f"{file}: bus.options.{name}: not an interface option ({where})")
     d = s.detection
     positive("detection", d, "band_rpm", "load_band_nm", "min_count", "k", "h_warning", "h_fault")
     nonnegative("detection", d, "min_freq_change_pct", "min_damping_change_pct", "settle_s", "settle_detect_s",

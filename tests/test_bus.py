@@ -115,3 +115,48 @@ def test_a_socketcan_wire_is_taken_only_for_a_bound_socket() -> None:
         assert _Wire.of(bus, 0.1) is None
     finally:
         bus.socket.close()
+
+
+def _first(rx: CanBus, timeout_s: float = 1.0):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        f = rx.recv(0.1)
+        if f is not None:
+            return f
+    return None
+
+
+def test_udp_multicast_runs_are_told_apart_by_port_not_by_group() -> None:
+    """Why each live run takes a port of its own (tests/live/harness.py): a bus bound to a port reads what is
+    sent to another group on that port, and nothing of the same group on another port."""
+    from tests.live.harness import free_udp_port
+
+    port, other = free_udp_port(), free_udp_port()
+    for rx_group, rx_port, crosses in (("239.74.163.71", port, True), ("239.74.163.72", other, False)):
+        rx, tx = CanBus("udp_multicast", rx_group, port=rx_port), CanBus("udp_multicast", "239.74.163.72", port=port)
+        try:
+            tx.send(0x11, b"\x01")
+            assert (_first(rx) is not None) == crosses
+        finally:
+            rx.close()
+            tx.close()
+
+
+def test_interface_options_reach_python_can_and_a_wrong_one_is_one_line() -> None:
+    """``bus.options`` go to ``can.Bus`` as the interface's own arguments (here udp_multicast's port); one the
+    interface cannot take is a permanent BusError naming bus.options, not a traceback."""
+    from tests.live.harness import free_udp_port
+
+    port = free_udp_port()
+    rx = CanBus("udp_multicast", "239.74.163.73", options={"port": port})
+    tx = CanBus("udp_multicast", "239.74.163.73", port=port)
+    try:
+        tx.send(0x12, b"\x02")
+        f = _first(rx)
+        assert f is not None and f.arbitration_id == 0x12
+    finally:
+        rx.close()
+        tx.close()
+    with pytest.raises(BusError, match=r"cannot open CAN bus udp_multicast:239.74.163.73: .*bus.options") as info:
+        CanBus("udp_multicast", "239.74.163.73", options={"port": 70000})
+    assert info.value.permanent and "\n" not in str(info.value)

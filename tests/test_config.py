@@ -68,3 +68,18 @@ def test_invalid_yaml_names_line(tmp_path):
 def test_missing_file(tmp_path):
     with pytest.raises(ConfigError, match="cannot read config"):
         load_config(tmp_path / "nope.yaml")
+
+
+def test_bus_options_are_the_interfaces_own_arguments_and_named_when_wrong():
+    from online_id.config import settings_from_dict
+
+    s = settings_from_dict({"bus": {"interface": "udp_multicast", "channel": "239.74.163.1",
+                                    "options": {"port": 43200, "fd": True, "hop_limit": 1}}}, "cfg.yaml")
+    assert s.bus.options == {"port": 43200, "fd": True, "hop_limit": 1}
+    assert settings_from_dict({}).bus.options == {}
+    for options, message in (({"channel": "can1"}, r"cfg.yaml: bus.options.channel: .*set it as bus.channel"),
+                             ({"ignore_config": False}, r"cfg.yaml: bus.options.ignore_config: .*online-id sets it"),
+                             ({"port": [1, 2]}, r"cfg.yaml: bus.options.port: expected"),
+                             ([1], r"cfg.yaml: bus.options: expected a mapping")):
+        with pytest.raises(ConfigError, match=message):
+            settings_from_dict({"bus": {"options": options}}, "cfg.yaml")

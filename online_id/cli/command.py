@@ -82,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
     m = s.mapping
     repeats = 2 if command == BenchCommand.RELEARN_BASELINE else 1
     interface, channel = s.bus.interface, s.bus.channel
-    with CanBus(interface, channel, s.bus.bitrate) as bus:
+    with CanBus(interface, channel, s.bus.bitrate, options=s.bus.options) as bus:
         wait_s = args.wait if args.wait > 0 else FRESHNESS_WAIT_S
         fresh = ask_freshness(bus, s, db, wait_s)
         if fresh is None:

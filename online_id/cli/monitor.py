@@ -192,7 +192,7 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.monotonic()
     end = None if args.max_seconds is None else time.monotonic() + args.max_seconds
     drawn = -1.0
-    with CanBus(interface, channel, s.bus.bitrate) as bus:
+    with CanBus(interface, channel, s.bus.bitrate, options=s.bus.options) as bus:
         while end is None or time.monotonic() < end:
             frame = bus.recv(0.1)
             now = time.monotonic() - t0  # seconds since the start (the frames' times are the bus's own)

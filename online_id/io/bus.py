@@ -31,6 +31,8 @@ from __future__ import annotations
 import errno
 import socket
 import struct
+from collections.abc import Mapping
+from typing import Any
 
 import can
 
@@ -77,7 +79,9 @@ def _open_error(interface: str, channel: str, err: BaseException) -> BusError:
         else:
             hint = f"check bus.interface (python-can interfaces: {', '.join(sorted(can.VALID_INTERFACES))})"
     elif isinstance(err, ValueError):
-        permanent, hint = True, "check bus.channel and bus.bitrate"
+        permanent, hint = True, "check bus.channel, bus.bitrate and bus.options"
+    elif isinstance(err, (TypeError, OverflowError)):  # an argument the interface does not take, or out of range
+        permanent, hint = True, "check bus.options against the interface's arguments in python-can's documentation"
     elif isinstance(err, OSError) and err.errno in _PERMANENT_ERRNOS:
         permanent = True
         hint = ("this kernel has no SocketCAN (AF_CAN): load the can and can-raw modules "
@@ -99,17 +103,17 @@ class CanBus:
 
     def __init__(self, interface: str, channel: str, bitrate: int | None = None,
                  receive_own_messages: bool = False, receive_buffer_bytes: int = 8 << 20,
-                 send_timeout_s: float = 0.1, **kwargs) -> None:
+                 send_timeout_s: float = 0.1, options: Mapping[str, Any] | None = None, **kwargs) -> None:
         self.interface = interface
         self.channel = channel
         self.send_timeout_s = send_timeout_s
-        opts = dict(kwargs)
+        opts = {**(options or {}), **kwargs}
         if bitrate is not None:
             opts["bitrate"] = bitrate
         try:
             self._bus = can.Bus(interface=interface, channel=channel, ignore_config=True,
                                 receive_own_messages=receive_own_messages, **opts)
-        except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as err:
+        except (can.CanError, OSError, ValueError, TypeError, OverflowError, ImportError, NotImplementedError) as err:
             raise _open_error(interface, channel, err) from err
         self.receive_buffer_bytes = self._grow_receive_buffer(receive_buffer_bytes)
         self._recv = getattr(self._bus, "_recv_internal", None) or self._recv_generic

@@ -82,7 +82,8 @@ class Service:
         self._hooks: list = []
         self.clock = clock
         b = settings.bus
-        self.bus_factory = bus_factory or (lambda: CanBus(b.interface, b.channel, b.bitrate, b.receive_own_messages))
+        self.bus_factory = bus_factory or (lambda: CanBus(b.interface, b.channel, b.bitrate, b.receive_own_messages,
+                                                             options=b.options))
         self.stop_requested = False
         self.state_file = state_path(settings)
         self.last_frame_wall = 0.0

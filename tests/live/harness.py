@@ -6,7 +6,10 @@ assembly tests (:func:`live_plant`, :func:`first_valid_in_process`).  The
 bus is python-can's ``udp_multicast`` interface: kernel UDP sockets with a
 finite receive buffer between processes, which loses frames the way
 SocketCAN does when a reader falls behind (and reports them the same way,
-see :meth:`online_id.io.bus.CanBus.dropped`).
+see :meth:`online_id.io.bus.CanBus.dropped`).  Each run takes a UDP port of its
+own (:func:`free_udp_port`): a socket bound to a port receives what is sent
+to every group joined on it, so two runs on one port (two checkouts' suites
+at once) would each read the other's bench.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ import multiprocessing as mp
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -84,7 +88,15 @@ def first_valid_in_process(frames: list, settings: Settings) -> float:
     return float("nan")
 
 
-def _send(group: str, frames: list, speed: float, marks: list[int], out, min_sleep_s: float = 0.001) -> None:
+def free_udp_port() -> int:
+    """A UDP port no socket of this machine is bound to now (the kernel's pick)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("", 0))
+        return int(sock.getsockname()[1])
+
+
+def _send(group: str, port: int, frames: list, speed: float, marks: list[int], out,
+          min_sleep_s: float = 0.001) -> None:
     """The bench: a separate process sending at ``speed`` x real time; reports the send times of ``marks``."""
     from online_id.io.player import send_paced
 
@@ -112,7 +124,7 @@ def _send(group: str, frames: list, speed: float, marks: list[int], out, min_sle
 
     # a send that blocks (the loopback's queue full on a loaded machine) delays the bench, it is not a failure
     # of the service under test: the gap is reported (``sender_max_gap_s``) instead of aborting the run
-    bus = CanBus("udp_multicast", group, send_timeout_s=5.0)
+    bus = CanBus("udp_multicast", group, send_timeout_s=5.0, port=port)
     try:
         out.put(("start", time.time(), time.perf_counter()))
         sent = send_paced(bus, frames, speed=speed, on_sent=on_sent, min_sleep_s=min_sleep_s)
@@ -152,7 +164,9 @@ def run_live(frames: list, config_text: str, workdir: Path, group: str, speed: f
     """
     workdir.mkdir(parents=True, exist_ok=True)
     config = workdir / "config.yaml"
-    config.write_text(f"bus: {{interface: udp_multicast, channel: '{group}'}}\n" + config_text)
+    port = free_udp_port()
+    config.write_text(f"bus: {{interface: udp_multicast, channel: '{group}', options: {{port: {port}}}}}\n"
+                      + config_text)
     argv = [sys.executable, "-m", "online_id", "run", "--config", str(config), "--max-seconds", "3600"]
     if rt_priority is not None:  # the receive loop at a real-time priority (SCHED_FIFO), as the unit can run it
         argv = ["chrt", "-f", str(rt_priority), *argv]
@@ -169,7 +183,7 @@ def run_live(frames: list, config_text: str, workdir: Path, group: str, speed: f
     stop = threading.Event()
 
     def consume() -> None:
-        bus = CanBus("udp_multicast", group)
+        bus = CanBus("udp_multicast", group, port=port)
         try:
             while not stop.is_set():
                 frame = bus.recv(0.1)
@@ -191,7 +205,7 @@ def run_live(frames: list, config_text: str, workdir: Path, group: str, speed: f
         time.sleep(0.5)
         ctx = mp.get_context("spawn")
         out = ctx.Queue()
-        sender = ctx.Process(target=_send, args=(group, frames, speed, list(marks), out, min_sleep_s), daemon=True)
+        sender = ctx.Process(target=_send, args=(group, port, frames, speed, list(marks), out, min_sleep_s), daemon=True)
         sender.start()
         _, t_bench0, _ = out.get(timeout=start_timeout_s)
         duration = (frames[-1][0] - frames[0][0]) / speed
