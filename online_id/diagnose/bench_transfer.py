@@ -222,9 +222,9 @@ def _mode_model(x: np.ndarray, variant: str = "engine") -> RatioModel:
     """
     a, b, al, be, mu = np.exp(np.clip(x[:5], -30.0, 30.0))
     if variant == "between":
-        num = np.polymul([b, a], [be, al])[::-1]  # ascending
+        num = np.convolve([b, a], [be, al])[::-1]  # ascending
         return RatioModel(float(x[5]), num, np.array([mu * al + a + al, mu * be + b + be, mu]))
-    num = np.polymul([b, a], [1.0, be, al])[::-1]  # ascending
+    num = np.convolve([b, a], [1.0, be, al])[::-1]  # ascending
     return RatioModel(float(x[5]), num, np.array([(1 + mu) * al, (1 + mu) * be, 1.0]))
 
 
