@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 from scipy.ndimage import median_filter, uniform_filter1d
@@ -204,6 +205,17 @@ class CoulombTerm:
         return {}
 
 
+@lru_cache(maxsize=1024)
+def _branch_filter(freq_hz: float, zeta: float, fs_hz: float) -> tuple[np.ndarray, np.ndarray]:
+    """Read-only ``(b, a)`` of ``H = (w^2 + 2 zeta w s) / (s^2 + 2 zeta w s + w^2)`` (``w = 2 pi freq_hz``),
+    bilinear at ``fs_hz``; cached, as a branch search filters every plateau at the same grid points."""
+    w = 2 * np.pi * freq_hz
+    b, a = bilinear([2 * zeta * w, w * w], [1.0, 2 * zeta * w, w * w], fs=fs_hz)
+    b.setflags(write=False)
+    a.setflags(write=False)
+    return b, a
+
+
 @dataclass(frozen=True)
 class BranchTerm:
     """A further inertia hung off the dyno by its own spring and damper, in the torque balance.
@@ -224,8 +236,7 @@ class BranchTerm:
     def filtered(self, p: PlateauSignals, speed: str = "y1") -> np.ndarray:
         key = ("branch", speed, self.freq_hz, self.zeta)
         if key not in p.cache:
-            w = 2 * np.pi * self.freq_hz
-            b, a = bilinear([2 * self.zeta * w, w * w], [1.0, 2 * self.zeta * w, w * w], fs=p.fs_hz)
+            b, a = _branch_filter(float(self.freq_hz), float(self.zeta), float(p.fs_hz))
             y = getattr(p, speed)
             p.cache[key] = lfilter(b, a, y - y[p.rows[0]]) + y[p.rows[0]]
         return p.cache[key]

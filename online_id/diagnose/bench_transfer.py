@@ -204,6 +204,11 @@ def fit_ratio_tau(f: np.ndarray, T: np.ndarray, w: np.ndarray, max_s: float) -> 
     return fit_ratio(f, T, w, tau)
 
 
+def _finite(d: np.ndarray) -> np.ndarray:
+    """``d`` with NaN and +-inf as 1e6, +-1e6 (``d`` itself when all finite): a fit's residual stays finite."""
+    return d if np.isfinite(d).all() else np.nan_to_num(d, nan=1e6, posinf=1e6, neginf=-1e6)
+
+
 MODE_VARIANTS = ("engine", "between")  # where the further inertia sits on the engine side
 
 
@@ -222,9 +227,9 @@ def _mode_model(x: np.ndarray, variant: str = "engine") -> RatioModel:
     """
     a, b, al, be, mu = np.exp(np.clip(x[:5], -30.0, 30.0))
     if variant == "between":
-        num = np.polymul([b, a], [be, al])[::-1]  # ascending
+        num = np.convolve([b, a], [be, al])[::-1]  # ascending
         return RatioModel(float(x[5]), num, np.array([mu * al + a + al, mu * be + b + be, mu]))
-    num = np.polymul([b, a], [1.0, be, al])[::-1]  # ascending
+    num = np.convolve([b, a], [1.0, be, al])[::-1]  # ascending
     return RatioModel(float(x[5]), num, np.array([(1 + mu) * al, (1 + mu) * be, 1.0]))
 
 
@@ -253,7 +258,7 @@ def fit_ratio_mode(f: np.ndarray, T: np.ndarray, w: np.ndarray, two: RatioModel,
         tc = T * np.exp(2j * np.pi * f * x[5])
         with np.errstate(all="ignore"):
             d = (tc - _mode_model(x, variant).response(f)) / np.maximum(np.abs(tc), 1e-300) * sw
-        d = np.nan_to_num(d, nan=1e6, posinf=1e6, neginf=-1e6)
+        d = _finite(d)
         return np.concatenate((d.real, d.imag))
 
     starts = []
@@ -490,7 +495,7 @@ def fit_dyno_branch(ps: list[PlateauSignals], j_total: float, j2: float, c_per_j
     def resid(x: np.ndarray) -> np.ndarray:
         with np.errstate(all="ignore"):
             d = (Y - model(x)) / np.maximum(np.abs(Y), 1e-300) * sw
-        d = np.nan_to_num(d, nan=1e6, posinf=1e6, neginf=-1e6)
+        d = _finite(d)
         return np.concatenate((d.real, d.imag))
 
     w3 = 2 * np.pi * f3_hz
