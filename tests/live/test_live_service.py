@@ -16,6 +16,7 @@ import pytest
 
 from harness import live_config, live_plant, run_live
 from online_id.bench.simulate import simulate_bench
+from online_id.config import Settings
 from online_id.io.dbc import encode_inputs, load_dbc
 
 pytestmark = pytest.mark.live
@@ -39,11 +40,18 @@ def test_service_process_keeps_up_at_real_time_on_a_kernel_socket(tmp_path) -> N
     assert n["dropped"] == 0 and n["missing"] == 0 and n["bad"] == 0, run.text
     # and the samples of the whole stream were made: the grid runs on the kernel's arrival stamps, so a
     # sender that started late and caught up (a loaded machine) shortens the stream by a few milliseconds,
-    # and the last samples wait for a next frame that never comes (seen: 5 of 73,000)
-    assert n["samples"] >= len(record.time_s) * 0.9995, run.text
+    # and the last samples wait for a next frame that never comes (seen: 5 of 73,000). The arrival stamps
+    # are the kernel's, so only the bench can leave a gap in them: a sender paused longer than the input
+    # timeout (a load spike on a 2-core machine) is a bench gone silent, whose input timeout and lost
+    # samples are right; the service stalling shows in its waiting time, never as a gap
+    fs = 1.0 / float(np.median(np.diff(record.time_s)))
+    silent = run.sender_max_gap_s > Settings().input.timeout_s
+    why = f"{run.text}\nsender's longest pause between two frames: {run.sender_max_gap_s * 1e3:.1f} ms"
+    assert n["samples"] >= len(record.time_s) * 0.9995 - (run.sender_max_gap_s * fs if silent else 0.0), why
     # the only input timeout is the end of the bench (after its last sample), never one in the middle
+    # unless the sender went silent
     timeouts = [ln for ln in run.log if "state INPUT_TIMEOUT" in ln]
-    assert all(f"{n['samples']} samples" in ln for ln in timeouts), run.text
+    assert silent or all(f"{n['samples']} samples" in ln for ln in timeouts), why
     # valid within 15 s of the first steady point (the bench starts on it), and right
     valid = [(t, d) for t, _p, d, _k in run.estimates if d.get("Valid")]
     assert valid, "no valid estimate published:\n" + run.text
