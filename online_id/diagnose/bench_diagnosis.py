@@ -62,7 +62,7 @@ BRANCH_EDGE = 0.95  # a branch found this close to the top of its band is no res
 BRANCH_COUPLED = (0.8, 2.0)  # the chain's added mode over the branch's own frequency, for a branch
 # A mass on the dyno is excited on every plateau alike (the PRBS and the pulses), so its share of the balance's
 # held-out error is about the same on each: on the chain family's development benches every branch named
-# right kept at least 0.77 of its mean share on its weakest plateau (own families' dyno masses 0.9), while a
+# right kept at least 0.77 of its mean share on its weakest plateau (the structures family's dyno masses 0.65), while a
 # branch at the top of its band that takes the engine orders sweeping into it on the fast plateaus kept
 # 0.08-0.38 on the slow one (clean benches 60120, 90180, docs/evaluation-chain.md)
 BRANCH_EVERY = 0.5
