@@ -60,11 +60,11 @@ MAX_DELAY_S = 0.012
 SPEED_LINE_MIN = 0.15  # a fixed line screened in a speed equation is judged there above this share of fs
 BRANCH_EDGE = 0.95  # a branch found this close to the top of its band is no resonance
 BRANCH_COUPLED = (0.8, 2.0)  # the chain's added mode over the branch's own frequency, for a branch
-# A mass on the dyno is excited on every plateau alike (the PRBS and the pulses), so its share of the balance's
-# held-out error is about the same on each: on the chain family's development benches every branch named
-# right kept at least 0.77 of its mean share on its weakest plateau (the structures family's dyno masses 0.65), while a
-# branch at the top of its band that takes the engine orders sweeping into it on the fast plateaus kept
-# 0.08-0.38 on the slow one (clean benches 60120, 90180, docs/evaluation-chain.md)
+# A mass on the dyno is excited on every plateau alike (the PRBS and the pulses), so its share of the
+# balance's held-out error is about the same on each: every branch named right kept at least 0.77 of its
+# mean share on its weakest plateau on the chain family's development benches, 0.65 on the structures
+# family's, while a branch under the top of its band that took the engine orders sweeping into it on the
+# fast plateaus kept 0.08-0.38 on the slowest (clean benches 60120, 90180, docs/evaluation-chain.md)
 BRANCH_EVERY = 0.5
 FREQ_GRID_HZ = 0.002  # line frequency grid (a 60 s record resolves about 0.017 Hz)
 # Calibrated on clean randomised benches apart from every test seed by `online-id evaluate-diagnose`: 1.1 x

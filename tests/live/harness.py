@@ -205,7 +205,8 @@ def run_live(frames: list, config_text: str, workdir: Path, group: str, speed: f
         time.sleep(0.5)
         ctx = mp.get_context("spawn")
         out = ctx.Queue()
-        sender = ctx.Process(target=_send, args=(group, port, frames, speed, list(marks), out, min_sleep_s), daemon=True)
+        sender = ctx.Process(target=_send, args=(group, port, frames, speed, list(marks), out, min_sleep_s),
+                             daemon=True)
         sender.start()
         _, t_bench0, _ = out.get(timeout=start_timeout_s)
         duration = (frames[-1][0] - frames[0][0]) / speed
