@@ -59,6 +59,17 @@ def test_evaluate_diagnose_cases_on_a_local_dask_cluster_are_the_process_pools(t
         return {k: ({kk: vv for kk, vv in v.items() if kk != "seconds"} if isinstance(v, dict) else v)
                 for k, v in r.items() if k != "seconds"}
 
-    assert len(dask) == 2 and [same(r) for r in dask[:1]] == [same(r) for r in pool]
+    assert len(dask) == 2 and [same(r) for r in dask[:1]] == [same(r) for r in pool], _differences(
+        same(dask[0]), same(pool[0]))
     failed = dask[1]
     assert failed["kind"] == "no_such_kind" and "no_such_kind" in failed["no_demand"]["error"]
+
+
+def _differences(a, b, path: str = "") -> list[str]:
+    """Where two results differ (``path: a != b``), for the failure message."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return [d for k in sorted(set(a) | set(b), key=str)
+                for d in (_differences(a[k], b[k], f"{path}/{k}") if k in a and k in b else [f"{path}/{k}: missing"])]
+    if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+        return [d for i, (x, y) in enumerate(zip(a, b)) for d in _differences(x, y, f"{path}[{i}]")]
+    return [] if a == b or (a != a and b != b) else [f"{path}: {a!r} != {b!r}"]
