@@ -84,7 +84,7 @@ THRESHOLDS = {
     "additional_mode": 0.01695,
     "backlash": 0.01689,
     "sensor_delay": 0.01152,
-    "coulomb_friction": 0.00847,
+    "coulomb_friction": 0.0101,
 }
 # with a recorded torque demand (the PRBS) as the reference of the speed transfer and the coherence
 THRESHOLDS_DEMAND = {**THRESHOLDS, "additional_mode": 0.01705, "sensor_delay": 0.01141}
@@ -372,13 +372,13 @@ def family_grid(fit: BenchFit, shaft: str) -> list[float]:
 
 
 def order_family(series: BenchSeries, spec: Spec, base: BenchFit, shaft: str,
-                 seed: float) -> tuple[list[float], BenchFit, dict[float, float]]:
+                 seed: float, eq: str | None = None) -> tuple[list[float], BenchFit, dict[float, float]]:
     """The family of orders around ``seed`` on ``shaft``: further orders of :func:`family_grid`, tried in
     the order of the share of the estimation residual each takes alone (projection), each kept when it
-    lowers the held-out error of the shaft's equation by :data:`MEMBER_GAIN` significantly (``t >=
-    T_CRIT``) beyond the family so far.  Returns the members, the fit of the shaft's equation and each
-    member's share of the estimation residual alone."""
-    eq, ps = shaft, base.plateaus
+    lowers the held-out error of equation ``eq`` (default: the shaft's) by :data:`MEMBER_GAIN`
+    significantly (``t >= T_CRIT``) beyond the family so far.  Returns the members, the fit of that
+    equation and each member's share of its estimation residual alone."""
+    eq, ps = eq or shaft, base.plateaus
     proj = {p.index: bx.Projector(design(p, spec, eq)[p.est], output(p, eq)[p.est]) for p in ps}
 
     def share(k: float) -> float:
@@ -403,11 +403,14 @@ def order_family(series: BenchSeries, spec: Spec, base: BenchFit, shaft: str,
     return sorted(members), cur, {k: shares[k] for k in members}
 
 
-def order_candidates(series: BenchSeries, spec: Spec, base: BenchFit, terms: list, suffix: str = "") -> list[BenchCandidate]:
+def order_candidates(series: BenchSeries, spec: Spec, base: BenchFit, terms: list, suffix: str = "",
+                     judge: str | None = None) -> list[BenchCandidate]:
     """Rotation-order candidates from screened order terms (both shafts each): the side whose equation
     gains more (``undetermined`` when the other gains 80 % of it), then the family around the order on
     that side (:func:`order_family`), named by its fundamental with a reading.  ``suffix``: the fits are
-    at the recording's own rate (:data:`FULL`)."""
+    at the recording's own rate (:data:`FULL`).  ``judge``: the equation the family is built and judged
+    on (default the side's own speed equation); with the torque balance, a side whose speed equation
+    gains nothing significant is ``undetermined`` (both shafts turn at one mean speed)."""
     orders: dict[float, dict[str, tuple]] = {}
     for term in terms:
         new = fit_spec(series, spec.with_term(term), base.plateaus, only=(term.shaft,))
@@ -417,21 +420,23 @@ def order_candidates(series: BenchSeries, spec: Spec, base: BenchFit, terms: lis
     for k, sides in orders.items():
         (s1, (g1, t1)), *rest = sorted(sides.items(), key=lambda kv: -kv[1][0])
         g2 = rest[0][1][0] if rest else 0.0
-        shaft = s1 if not (g2 > SIDE_UNDETERMINED * g1 > 0) else "undetermined"
-        members, fam, shares = order_family(series, spec, base, s1, k)
+        told = g1 > 0 and (judge is None or t1 >= T_CRIT)
+        shaft = s1 if told and not g2 > SIDE_UNDETERMINED * g1 else "undetermined"
+        eq = judge or s1
+        members, fam, shares = order_family(series, spec, base, s1, k, eq)
         if (s1, tuple(members)) in seen:
             continue
         seen.add((s1, tuple(members)))
-        g, t = _gain(fam, base, (s1,))
+        g, t = _gain(fam, base, (eq,))
         # a family of several lines is named by their greatest common divisor (one cylinder that differs:
         # 0.5 with every half order); two lines are a line and a passenger, named by the stronger
         f0 = bx.fundamental(members) if len(members) >= FAMILY_MIN else max(members, key=shares.get)
         out.append(BenchCandidate("rotation_order_disturbance",
                                   {"order": f0, "shaft": shaft, "family_orders": members,
                                    "reading": bx.family_reading(s1, members, series.pulses_per_rev, f0),
-                                   "found_at": k, "gains": {s: v[0] for s, v in sides.items()},
+                                   "found_at": k, "found_in": eq, "gains": {s: v[0] for s, v in sides.items()},
                                    **({"rate_hz": series.fs_hz} if suffix else {})},
-                                  g, t, fam.spec, (s1 + suffix,)))
+                                  g, t, fam.spec, (eq + suffix,)))
     return out
 
 
@@ -441,7 +446,15 @@ def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
     out: list[BenchCandidate] = []
     lines = bx.screen_lines(base, EQS)
     report("rotation orders")
-    out += order_candidates(series, spec, base, bx.order_candidates(lines, base))
+    terms = bx.order_candidates(lines, base)
+    out += order_candidates(series, spec, base, terms)
+    # an order the speed equations predict from their lags (a ripple on a heavy mass, well above the
+    # driveline mode) stands out in the torque balance alone, which nothing predicts from the speeds
+    bal = base if BALANCE in base.eqs else fit_spec(series, spec, base.plateaus, only=(BALANCE,))
+    if bal is base:
+        found = {t.order for t in terms}
+        out += order_candidates(series, spec, base, [t for t in bx.order_candidates(
+            bx.screen_lines(base, (BALANCE,), axes=("order",)), base) if t.order not in found], judge=BALANCE)
     if series.full is not None and series.full.meta.get("line_free_orders"):
         report("rotation orders at the recording's own rate")
         full_base = fit_spec(series.full, spec, only=EQS)
@@ -455,7 +468,6 @@ def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
     # enters, and nothing in the balance predicts it from the speeds' past; a weak line above the band
     # where the balance's accelerations are noise shows in the speed equation of the mass it acts on,
     # and is judged there
-    bal = base if BALANCE in base.eqs else fit_spec(series, spec, base.plateaus, only=(BALANCE,))
     coh_f, coh = bx.excitation_coherence(bal, BALANCE)
     cohs = {BALANCE: (coh_f, coh)}
     seen: list[float] = []
@@ -542,12 +554,16 @@ def hump_candidate(series: BenchSeries, spec: Spec, bal: BenchFit, coh_f: np.nda
     contrast = bx.coherence_contrast(coh_f, coh, h.freq_hz)
     level = float(coh[int(np.argmin(np.abs(coh_f - h.freq_hz)))])
     driven = contrast >= COHERENCE_MODE and level >= COHERENCE_LEVEL
-    if driven or h.peak < HUMP_PEAK or min(h.per_plateau) < HUMP_EVERY:
+    aside = ("the excitation explains it (a misfit or a mode)" if driven else
+             f"its peak is under {HUMP_PEAK:g}x the floor" if h.peak < HUMP_PEAK else
+             f"under {HUMP_EVERY:g}x the floor on a plateau (not fixed in Hz)" if min(h.per_plateau) < HUMP_EVERY
+             else "")
+    if aside:
         t = 0.0
     return BenchCandidate("fixed_frequency_disturbance",
                           {"freq_hz": h.freq_hz, "broadband": True, "zeta": h.zeta, "hump_peak": h.peak,
                            "hump_per_plateau": list(h.per_plateau), "coherence_contrast": contrast,
-                           "coherence": level}, g, t, new.spec, (BALANCE,))
+                           "coherence": level, **({"set_aside": aside} if aside else {})}, g, t, new.spec, (BALANCE,))
 
 
 def branch_candidate(series: BenchSeries, spec: Spec, bal: BenchFit, two_mass: dict,
@@ -580,16 +596,24 @@ def branch_candidate(series: BenchSeries, spec: Spec, bal: BenchFit, two_mass: d
         if modes:
             f_mode, zeta = max(modes, key=lambda m: abs(np.log(m[0] / f0)))
             params = {"damping": zeta, "J1_kgm2": j1, "J2_kgm2": j2, "J3_kgm2": j3}
-    if not np.isfinite(f_mode) or term.freq_hz >= BRANCH_EDGE * bx.BRANCH_BAND_HZ[1] * series.fs_hz:
-        t = 0.0  # no resonance: a branch at the band's top is the low-pass of the reference again
+    aside = ""
+    if not np.isfinite(f_mode):
+        aside = "no positive three-mass chain fits the dyno's admittance with this branch"
+    elif term.freq_hz >= BRANCH_EDGE * bx.BRANCH_BAND_HZ[1] * series.fs_hz:
+        # no resonance: a branch at the band's top is the low-pass of the reference again
+        aside = "at the top of its search band (the reference's low-pass, no resonance)"
     elif not (params["J3_kgm2"] <= params["J1_kgm2"] and BRANCH_COUPLED[0] <= f_mode / term.freq_hz <= BRANCH_COUPLED[1]):
         # not a branch: a branch heavier than the dyno, or a chain whose added mode lies far from the
         # branch's own frequency (it rises above it as the dyno moves along), is a fit of something else
-        t = 0.0
+        aside = "heavier than the dyno, or its chain's added mode lies far from the branch's frequency"
     elif min(per) < BRANCH_EVERY * float(np.mean(per)):
-        t = 0.0  # not a mass: what it takes is there on some plateaus only (BRANCH_EVERY)
+        # not a mass: what it takes is there on some plateaus only
+        aside = f"takes under {BRANCH_EVERY:g} of its mean share on its weakest plateau (not a mass)"
+    if aside:
+        t = 0.0
     return BenchCandidate("additional_mode", {"freq_hz": f_mode, "location": "dyno", **term.params(), **params,
-                                              "plateau_gains": per}, g, t, new.spec, (BALANCE,))
+                                              "plateau_gains": per, **({"set_aside": aside} if aside else {})},
+                          g, t, new.spec, (BALANCE,))
 
 
 def _plateau_gains(new: BenchFit, ref: BenchFit, eq: str) -> list[float]:
