@@ -82,6 +82,8 @@ def _open_error(interface: str, channel: str, err: BaseException) -> BusError:
         permanent, hint = True, "check bus.channel, bus.bitrate and bus.options"
     elif isinstance(err, (TypeError, OverflowError)):  # an argument the interface does not take, or out of range
         permanent, hint = True, "check bus.options against the interface's arguments in python-can's documentation"
+    elif isinstance(err, socket.gaierror) and err.errno == socket.EAI_SERVICE:  # a port that is no number
+        permanent, hint = True, "check bus.options: a port is a number (0-65535)"
     elif isinstance(err, OSError) and err.errno in _PERMANENT_ERRNOS:
         permanent = True
         hint = ("this kernel has no SocketCAN (AF_CAN): load the can and can-raw modules "
