@@ -24,14 +24,18 @@ def joint_rig(seed: int, gap: float = 0.0, coulomb: float = 0.0, ratio: float = 
     dt = 1 / (fs * sub)
     hold = int(rng.integers(2, 5))
     u = 1.0 + 0.8 * np.sign(rng.standard_normal(n // hold + 1)).repeat(hold)[:n]
+    # the explicit Euler steps on Python floats (the same operations in the same order as on numpy scalars, the
+    # same floats: numpy's own tanh, as math.tanh can differ in the last bit; the clip as np.clip's min and max)
+    k, d, J1, J2 = float(k), float(d), float(J1), float(J2)
+    lo, hi = -gap / 2, gap / 2
     th1 = th2 = 0.0
     w1, w2 = 30.0, 10.0
     a1, a2 = np.empty(n), np.empty(n)
-    for i in range(n):
+    for i, ui in enumerate(u.tolist()):
         for _ in range(sub):
             phi, dphi = th1 / ratio - th2, w1 / ratio - w2
-            tq = k * (phi - np.clip(phi, -gap / 2, gap / 2)) + d * dphi + coulomb * np.tanh(dphi / 1e-3)
-            w1 += dt * (u[i] - tq / ratio) / J1
+            tq = k * (phi - min(max(phi, lo), hi)) + d * dphi + coulomb * float(np.tanh(dphi / 1e-3))
+            w1 += dt * (ui - tq / ratio) / J1
             w2 += dt * (tq - 0.2 * w2) / J2
             th1 += dt * w1
             th2 += dt * w2

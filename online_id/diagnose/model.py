@@ -316,12 +316,25 @@ def _ls(phi: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 class _Pem:
     """Residuals and Jacobian of the PEM criterion for scaled ``eta`` and ``c`` (filters over the whole
-    record, criterion on ``rows``)."""
+    record, criterion on ``rows``).
+
+    Notes
+    -----
+    The Jacobian is :math:`-[\\varphi / C, \\; \\varepsilon(t-1) / C, \\dots, \\varepsilon(t-n_c) / C]` on
+    ``rows``. Each column is filtered on its own, so the regressor is filtered as its transpose (every
+    column contiguous: the same recursion on the same numbers, faster), and the lagged errors' columns are
+    the lags of one filtered error (``lfilter`` is causal and starts at rest: a column that is zero before
+    its lag filters to zeros there, then to the filtered error). The errors at a stable ``C`` are the ones
+    :meth:`residuals` computed at the same ``x`` (the optimiser asks for both at each point).
+    """
 
     def __init__(self, phi: np.ndarray, y: np.ndarray, nc: int, rows: np.ndarray, scale: np.ndarray):
         self.phi = phi / scale
+        self._phi_t = np.ascontiguousarray(self.phi.T)  # (see notes)
         self.y, self.nc, self.rows = y, nc, rows
         self.m = phi.shape[1]
+        self._key: bytes | None = None  # the x of the errors in _eps
+        self._eps = np.empty(0)
 
     def stable(self, x: np.ndarray) -> np.ndarray:
         x = np.array(x, dtype=float)
@@ -329,17 +342,32 @@ class _Pem:
         x[self.m:] = reflect_unstable_roots(C, 0.999)[1:]
         return x
 
+    def _errors(self, x: np.ndarray, C: np.ndarray) -> np.ndarray:
+        """The prediction errors over the whole record at ``x`` with a stable ``C`` (kept for the Jacobian)."""
+        key = x.tobytes()
+        if key != self._key:
+            self._eps = lfilter([1.0], C, self.y - self.phi @ x[: self.m])
+            self._key = key
+        return self._eps
+
     def residuals(self, x: np.ndarray) -> np.ndarray:
         C = np.concatenate(([1.0], x[self.m:]))
         if C.size > 1 and np.max(np.abs(np.roots(C))) >= 1.0:
             return np.full(self.rows.size, 1e150)
-        return lfilter([1.0], C, self.y - self.phi @ x[: self.m])[self.rows]
+        return self._errors(x, C)[self.rows]
 
     def jacobian(self, x: np.ndarray) -> np.ndarray:
         C = np.concatenate(([1.0], x[self.m:]))
+        rows, m = self.rows, self.m
         if C.size > 1 and np.max(np.abs(np.roots(C))) >= 1.0:
             C = reflect_unstable_roots(C, 0.999)
-        eps = lfilter([1.0], C, self.y - self.phi @ x[: self.m])
-        d_eta = -lfilter([1.0], C, self.phi, axis=0)[self.rows]
-        d_c = -lfilter([1.0], C, lag_matrix(eps, np.arange(1, self.nc + 1)), axis=0)[self.rows]
-        return np.hstack((d_eta, d_c))
+            eps = lfilter([1.0], C, self.y - self.phi @ x[:m])
+        else:
+            eps = self._errors(x, C)
+        J = np.empty((rows.size, m + self.nc))
+        J[:, :m] = lfilter([1.0], C, self._phi_t)[:, rows].T
+        filtered = lfilter([1.0], C, eps)
+        for k in range(1, self.nc + 1):  # eps(t - k) / C, zero before the record
+            lagged = rows - k
+            J[:, m + k - 1] = np.where(lagged >= 0, filtered[np.maximum(lagged, 0)], 0.0)
+        return np.negative(J, out=J)
