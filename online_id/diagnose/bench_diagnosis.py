@@ -420,8 +420,10 @@ def order_candidates(series: BenchSeries, spec: Spec, base: BenchFit, terms: lis
     for k, sides in orders.items():
         (s1, (g1, t1)), *rest = sorted(sides.items(), key=lambda kv: -kv[1][0])
         g2 = rest[0][1][0] if rest else 0.0
-        told = g1 > 0 and (judge is None or t1 >= T_CRIT)
-        shaft = s1 if told and not g2 > SIDE_UNDETERMINED * g1 else "undetermined"
+        tied = g2 > SIDE_UNDETERMINED * g1 > 0
+        if judge is not None:  # the speed equations must tell the side, significantly
+            tied = tied or not (g1 > 0 and t1 >= T_CRIT)
+        shaft = "undetermined" if tied else s1
         eq = judge or s1
         members, fam, shares = order_family(series, spec, base, s1, k, eq)
         if (s1, tuple(members)) in seen:
@@ -450,8 +452,7 @@ def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
     out += order_candidates(series, spec, base, terms)
     # an order the speed equations predict from their lags (a ripple on a heavy mass, well above the
     # driveline mode) stands out in the torque balance alone, which nothing predicts from the speeds
-    bal = base if BALANCE in base.eqs else fit_spec(series, spec, base.plateaus, only=(BALANCE,))
-    if bal is base:
+    if BALANCE in base.eqs:  # (the sides are told by the speed equations fitted beside it)
         found = {t.order for t in terms}
         out += order_candidates(series, spec, base, [t for t in bx.order_candidates(
             bx.screen_lines(base, (BALANCE,), axes=("order",)), base) if t.order not in found], judge=BALANCE)
@@ -468,6 +469,7 @@ def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
     # enters, and nothing in the balance predicts it from the speeds' past; a weak line above the band
     # where the balance's accelerations are noise shows in the speed equation of the mass it acts on,
     # and is judged there
+    bal = base if BALANCE in base.eqs else fit_spec(series, spec, base.plateaus, only=(BALANCE,))
     coh_f, coh = bx.excitation_coherence(bal, BALANCE)
     cohs = {BALANCE: (coh_f, coh)}
     seen: list[float] = []
