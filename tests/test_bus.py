@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import gc
+import logging
 import socket
 import time
 
@@ -142,7 +144,7 @@ def test_udp_multicast_runs_are_told_apart_by_port_not_by_group() -> None:
             tx.close()
 
 
-def test_interface_options_reach_python_can_and_a_wrong_one_is_one_line() -> None:
+def test_interface_options_reach_python_can_and_a_wrong_one_is_one_line(caplog) -> None:
     """``bus.options`` go to ``can.Bus`` as the interface's own arguments (here udp_multicast's port); one the
     interface cannot take is a permanent BusError naming bus.options, not a traceback."""
     from tests.live.harness import free_udp_port
@@ -158,6 +160,11 @@ def test_interface_options_reach_python_can_and_a_wrong_one_is_one_line() -> Non
         rx.close()
         tx.close()
     for port in (70000, "43113x"):  # out of range; not a number (a service name no system knows)
-        with pytest.raises(BusError, match=r"cannot open CAN bus udp_multicast:239.74.163.73: .*bus.options") as info:
-            CanBus("udp_multicast", "239.74.163.73", options={"port": port})
-        assert info.value.permanent and "\n" not in str(info.value)
+        with caplog.at_level(logging.WARNING, logger="can"):
+            with pytest.raises(BusError, match=r"cannot open CAN bus udp_multicast:239.74.163.73: .*bus.options") as info:
+                CanBus("udp_multicast", "239.74.163.73", options={"port": port})
+            assert info.value.permanent and "\n" not in str(info.value)
+            del info
+            gc.collect()
+        # the half-made bus was shut down, not left to warn when collected
+        assert not [r for r in caplog.records if "not properly shut down" in r.getMessage()]

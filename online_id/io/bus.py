@@ -94,6 +94,21 @@ def _open_error(interface: str, channel: str, err: BaseException) -> BusError:
     return error
 
 
+def _shut_partial(err: BaseException) -> None:
+    """Shut down a bus whose constructor raised ``err`` after python-can's base class had set it up (its
+    frames still hold it): else it is collected later with a stray "was not properly shut down" warning
+    on stderr, and whatever it had opened stays open until then."""
+    tb = err.__traceback__
+    while tb is not None:
+        obj = tb.tb_frame.f_locals.get("self")
+        if isinstance(obj, can.BusABC):
+            try:
+                obj.shutdown()  # marks it shut down first; the interface's part may fail on what was never made
+            except Exception:  # noqa: BLE001 - best effort on a half-made object
+                pass
+        tb = tb.tb_next
+
+
 class CanBus:
     """A python-can bus opened with ``ignore_config=True`` (no ~/can.conf, no CAN_* variables).
 
@@ -116,6 +131,7 @@ class CanBus:
             self._bus = can.Bus(interface=interface, channel=channel, ignore_config=True,
                                 receive_own_messages=receive_own_messages, **opts)
         except (can.CanError, OSError, ValueError, TypeError, OverflowError, ImportError, NotImplementedError) as err:
+            _shut_partial(err)
             raise _open_error(interface, channel, err) from err
         self.receive_buffer_bytes = self._grow_receive_buffer(receive_buffer_bytes)
         self._recv = getattr(self._bus, "_recv_internal", None) or self._recv_generic
