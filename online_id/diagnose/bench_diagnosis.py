@@ -416,14 +416,19 @@ def order_candidates(series: BenchSeries, spec: Spec, base: BenchFit, terms: lis
         new = fit_spec(series, spec.with_term(term), base.plateaus, only=(term.shaft,))
         g, t = _gain(new, base, (term.shaft,))
         orders.setdefault(term.order, {})[term.shaft] = (g, t)
-    out, seen = [], set()
-    for k, sides in orders.items():
+
+    def side(sides: dict) -> tuple[str, str]:
+        """The shaft whose equation gains more, and the side reported (``undetermined`` when tied)."""
         (s1, (g1, t1)), *rest = sorted(sides.items(), key=lambda kv: -kv[1][0])
         g2 = rest[0][1][0] if rest else 0.0
         tied = g2 > SIDE_UNDETERMINED * g1 > 0
         if judge is not None:  # the speed equations must tell the side, significantly
             tied = tied or not (g1 > 0 and t1 >= T_CRIT)
-        shaft = "undetermined" if tied else s1
+        return s1, "undetermined" if tied else s1
+
+    out, seen = [], set()
+    for k, sides in orders.items():
+        s1, shaft = side(sides)
         eq = judge or s1
         members, fam, shares = order_family(series, spec, base, s1, k, eq)
         if (s1, tuple(members)) in seen:
@@ -433,6 +438,8 @@ def order_candidates(series: BenchSeries, spec: Spec, base: BenchFit, terms: lis
         # a family of several lines is named by their greatest common divisor (one cylinder that differs:
         # 0.5 with every half order); two lines are a line and a passenger, named by the stronger
         f0 = bx.fundamental(members) if len(members) >= FAMILY_MIN else max(members, key=shares.get)
+        if f0 != k and f0 in orders:
+            continue  # named by another screened order: its own family stands for it
         out.append(BenchCandidate("rotation_order_disturbance",
                                   {"order": f0, "shaft": shaft, "family_orders": members,
                                    "reading": bx.family_reading(s1, members, series.pulses_per_rev, f0),
@@ -446,21 +453,24 @@ def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
                         report: Callable[[str], None] = lambda m: None) -> list[BenchCandidate]:
     """Fit every screened candidate against ``base`` (the current model)."""
     out: list[BenchCandidate] = []
-    lines = bx.screen_lines(base, EQS)
+    declared = set().union(*(p.declared for p in base.plateaus))
+    lines = bx.screen_lines(base, EQS) + bx.order_scan(base.plateaus, {eq: base.eqs[eq].residuals for eq in EQS},
+                                                        declared)
     report("rotation orders")
     terms = bx.order_candidates(lines, base)
     out += order_candidates(series, spec, base, terms)
     # an order the speed equations predict from their lags (a ripple on a heavy mass, well above the
-    # driveline mode) stands out in the torque balance alone, which nothing predicts from the speeds
-    if BALANCE in base.eqs:  # (the sides are told by the speed equations fitted beside it)
-        found = {t.order for t in terms}
-        out += order_candidates(series, spec, base, [t for t in bx.order_candidates(
-            bx.screen_lines(base, (BALANCE,), axes=("order",)), base) if t.order not in found], judge=BALANCE)
+    # driveline mode) stands out in the torque balance, which nothing predicts from the speeds: every
+    # order line of the balance is judged there too (the sides are told by the speed equations)
+    if BALANCE in base.eqs:
+        bal_lines = bx.screen_lines(base, (BALANCE,), axes=("order",)) + bx.order_scan(
+            base.plateaus, {BALANCE: base.eqs[BALANCE].residuals}, declared)
+        out += order_candidates(series, spec, base, bx.order_candidates(bal_lines, base), judge=BALANCE)
     if series.full is not None and series.full.meta.get("line_free_orders"):
         report("rotation orders at the recording's own rate")
         full_base = fit_spec(series.full, spec, only=EQS)
         orders = series.full.meta["line_free_orders"]
-        terms = [bx.OrderTerm(sh, k) for k in orders for sh in EQS]
+        terms = [bx.OrderTerm(sh, k) for k in orders for sh in EQS if sh != "dyno" or k % 1 == 0]
         out += order_candidates(series.full, spec, full_base, terms, FULL)
     report("speed transfer: delay and additional mode")
     tr = bt.transfer_effects(base.plateaus, MAX_DELAY_S)
@@ -625,19 +635,26 @@ def _plateau_gains(new: BenchFit, ref: BenchFit, eq: str) -> list[float]:
 
 
 def high_lines(series: BenchSeries) -> tuple[float, ...]:
-    """Undeclared order lines of the measured speeds at the recording's own rate that the decimated path
-    cannot judge on every plateau (above its passband on the fastest): the orders at which the speed
-    equations at the recording's rate are made line-free (:func:`~online_id.diagnose.bench_model.design`)."""
-    base = fit_spec(series.full, Spec(), only=EQS)
+    """Undeclared order lines at the recording's own rate (of the measured speeds, the equations' residuals
+    and the torque balance's, by Welch spectra and by order tracking) that the decimated path cannot judge
+    on every plateau (above its passband on the fastest): the orders at which the speed equations at the
+    recording's rate are made line-free (:func:`~online_id.diagnose.bench_model.design`)."""
+    base = fit_spec(series.full, Spec())
     ps = base.plateaus
     top = max(p.rev_hz for p in ps)
     declared = set().union(*(p.declared for p in ps))
     out = []
     # in the measured speeds (where the equations predict a strong line from their lags) and in the
-    # equations' residuals (where the speed's own spectrum holds it below the response to the excitation)
-    for line in bx.speed_lines(ps) + bx.screen_signals(ps, {eq: base.eqs[eq].residuals for eq in EQS}, ("order",),
-                                                       exclude=declared):
-        step = bx.ORDER_GRID_STEP if line.eq == "engine" else 1.0
+    # equations' residuals (where the speed's own spectrum holds it below the response to the excitation),
+    # by Welch spectra and by order tracking; and in the torque balance's residual (a ripple on a heavy mass
+    # that the speeds barely show), whose lines the speed equations at this rate then judge
+    speeds = {eq: [(p.y1 if eq == "dyno" else p.y2)[p.rows] for p in ps] for eq in EQS}
+    residuals = {eq: base.eqs[eq].residuals for eq in base.eqs}
+    for line in (bx.speed_lines(ps) + bx.screen_signals(ps, {eq: residuals[eq] for eq in EQS}, ("order",),
+                                                        exclude=declared)
+                 + bx.order_scan(ps, speeds, declared, above=series.path.passband_hz / top)
+                 + bx.order_scan(ps, residuals, declared, above=series.path.passband_hz / top)):
+        step = 1.0 if line.eq == "dyno" else bx.ORDER_GRID_STEP
         k = round(line.at / step) * step
         if k > 0 and k not in declared and abs(k - line.at) <= 0.05 and k * top > series.path.passband_hz:
             out.append(float(k))

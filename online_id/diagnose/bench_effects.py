@@ -46,6 +46,7 @@ from online_id.diagnose.bench_model import (BALANCE, BALANCE_LAGS, EQS, BenchFit
                                             order_columns, output, plateau_signals)
 from online_id.diagnose.bench_data import BenchSeries
 from online_id.diagnose.effects import BAND_Q, band_past
+from online_id.diagnose.residual_tests import angle_periodogram, line_ratio
 
 ORDER_GRID_STEP = 0.5
 MAX_ORDER = 16.0
@@ -384,6 +385,40 @@ def screen_signals(ps: list[PlateauSignals], signals: dict[str, list[np.ndarray]
     return out
 
 
+SCAN_MIN = 16.0  # line ratio (averaged over plateaus) a grid order must reach: the generic path's whole-record one
+
+
+def order_scan(ps: list[PlateauSignals], signals: dict[str, list[np.ndarray]],
+               exclude: set | frozenset = frozenset(), above: float = 0.0) -> list[Line]:
+    """Order lines of ``signals`` (per name, one array per plateau on its rows) found by order tracking,
+    as the generic path does (:func:`~online_id.diagnose.residual_tests.angle_periodogram`): each
+    plateau's signal resampled on the uniform angle of its shaft (``dyno``: the dyno's, else the
+    engine's) and its periodogram taken over the whole plateau.
+
+    A line locked to a shaft stays in one order bin whatever the speed does within the plateau, and its
+    height over the floor grows with the number of revolutions, where the Welch screen keeps it at that
+    of one 2 s segment.  At each half order (the grid above ``above``, ``exclude`` left out) the line ratio
+    (:func:`~online_id.diagnose.residual_tests.line_ratio`) is averaged over the plateaus where the
+    order lies below 0.45 fs; the :data:`N_LINES` highest at :data:`SCAN_MIN` or more are returned per
+    signal (``value``: that average)."""
+    grid = np.arange(ORDER_GRID_STEP, MAX_ORDER + 1e-9, ORDER_GRID_STEP)
+    grid = grid[[k > above and all(abs(k - x) > 0.1 for x in exclude) for k in grid]]
+    out = []
+    for name, sigs in signals.items():
+        ratio, count = np.zeros(grid.size), np.zeros(grid.size)
+        for p, r in zip(ps, sigs):
+            pg = angle_periodogram(r, (p.y1 if name == "dyno" else p.y2)[p.rows], p.fs_hz)
+            if pg is None:
+                continue
+            for i in np.flatnonzero(grid * p.rev_hz < 0.45 * p.fs_hz):
+                ratio[i] += line_ratio(*pg, float(grid[i]))
+                count[i] += 1
+        value = np.divide(ratio, count, out=np.zeros_like(ratio), where=count > 0)
+        idx = [i for i in np.argsort(value)[::-1][:N_LINES] if value[i] >= SCAN_MIN]
+        out += [Line(name, "order", float(grid[i]), float(value[i])) for i in idx]
+    return out
+
+
 HUMP_BAND = (8.0, 0.4)  # Hz, fraction of fs: where the torque balance's residual is searched for a hump
 HUMP_WELCH_S = 1.0
 
@@ -475,6 +510,8 @@ def order_candidates(lines: list[Line], fit: BenchFit) -> list[OrderTerm]:
         if k <= 0 or k in declared or abs(k - line.at) > 0.05:
             continue
         for shaft in EQS:
+            if shaft == "dyno" and k % 1:
+                continue  # an electric machine's lines are whole orders of its rotation
             t = OrderTerm(shaft, float(k))
             if t not in out:
                 out.append(t)
