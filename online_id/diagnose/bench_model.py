@@ -342,8 +342,22 @@ def fit_spec(series: BenchSeries, spec: Spec, ps: list[PlateauSignals] | None = 
     return BenchFit(spec, ps, eqs)
 
 
-def batch_mean_t(d: np.ndarray, n_batch: int = 20) -> float:
-    """Batch-means t statistic of the mean of ``d`` (consecutive batches absorb its correlation)."""
-    means = np.array([b.mean() for b in np.array_split(d, n_batch)])
-    se = means.std(ddof=1) / np.sqrt(n_batch)
-    return float(means.mean() / se) if se > 0 else 0.0
+def batch_mean_t(d: np.ndarray, n_batch: int = 20, strata: list[int] | None = None) -> float:
+    """Batch-means t statistic of the mean of ``d`` (consecutive batches absorb its correlation).
+
+    ``strata``: the lengths of consecutive parts of ``d`` that are strata of the design (plateaus): the
+    mean is the length-weighted mean of theirs and its variance sums each part's own (its batches, in
+    proportion to its length, at least 2), so a mean that differs between parts is no noise."""
+    if strata is None:
+        means = np.array([b.mean() for b in np.array_split(d, n_batch)])
+        se = means.std(ddof=1) / np.sqrt(n_batch)
+        return float(means.mean() / se) if se > 0 else 0.0
+    total, mean, var, start = float(sum(strata)), 0.0, 0.0, 0
+    for n in strata:
+        part = d[start:start + n]
+        start += n
+        k = max(2, int(round(n_batch * n / total)))
+        means = np.array([b.mean() for b in np.array_split(part, k)])
+        mean += n / total * float(part.mean())
+        var += (n / total) ** 2 * float(means.var(ddof=1)) / k
+    return float(mean / np.sqrt(var)) if var > 0 else 0.0

@@ -1,12 +1,13 @@
-"""The bench path's order-tracking screen (``bench_effects.order_scan``): a line locked to a shaft's angle
-is found at its order whatever the speed does within a plateau, however weak beside the noise in one
-Welch segment; noise alone and a line fixed in Hz give no candidate."""
+"""Two statistics of the bench diagnosis. The order-tracking screen (``bench_effects.order_scan``): a line
+locked to a shaft's angle is found at its order whatever the speed does within a plateau, however weak
+beside the noise in one Welch segment; noise alone and a line fixed in Hz give no candidate. The
+batch-means t with the plateaus as strata (``bench_model.batch_mean_t``)."""
 
 import numpy as np
 import pytest
 
 from online_id.diagnose.bench_effects import SCAN_MIN, order_scan
-from online_id.diagnose.bench_model import PlateauSignals
+from online_id.diagnose.bench_model import PlateauSignals, batch_mean_t
 
 FS = 500.0
 
@@ -58,3 +59,33 @@ def test_declared_and_low_orders_are_left_out():
     assert [ln.at for ln in order_scan(ps, {"engine": sig}, exclude={2.0})][:1] == [6.0]
     assert [ln.at for ln in order_scan(ps, {"engine": sig}, above=3.0)][:1] == [6.0]
     assert 2.0 not in [ln.at for ln in order_scan(ps, {"engine": sig}, above=3.0)]
+
+
+# -- the batch-means t with plateaus as strata (a backlash's evidence lives where the shaft torque reverses)
+
+@pytest.mark.parametrize("seed", range(3))
+def test_an_improvement_on_some_plateaus_only_is_significant_with_plateaus_as_strata(seed):
+    """An improvement that lives on two plateaus of four (correlated noise, AR(1) 0.9): pooled batches
+    count the difference between plateaus as noise; with the plateaus as strata it is the design."""
+    rng = np.random.default_rng(seed)
+    sizes = [int(n) for n in rng.integers(3000, 6000, size=4)]
+    parts = []
+    for i, n in enumerate(sizes):
+        e = np.zeros(n)
+        w = rng.standard_normal(n)
+        for j in range(1, n):
+            e[j] = 0.9 * e[j - 1] + w[j]
+        parts.append(0.3 * e + (1.0 if i in (0, 2) else 0.0))
+    d = np.concatenate(parts)
+    assert batch_mean_t(d, strata=sizes) > max(3 * batch_mean_t(d), 2.86)
+
+
+def test_noise_with_plateaus_as_strata_is_seldom_significant():
+    """White noise of zero mean in 3-4 strata: |t| >= 2.86 in about the share a t of ~16 degrees of freedom
+    gives (one in a hundred), not more."""
+    rng = np.random.default_rng(42)
+    hits = 0
+    for _ in range(400):
+        sizes = [int(n) for n in rng.integers(2000, 6000, size=rng.integers(3, 5))]
+        hits += abs(batch_mean_t(rng.standard_normal(sum(sizes)), strata=sizes)) >= 2.86
+    assert hits <= 12  # 3 %
