@@ -505,13 +505,16 @@ def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
         strength = bx.line_strength(bal, eq, f)
         if min(strength) < LINE_ON_EVERY_PLATEAU:
             continue  # not on every plateau: not fixed in Hz (a rotation order passing f at one speed)
-        term = bx.FixedTerm(f, eq, tuple(bal.eqs[eq].residuals))
-        fixed = fit_spec(series, spec.with_term(term), bal.plateaus, only=(eq,))
-        g_f, t_f = _gain(fixed, bal, (eq,))
-        out.append(BenchCandidate("fixed_frequency_disturbance",
-                                  {"freq_hz": f, "coherence_contrast": contrast, "coherence": level,
-                                   "line_strength": strength, "found_in": eq},
-                                  g_f, t_f, fixed.spec, (eq,)))
+        # judged in the equation it was found in, and a line found in a speed equation in the balance too
+        # (a speed equation predicts a strong line from its own lags and may gain nothing from the term)
+        for judge in (eq,) if eq == BALANCE else (eq, BALANCE):
+            term = bx.FixedTerm(f, judge, tuple(bal.eqs[judge].residuals))
+            fixed = fit_spec(series, spec.with_term(term), bal.plateaus, only=(judge,))
+            g_f, t_f = _gain(fixed, bal, (judge,))
+            out.append(BenchCandidate("fixed_frequency_disturbance",
+                                      {"freq_hz": f, "coherence_contrast": contrast, "coherence": level,
+                                       "line_strength": strength, "found_in": eq},
+                                      g_f, t_f, fixed.spec, (judge,)))
     report("broadband resonance")
     hump = bx.balance_hump(bal)
     cand = hump_candidate(series, spec, bal, coh_f, coh, seen, hump)
