@@ -89,3 +89,25 @@ def test_noise_with_plateaus_as_strata_is_seldom_significant():
         sizes = [int(n) for n in rng.integers(2000, 6000, size=rng.integers(3, 5))]
         hits += abs(batch_mean_t(rng.standard_normal(sum(sizes)), strata=sizes)) >= 2.86
     assert hits <= 12  # 3 %
+
+
+# -- a line at an accepted mode's frequency is the mode ringing
+
+def _cand(kind, gain, **params):
+    from online_id.diagnose.bench_diagnosis import BenchCandidate
+    from online_id.diagnose.bench_model import Spec
+
+    return BenchCandidate(kind, params, gain, 10.0, Spec())
+
+
+@pytest.mark.parametrize("f_line, f_mode, dropped", [(34.25, 34.03, True), (101.0, 96.5, True),
+                                                     (30.3, 34.0, False), (100.8, 150.6, False)])
+def test_a_narrow_line_at_an_accepted_modes_frequency_is_left_out(f_line, f_mode, dropped):
+    from online_id.diagnose.bench_diagnosis import ringing_lines_left_out
+
+    line = _cand("fixed_frequency_disturbance", 0.34, freq_hz=f_line)
+    broad = _cand("fixed_frequency_disturbance", 0.2, freq_hz=f_line, broadband=True)
+    mode = _cand("additional_mode", 0.9, freq_hz=f_mode, location="dyno")
+    kept = ringing_lines_left_out([line, broad, mode])
+    assert (line not in kept) == dropped and broad in kept and mode in kept
+    assert ringing_lines_left_out([line, broad]) == [line, broad]  # no mode accepted: every line stays

@@ -697,7 +697,7 @@ def diagnose_bench(series: BenchSeries, *, na: int = 6, nb: int = 6, max_effects
                  for s in steps}
         cands = [c for c in cands if (c.kind, c.params.get("signal"), c.params.get("order")) not in taken]
         all_cands.append(cands)
-        ok = sorted((c for c in cands if is_accepted(c.kind, c.gain, c.t_stat, thr)),
+        ok = sorted(ringing_lines_left_out(c for c in cands if is_accepted(c.kind, c.gain, c.t_stat, thr)),
                     key=lambda c: -c.gain / thr[c.kind])
         chosen = None
         for c in ok:
@@ -720,6 +720,21 @@ def diagnose_bench(series: BenchSeries, *, na: int = 6, nb: int = 6, max_effects
         cur, cur_ch = new, new_ch
     report(1.0, "done")
     return BenchDiagnosis(series, base, cur, steps, all_cands, thr, stop, base_ch, cur_ch, refused, transfer)
+
+
+RINGING_HZ = (2.0, 0.05)  # a line within the larger of 2 Hz and 5 % of an accepted mode's frequency is its ringing
+
+
+def ringing_lines_left_out(accepted) -> list[BenchCandidate]:
+    """The accepted candidates without the narrow fixed-frequency lines at the frequency of an accepted
+    additional mode: a lightly damped mode rings at its frequency, and a line there is that ringing (the
+    mode explains it and the motion it comes with; a line explains only the line)."""
+    cands = list(accepted)
+    modes = [c.params["freq_hz"] for c in cands if c.kind == "additional_mode" and c.params.get("freq_hz")
+             and np.isfinite(c.params["freq_hz"])]
+    return [c for c in cands if not (c.kind == "fixed_frequency_disturbance" and not c.params.get("broadband")
+                                     and any(abs(c.params["freq_hz"] - f) <= max(RINGING_HZ[0], RINGING_HZ[1] * f)
+                                             for f in modes))]
 
 
 def channels_of(series: BenchSeries, fit: BenchFit, transfer_cache: dict | None = None) -> Channels:
