@@ -114,9 +114,14 @@ def test_the_store_appends_parts_reads_each_row_once_and_refuses_a_second_writer
             with ResultStore(tmp_path / "res", about):
                 pass
     assert len(list((tmp_path / "res" / PARTS).glob("*.parquet"))) == 2
+    # a run killed while it wrote a part leaves that part's temporary file: never read, and removed by the
+    # next run that opens the table
+    stale = tmp_path / "res" / PARTS / ".part-20261208T010528-3947-00002.soo35qqi.partial.parquet"
+    stale.write_bytes(b"PAR1 cut short")
     got = read_rows(tmp_path / "res")
     assert [(r["sha256"], r["op_index"]) for r in got] == [("h0", 0), ("h0", 1), ("h1", 0), ("h1", 1)]
     with ResultStore(tmp_path / "res", about) as store:
+        assert not stale.exists()
         store.add(rows[4:])
         merged = store.compact()
     assert len(merged) == 6 and not list((tmp_path / "res" / PARTS).glob("*.parquet"))

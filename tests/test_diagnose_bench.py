@@ -130,16 +130,15 @@ def test_a_chain_benchs_dyno_ripple_is_named(tmp_path, capsys, monkeypatch, seed
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed, truth, kind", [(90249, "backlash", "backlash"),
-                                               (90327, "fixed_frequency", "fixed_frequency_disturbance")])
+@pytest.mark.parametrize("seed, truth, kind", [(90327, "fixed_frequency", "fixed_frequency_disturbance")])
 def test_a_chain_bench_that_named_nothing_names_its_effect(tmp_path, capsys, monkeypatch, seed, truth, kind):
     """Chain benches (held out until they showed this; development cases since) that named nothing.
-    90249: a backlash whose candidate removed 30 % of the speed equations' held-out error, all of it on
-    the two plateaus of four where the shaft torque reverses; pooled batches gave t 2.6 (now the plateaus
-    are strata). 90327: a line of 2.2 Nm at 100.8 Hz on the engine, 33-848x its floor in the engine's
-    speed equation (which predicts it from its own lags: the term lost 3 % there) and hidden in the
-    balance's noise (1.1-1.3x), where its term removes 3.4 % at t 9.7 (now a line found in a speed
-    equation is judged in the balance too). Each is named first and the summary falls."""
+    90327: a line of 2.2 Nm at 100.8 Hz on the engine, 33-848x its floor in the engine's speed equation
+    (which predicts it from its own lags: the term lost 3 % there) and hidden in the balance's noise
+    (1.1-1.3x), where its term removes 3.4 % at t 9.7 (now a line found in a speed equation is judged in
+    the balance too). It is named first and the summary falls. (90249, a backlash at t 2.6 pooled and 5.4
+    with the plateaus as strata, is kept out of the suite for its 45 s; tests/test_bench_screening.py
+    tests the statistic.)"""
     from online_id.evaluation.chain import prepare_case
 
     spec, argv = prepare_case(seed, False, tmp_path)

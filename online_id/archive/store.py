@@ -84,7 +84,9 @@ def read_rows(path: str | Path) -> list[dict[str, Any]]:
     path = Path(path)
     if path.is_dir():
         files = [path / TABLE] if (path / TABLE).is_file() else []
-        files += sorted((path / PARTS).glob("*.parquet")) if (path / PARTS).is_dir() else []
+        # a hidden part is the temporary file of a write that was killed before it finished
+        files += sorted(f for f in (path / PARTS).glob("*.parquet") if not f.name.startswith(".")) \
+            if (path / PARTS).is_dir() else []
         if not files:
             raise InputDataError(f"{path}: no results table here (expected {TABLE} or {PARTS}/*.parquet, "
                                  "as `online-id archive identify --out` writes)")
@@ -180,6 +182,8 @@ class ResultStore:
             raise InputDataError(f"{self.directory}: another online-id archive run is writing this table; "
                                  "wait for it or give another --out") from None
         self._lock_fd = fd
+        for stale in (self.directory / PARTS).glob(".*.partial.parquet"):  # a killed run's unfinished part
+            stale.unlink(missing_ok=True)
         meta = self.directory / META
         want = {"table": "online-id archive", **self.about}
         if meta.exists():
