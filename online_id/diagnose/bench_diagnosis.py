@@ -409,18 +409,21 @@ def order_family(series: BenchSeries, spec: Spec, base: BenchFit, shaft: str,
 
 
 def order_candidates(series: BenchSeries, spec: Spec, base: BenchFit, terms: list, suffix: str = "",
-                     judge: str | None = None) -> list[BenchCandidate]:
+                     judge: str | None = None, side_fits: dict | None = None) -> list[BenchCandidate]:
     """Rotation-order candidates from screened order terms (both shafts each): the side whose equation
     gains more (``undetermined`` when the other gains 80 % of it), then the family around the order on
     that side (:func:`order_family`), named by its fundamental with a reading.  ``suffix``: the fits are
     at the recording's own rate (:data:`FULL`).  ``judge``: the equation the family is built and judged
     on (default the side's own speed equation); with the torque balance, a side whose speed equation
-    gains nothing significant is ``undetermined`` (both shafts turn at one mean speed)."""
+    gains nothing significant is ``undetermined`` (both shafts turn at one mean speed).  ``side_fits``: the
+    gain and t of each term in its shaft's equation, kept across calls on the same ``base`` and ``spec``."""
+    fits = {} if side_fits is None else side_fits
     orders: dict[float, dict[str, tuple]] = {}
     for term in terms:
-        new = fit_spec(series, spec.with_term(term), base.plateaus, only=(term.shaft,))
-        g, t = _gain(new, base, (term.shaft,))
-        orders.setdefault(term.order, {})[term.shaft] = (g, t)
+        if term not in fits:
+            new = fit_spec(series, spec.with_term(term), base.plateaus, only=(term.shaft,))
+            fits[term] = _gain(new, base, (term.shaft,))
+        orders.setdefault(term.order, {})[term.shaft] = fits[term]
 
     def side(sides: dict) -> tuple[str, str]:
         """The shaft whose equation gains more, and the side reported (``undetermined`` when tied)."""
@@ -463,19 +466,21 @@ def evaluate_candidates(series: BenchSeries, spec: Spec, base: BenchFit,
                                                         declared)
     report("rotation orders")
     terms = bx.order_candidates(lines, base)
-    out += order_candidates(series, spec, base, terms)
+    side_fits: dict = {}  # an order screened in a speed equation and in the balance is fitted on its sides once
+    out += order_candidates(series, spec, base, terms, side_fits=side_fits)
     # an order the speed equations predict from their lags (a ripple on a heavy mass, well above the
     # driveline mode) stands out in the torque balance, which nothing predicts from the speeds: every
     # order line of the balance is judged there too (the sides are told by the speed equations)
     if BALANCE in base.eqs:
         bal_lines = bx.screen_lines(base, (BALANCE,), axes=("order",)) + bx.order_scan(
             base.plateaus, {BALANCE: base.eqs[BALANCE].residuals}, declared)
-        out += order_candidates(series, spec, base, bx.order_candidates(bal_lines, base), judge=BALANCE)
+        out += order_candidates(series, spec, base, bx.order_candidates(bal_lines, base), judge=BALANCE,
+                                side_fits=side_fits)
     if series.full is not None and series.full.meta.get("line_free_orders"):
         report("rotation orders at the recording's own rate")
         full_base = fit_spec(series.full, spec, only=EQS)
         orders = series.full.meta["line_free_orders"]
-        terms = [bx.OrderTerm(sh, k) for k in orders for sh in EQS if sh != "dyno" or k % 1 == 0]
+        terms = [t for k in orders for t in bx.order_terms(k)]
         out += order_candidates(series.full, spec, full_base, terms, FULL)
     report("speed transfer: delay and additional mode")
     tr = bt.transfer_effects(base.plateaus, MAX_DELAY_S)

@@ -509,13 +509,14 @@ def order_candidates(lines: list[Line], fit: BenchFit) -> list[OrderTerm]:
         k = round(line.at / ORDER_GRID_STEP) * ORDER_GRID_STEP
         if k <= 0 or k in declared or abs(k - line.at) > 0.05:
             continue
-        for shaft in EQS:
-            if shaft == "dyno" and k % 1:
-                continue  # an electric machine's lines are whole orders of its rotation
-            t = OrderTerm(shaft, float(k))
-            if t not in out:
-                out.append(t)
+        out += [t for t in order_terms(k) if t not in out]
     return out
+
+
+def order_terms(order: float) -> list[OrderTerm]:
+    """The order terms tried for a screened ``order``: on the engine, and on the dyno where it is a whole
+    order (an electric machine's lines are whole orders of its rotation)."""
+    return [OrderTerm(shaft, float(order)) for shaft in EQS if shaft != "dyno" or order % 1 == 0]
 
 
 def excitation_coherence(fit: BenchFit, eq: str) -> tuple[np.ndarray, np.ndarray]:
